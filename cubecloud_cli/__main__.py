@@ -1,0 +1,3 @@
+from cubecloud_cli.cli import main
+
+main()

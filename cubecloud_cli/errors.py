@@ -1,0 +1,8 @@
+"""The one exception type that the command line turns into a one-line message and exit code 2."""
+
+
+class CubecloudError(Exception):
+    """A problem with the user's input or work directory, stated with its fix.
+
+    The message is a single line meant for the terminal: what is wrong, then what to do.
+    """

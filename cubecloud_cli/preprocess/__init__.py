@@ -1,0 +1,5 @@
+"""`cubecloud preprocess`: a scan -> the normalized S³ cube volume in WORK/preprocess/."""
+
+from cubecloud_cli.preprocess.stage import PreprocessSettings, preprocess_scan
+
+__all__ = ["PreprocessSettings", "preprocess_scan"]

@@ -1,0 +1,175 @@
+"""The preprocess stage: read, repair, reorient, window, resample, write.
+
+WORK/preprocess/ holds
+  volume.npy      float32 S×S×S in [0, 1], axes RAS (x left→right, y posterior→anterior,
+                  z inferior→superior); np.load(..., mmap_mode="r") maps it without reading it
+  volume.nii.gz   the same voxels with the affine that lays them over the original scan
+  preview.png     axial, coronal and sagittal mid-slices
+  manifest.json   parameters, input sha256, timings and the voxel ↔ world ↔ scanner maps
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cubecloud_cli.artifacts import StageWriter, check_free_disk, read_manifest
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.preprocess.preview import write_preview
+from cubecloud_cli.volume.cube_frame import plan_cube
+from cubecloud_cli.volume.intensity import detect_modality, replace_nonfinite, resolve_intensity_map
+from cubecloud_cli.volume.orientation import axis_codes, reorient_to_ras
+from cubecloud_cli.volume.readers import read_scan
+from cubecloud_cli.volume.resample import interpolation_matrix, resample_axes
+
+log = logging.getLogger("cubecloud")
+
+VOLUME_NPY = "volume.npy"
+VOLUME_NIFTI = "volume.nii.gz"
+PREVIEW_PNG = "preview.png"
+
+MIN_SIZE, MAX_SIZE = 8, 2048
+
+
+@dataclass(frozen=True)
+class PreprocessSettings:
+    """Every parameter of the stage, after presets are applied (recorded in the manifest)."""
+
+    size: int = 128
+    fit: str = "pad"
+    window: str = "abdomen"
+    hu_min: float | None = None
+    hu_max: float | None = None
+    modality: str = "auto"
+    percentiles: tuple[float, float] = (0.5, 99.5)
+    interpolation: str = "linear"
+    spacing: tuple[float, float, float] | None = None
+    volume_index: int | None = None
+
+    def validate(self) -> None:
+        if not MIN_SIZE <= self.size <= MAX_SIZE:
+            raise CubecloudError(f"--size {self.size} is outside {MIN_SIZE}..{MAX_SIZE} voxels: the paper uses 512")
+        if self.fit not in ("pad", "stretch"):
+            raise CubecloudError(f"--fit {self.fit!r} must be pad or stretch")
+        if self.interpolation not in ("linear", "nearest"):
+            raise CubecloudError(f"--interpolation {self.interpolation!r} must be linear or nearest")
+        low, high = self.percentiles
+        if not 0 <= low < high <= 100:
+            raise CubecloudError(f"--percentiles {low:g},{high:g} must satisfy 0 <= low < high <= 100")
+        if self.modality not in ("auto", "ct", "mr"):
+            raise CubecloudError(f"--modality {self.modality!r} must be auto, ct or mr")
+
+
+def _check_memory(size: int, source_voxels: int) -> None:
+    # Peak: the float32 source and its windowed copy, two intermediate products, the S³ result.
+    needed = 4 * (2 * source_voxels + 3 * size**3)
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return
+    if needed > 0.8 * total:
+        raise CubecloudError(
+            f"--size {size} needs about {needed / 2**30:.1f} GiB of memory and this machine has "
+            f"{total / 2**30:.1f} GiB: choose a smaller --size"
+        )
+
+
+def preprocess_scan(
+    scan_path: Path, work: Path, settings: PreprocessSettings, *, force: bool = False
+) -> dict:
+    """Run the stage; returns the manifest written to WORK/preprocess/manifest.json."""
+    settings.validate()
+    writer = StageWriter(Path(work), "preprocess", asdict(settings), force=force)
+    writer.check_can_start()  # refuse before reading a large scan
+    with writer:
+        with writer.phase("read"):
+            scan = read_scan(scan_path, spacing_mm=settings.spacing, volume_index=settings.volume_index)
+            writer.add_input(Path(scan_path), label=str(scan_path))
+        for note in scan.notes:
+            log.info(note)
+        _check_memory(settings.size, scan.data.size)
+        check_free_disk(Path(work), 2 * 4 * settings.size**3)
+
+        with writer.phase("intensity"):
+            replaced = replace_nonfinite(scan.data)
+            if replaced:
+                log.warning(
+                    f"{replaced} voxels were NaN or Inf; replaced them with the scan's "
+                    f"smallest (NaN, -Inf) or largest (+Inf) finite value"
+                )
+            if settings.modality == "auto":
+                modality, reason = detect_modality(scan.data, scan.modality)
+                log.info(f"modality: {modality.upper()} ({reason}); override with --modality")
+            else:
+                modality = settings.modality
+            source_range = (float(scan.data.min()), float(scan.data.max()))
+            if source_range[0] == source_range[1]:
+                log.warning(
+                    f"the scan is constant ({source_range[0]:g} everywhere): the volume is uniform "
+                    f"and holds no anatomy"
+                )
+            intensity = resolve_intensity_map(
+                scan.data, modality, settings.window, settings.hu_min, settings.hu_max, settings.percentiles
+            )
+            source_info = {
+                "path": str(Path(scan_path).resolve()),
+                "format": scan.source_format,
+                "shape": list(scan.data.shape),
+                "axcodes": axis_codes(scan.affine),
+                "spacing_mm": scan.spacing_mm,
+                "affine": scan.affine,
+                "value_range": source_range,
+                "nonfinite_replaced": replaced,
+            }
+            ras_data, ras_affine = reorient_to_ras(scan.data, scan.affine)
+            normalized = intensity.apply(ras_data, inplace=True)
+            del scan
+
+        with writer.phase("resample"):
+            frame = plan_cube(normalized.shape, ras_affine, settings.size, settings.fit)  # type: ignore[arg-type]
+            matrices = [
+                interpolation_matrix(n, settings.size, frame.index_scale[a], frame.index_offset[a], settings.interpolation)  # type: ignore[arg-type]
+                for a, n in enumerate(normalized.shape)
+            ]
+            volume = resample_axes(normalized, matrices)
+            del normalized
+
+        with writer.phase("write"):
+            np.save(writer.directory / VOLUME_NPY, volume)
+            _write_nifti(volume, frame.voxel_to_scanner(), writer.directory / VOLUME_NIFTI, intensity.method)
+            write_preview(volume, writer.directory / PREVIEW_PNG)
+
+        writer.metrics.update(
+            {
+                "value_min": float(volume.min()),
+                "value_max": float(volume.max()),
+                "value_mean": float(volume.mean()),
+                "nonzero_fraction": float(np.count_nonzero(volume) / volume.size),
+            }
+        )
+        writer.extra.update(
+            {
+                "source": source_info,
+                "intensity": intensity.as_dict(),
+                "geometry": frame.describe(),
+                "volume": {"file": VOLUME_NPY, "shape": list(volume.shape), "dtype": "float32", "axes": "RAS"},
+            }
+        )
+    return read_manifest(writer.final_dir)
+
+
+def _write_nifti(volume: np.ndarray, affine: np.ndarray, path: Path, description: str) -> None:
+    import nibabel as nib
+
+    image = nib.Nifti1Image(volume, affine)
+    # Scanner-frame codes on both forms, so every viewer places it over the original scan.
+    image.set_qform(affine, code=1)
+    image.set_sform(affine, code=1)
+    image.header.set_xyzt_units("mm")
+    image.header["descrip"] = f"cubecloud {description} -> [0,1]"[:79].encode()
+    image.header["cal_min"], image.header["cal_max"] = 0.0, 1.0
+    nib.save(image, str(path))

@@ -1,0 +1,101 @@
+import json
+
+import numpy as np
+import pytest
+
+from cubecloud_cli.artifacts import StageWriter, require_stage, sha256_of_file, stage_dir_name
+from cubecloud_cli.errors import CubecloudError
+
+
+def _write_stage(work, value="a", force=False, name=None):
+    with StageWriter(work, "preprocess", {"value": value, "ratio": np.float32(0.5)}, force=force, name=name) as writer:
+        (writer.directory / "data.txt").write_text(value)
+        with writer.phase("compute"):
+            writer.metrics["psnr"] = float("inf")
+    return writer
+
+
+def test_manifest_records_everything(tmp_path):
+    source = tmp_path / "input.bin"
+    source.write_bytes(b"abc")
+    with StageWriter(tmp_path / "w", "preprocess", {"size": 8}) as writer:
+        writer.add_input(source, "scan")
+        (writer.directory / "sub").mkdir()
+        (writer.directory / "sub" / "out.bin").write_bytes(b"xyz")
+    manifest = json.loads((tmp_path / "w" / "preprocess" / "manifest.json").read_text())
+    assert manifest["stage"] == "preprocess" and manifest["params"] == {"size": 8}
+    assert manifest["inputs"]["scan"] == sha256_of_file(source)
+    assert manifest["files"]["sub/out.bin"]["bytes"] == 3
+    assert "total" in manifest["timings_s"] and manifest["cubecloud_version"]
+
+
+def test_nonfinite_metrics_stay_valid_json(tmp_path):
+    _write_stage(tmp_path)
+    manifest = json.loads((tmp_path / "preprocess" / "manifest.json").read_text())
+    assert manifest["metrics"]["psnr"] == "inf" and manifest["params"]["ratio"] == 0.5
+
+
+def test_failure_leaves_nothing_behind(tmp_path):
+    with pytest.raises(RuntimeError):
+        with StageWriter(tmp_path, "preprocess", {}) as writer:
+            (writer.directory / "half.bin").write_bytes(b"x")
+            raise RuntimeError("crash")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_keep_partial_keeps_checkpoints_for_resume(tmp_path):
+    with pytest.raises(KeyboardInterrupt):
+        with StageWriter(tmp_path, "cunerf", {}, keep_partial=True) as writer:
+            (writer.directory / "checkpoint.pt").write_bytes(b"x")
+            raise KeyboardInterrupt
+    assert (tmp_path / ".cunerf.partial" / "checkpoint.pt").exists()
+    assert not (tmp_path / "cunerf").exists()
+
+
+def test_complete_stage_is_kept_unless_forced(tmp_path):
+    _write_stage(tmp_path, "first")
+    with pytest.raises(CubecloudError, match="--force"):
+        _write_stage(tmp_path, "second")
+    assert (tmp_path / "preprocess" / "data.txt").read_text() == "first"
+    _write_stage(tmp_path, "second", force=True)
+    assert (tmp_path / "preprocess" / "data.txt").read_text() == "second"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["preprocess"]  # no leftovers
+
+
+def test_failed_forced_rerun_keeps_the_old_stage(tmp_path):
+    _write_stage(tmp_path, "first")
+    with pytest.raises(RuntimeError):
+        with StageWriter(tmp_path, "preprocess", {}, force=True):
+            raise RuntimeError
+    assert (tmp_path / "preprocess" / "data.txt").read_text() == "first"
+
+
+def test_require_stage_names_the_fix(tmp_path):
+    with pytest.raises(CubecloudError, match="does not exist: run `cubecloud preprocess SCAN"):
+        require_stage(tmp_path, "preprocess")
+    (tmp_path / "preprocess").mkdir()
+    with pytest.raises(CubecloudError, match="incomplete"):
+        require_stage(tmp_path, "preprocess")
+
+
+def test_require_stage_detects_changed_files(tmp_path):
+    _write_stage(tmp_path)
+    assert require_stage(tmp_path, "preprocess")["params"]["value"] == "a"
+    (tmp_path / "preprocess" / "data.txt").write_text("tampered!")
+    with pytest.raises(CubecloudError, match="missing or changed"):
+        require_stage(tmp_path, "preprocess")
+
+
+def test_named_runs_sit_side_by_side(tmp_path):
+    _write_stage(tmp_path, name="random")
+    _write_stage(tmp_path)
+    assert (tmp_path / "preprocess-random" / "manifest.json").exists()
+    assert require_stage(tmp_path, "preprocess", "random")
+    with pytest.raises(CubecloudError):
+        stage_dir_name("splat", "../evil")
+
+
+def test_work_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "work").write_text("x")
+    with pytest.raises(CubecloudError, match="is a file"):
+        _write_stage(tmp_path / "work")
