@@ -1,0 +1,33 @@
+import numpy as np
+
+from cli_helpers import assert_one_line_error, invoke
+from conftest import body_phantom, write_nifti
+
+
+def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, phantom_nifti):
+    work = tmp_path / "w"
+    first = invoke("run", phantom_nifti, "-o", work, "--size", 16)
+    assert first.exit_code == 0, first.output
+    assert "preprocess" in first.stderr and "total" in first.stderr
+    stamp = (work / "preprocess" / "manifest.json").stat().st_mtime_ns
+
+    again = invoke("run", phantom_nifti, "-o", work, "--size", 16)
+    assert again.exit_code == 0 and "skipped" in again.stderr
+    assert (work / "preprocess" / "manifest.json").stat().st_mtime_ns == stamp
+
+    error = assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--size", 24), "other settings")
+    assert "size: 16 -> 24" in error and "--force" in error
+    assert invoke("run", phantom_nifti, "-o", work, "--size", 24, "--force").exit_code == 0
+
+
+def test_run_notices_a_different_scan(tmp_path, phantom_nifti):
+    work = tmp_path / "w"
+    assert invoke("run", phantom_nifti, "-o", work, "--size", 16).exit_code == 0
+    other = write_nifti(tmp_path / "other.nii.gz", body_phantom(seed=7), np.diag([1.5, 1.5, 3.0, 1.0]))
+    assert_one_line_error(invoke("run", other, "-o", work, "--size", 16), "input scan differs")
+
+
+def test_run_on_the_bundled_scan(tmp_path):
+    result = invoke("run", "-o", tmp_path / "w", "--size", 32)
+    assert result.exit_code == 0 and "bundled" in result.stderr
+    assert (tmp_path / "w" / "preprocess" / "preview.png").exists()

@@ -1,0 +1,105 @@
+"""The preprocess stage on every real scan: orientation, extent, range, placement in the scanner.
+
+The placement check is independent of our reader and reorientation code: with nearest-neighbour
+resampling each output voxel must hold the value of the input voxel whose centre lies within
+half a voxel of the output voxel's scanner position, found through nibabel's affines alone.
+"""
+
+import json
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from conftest import shared_scan
+from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
+from cubecloud_cli.sample_data import sample_ct_path
+from cubecloud_cli.volume.readers import read_scan
+
+SCANS = {
+    "bundled": None,
+    "abdomen": "ct_abdomen_pelvis_3mm_totalseg.nii.gz",
+    "cardiac": "ct_cardiac_cta_1p5mm_totalseg.nii.gz",
+    "chest": "ct_chest_5mm_pyradiomics_lung1.nii.gz",
+    "mr": "mr_abdomen_3mm_totalseg.nii.gz",
+    "dicom": "dicom/ct_upper_abdomen_totalseg",
+}
+
+
+def _scan_path(key):
+    return sample_ct_path() if SCANS[key] is None else shared_scan(SCANS[key])
+
+
+def _source_array_and_affine(path):
+    """The input as stored (not reoriented): nibabel for NIfTI, our DICOM reader otherwise
+    (that reader is checked against nibabel.nicom in test_readers)."""
+    if path.is_dir():
+        scan = read_scan(path)
+        return scan.data, scan.affine
+    image = nib.load(str(path))
+    return np.asarray(image.dataobj, dtype=np.float32), image.affine
+
+
+@pytest.mark.parametrize("key", list(SCANS))
+def test_nearest_output_voxels_sit_over_their_input_voxels(tmp_path, key):
+    path = _scan_path(key)
+    manifest = preprocess_scan(
+        path, tmp_path, PreprocessSettings(size=40, window="full", interpolation="nearest", modality="ct")
+    )
+    output = nib.load(str(tmp_path / "preprocess" / "volume.nii.gz"))
+    assert "".join(nib.aff2axcodes(output.affine)) == "RAS"
+    volume = np.asarray(output.dataobj)
+    assert np.array_equal(volume, np.load(tmp_path / "preprocess" / "volume.npy"))
+
+    source, source_affine = _source_array_and_affine(path)
+    low, high = manifest["intensity"]["low"], manifest["intensity"]["high"]
+    rng = np.random.default_rng(0)
+    voxels = rng.integers(0, 40, size=(4000, 3))
+    continuous = (np.linalg.inv(source_affine) @ output.affine @ np.c_[voxels, np.ones(len(voxels))].T)[:3].T
+    nearest = np.floor(continuous + 0.5).astype(int)
+    inside = np.all((continuous > -0.5) & (continuous < np.array(source.shape) - 0.5), axis=1)
+    # Skip positions halfway between two input centres, where "nearest" is a tie.
+    not_a_tie = np.all(np.abs(continuous - np.floor(continuous) - 0.5) > 1e-3, axis=1)
+    check = inside & not_a_tie
+    assert check.sum() > 200
+    expected = np.clip((source[tuple(nearest[check].T)] - low) / (high - low), 0, 1)
+    got = volume[tuple(voxels[check].T)]
+    assert np.allclose(got, expected, atol=1e-6)
+    assert np.all(volume[tuple(voxels[~inside].T)] == 0)  # padding is air
+
+
+@pytest.mark.parametrize("key", list(SCANS))
+def test_default_settings_on_real_scans(tmp_path, key):
+    path = _scan_path(key)
+    manifest = preprocess_scan(path, tmp_path, PreprocessSettings(size=48))
+    volume = np.load(tmp_path / "preprocess" / "volume.npy", mmap_mode="r")
+    assert volume.shape == (48, 48, 48) and volume.dtype == np.float32
+    assert float(volume.min()) >= 0 and float(volume.max()) <= 1 and float(volume.max()) > 0.5
+    expected_modality = "mr" if key == "mr" else "ct"
+    assert manifest["intensity"]["modality"] == expected_modality
+
+    # --fit pad keeps the physical extent: the cube side equals the longest scan extent and
+    # the scan's bounding box lies inside the cube in scanner coordinates.
+    geometry = manifest["geometry"]
+    source = manifest["source"]
+    extent = np.array(source["shape"]) * np.array(source["spacing_mm"])
+    assert np.allclose(np.array(geometry["voxel_size_mm"]) * 48, extent.max(), rtol=1e-6)
+    assert np.allclose(geometry["mm_per_world_unit"], extent.max() / 2, rtol=1e-6)
+    source_affine = np.array(source["affine"])
+    corners = np.array([[i, j, k, 1] for i in (-0.5, source["shape"][0] - 0.5)
+                        for j in (-0.5, source["shape"][1] - 0.5) for k in (-0.5, source["shape"][2] - 0.5)])
+    world = (np.linalg.inv(np.array(geometry["world_to_scanner"])) @ (source_affine @ corners.T))[:3]
+    assert np.all(np.abs(world) <= 1 + 1e-6)
+    assert np.isclose(np.abs(world).max(), 1.0, atol=1e-6)  # the longest axis touches the faces
+
+
+@pytest.mark.parametrize("key", ["cardiac", "chest"])
+def test_lps_scans_match_nibabel_canonical(tmp_path, key):
+    path = _scan_path(key)
+    assert "".join(nib.aff2axcodes(nib.load(str(path)).affine)) == "LPS"
+    canonical = nib.as_closest_canonical(nib.load(str(path)))
+    manifest = preprocess_scan(path, tmp_path, PreprocessSettings(size=32, fit="stretch"))
+    # With stretch, cube voxel (0,0,0)'s outer corner is the canonical array's (-0.5,-0.5,-0.5).
+    corner = np.array(manifest["geometry"]["voxel_to_scanner"]) @ [-0.5, -0.5, -0.5, 1]
+    assert np.allclose(corner, canonical.affine @ [-0.5, -0.5, -0.5, 1], atol=1e-6)
+    assert json.loads((tmp_path / "preprocess" / "manifest.json").read_text())["source"]["axcodes"] == "LPS"
