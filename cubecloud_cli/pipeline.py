@@ -9,6 +9,7 @@ import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 from cubecloud_cli.artifacts import is_complete, read_manifest, sha256_of_path
 from cubecloud_cli.errors import CubecloudError
@@ -51,14 +52,23 @@ def stage_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> 
 
 
 def run_pipeline(
-    scan: Path, work: Path, preprocess_settings: PreprocessSettings, *, force: bool = False
+    scan: Path,
+    work: Path,
+    preprocess_settings: PreprocessSettings,
+    *,
+    force: bool = False,
+    run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
 ) -> list[StageOutcome]:
+    """Run the stages in order. ``run_preprocess`` lets the caller wrap the stage (progress)."""
+    if run_preprocess is None:
+        def run_preprocess(scan, work, settings, force):
+            return preprocess_scan(scan, work, settings, force=force)
     outcomes = []
     work = Path(work)
     start = time.perf_counter()
     if not force and stage_is_current(work / "preprocess", asdict(preprocess_settings), [Path(scan)]):
         outcomes.append(StageOutcome("preprocess", "skipped", 0.0))
     else:
-        preprocess_scan(scan, work, preprocess_settings, force=force)
+        run_preprocess(scan, work, preprocess_settings, force)
         outcomes.append(StageOutcome("preprocess", "ran", time.perf_counter() - start))
     return outcomes

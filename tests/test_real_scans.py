@@ -40,6 +40,25 @@ def _source_array_and_affine(path):
     return np.asarray(image.dataobj, dtype=np.float32), image.affine
 
 
+def assert_nearest_voxels_over_source(volume, affine, source, source_affine, intensity, samples=4000):
+    """Each sampled output voxel equals the windowed input voxel nearest its scanner position."""
+    low, high = intensity["low"], intensity["high"]
+    rng = np.random.default_rng(0)
+    voxels = rng.integers(0, volume.shape[0], size=(samples, 3))
+    continuous = (np.linalg.inv(source_affine) @ affine @ np.c_[voxels, np.ones(len(voxels))].T)[:3].T
+    nearest = np.floor(continuous + 0.5).astype(int)
+    inside = np.all((continuous > -0.5) & (continuous < np.array(source.shape) - 0.5), axis=1)
+    # Skip positions halfway between two input centres, where "nearest" is a tie.
+    not_a_tie = np.all(np.abs(continuous - np.floor(continuous) - 0.5) > 1e-3, axis=1)
+    check = inside & not_a_tie
+    assert check.sum() > 200
+    expected = np.clip((source[tuple(nearest[check].T)] - low) / (high - low), 0, 1)
+    assert np.allclose(volume[tuple(voxels[check].T)], expected, atol=1e-6)
+    # Padding is air; a centre exactly on the scan's outer face may go either way.
+    outside = np.any((continuous < -0.5 - 1e-3) | (continuous > np.array(source.shape) - 0.5 + 1e-3), axis=1)
+    assert np.all(volume[tuple(voxels[outside].T)] == 0)
+
+
 @pytest.mark.parametrize("key", list(SCANS))
 def test_nearest_output_voxels_sit_over_their_input_voxels(tmp_path, key):
     path = _scan_path(key)
@@ -52,20 +71,7 @@ def test_nearest_output_voxels_sit_over_their_input_voxels(tmp_path, key):
     assert np.array_equal(volume, np.load(tmp_path / "preprocess" / "volume.npy"))
 
     source, source_affine = _source_array_and_affine(path)
-    low, high = manifest["intensity"]["low"], manifest["intensity"]["high"]
-    rng = np.random.default_rng(0)
-    voxels = rng.integers(0, 40, size=(4000, 3))
-    continuous = (np.linalg.inv(source_affine) @ output.affine @ np.c_[voxels, np.ones(len(voxels))].T)[:3].T
-    nearest = np.floor(continuous + 0.5).astype(int)
-    inside = np.all((continuous > -0.5) & (continuous < np.array(source.shape) - 0.5), axis=1)
-    # Skip positions halfway between two input centres, where "nearest" is a tie.
-    not_a_tie = np.all(np.abs(continuous - np.floor(continuous) - 0.5) > 1e-3, axis=1)
-    check = inside & not_a_tie
-    assert check.sum() > 200
-    expected = np.clip((source[tuple(nearest[check].T)] - low) / (high - low), 0, 1)
-    got = volume[tuple(voxels[check].T)]
-    assert np.allclose(got, expected, atol=1e-6)
-    assert np.all(volume[tuple(voxels[~inside].T)] == 0)  # padding is air
+    assert_nearest_voxels_over_source(volume, output.affine, source, source_affine, manifest["intensity"])
 
 
 @pytest.mark.parametrize("key", list(SCANS))
@@ -103,3 +109,21 @@ def test_lps_scans_match_nibabel_canonical(tmp_path, key):
     corner = np.array(manifest["geometry"]["voxel_to_scanner"]) @ [-0.5, -0.5, -0.5, 1]
     assert np.allclose(corner, canonical.affine @ [-0.5, -0.5, -0.5, 1], atol=1e-6)
     assert json.loads((tmp_path / "preprocess" / "manifest.json").read_text())["source"]["axcodes"] == "LPS"
+
+
+def test_oblique_scan_lies_over_the_original(tmp_path):
+    from conftest import body_phantom, write_nifti
+
+    angle = np.deg2rad(25)
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    affine = np.eye(4)
+    affine[:3, :3] = rotation @ np.diag([-1.2, 0.9, 2.5])  # oblique, and x flipped
+    affine[:3, 3] = (40, -60, 100)
+    data = body_phantom((30, 26, 14), seed=3)
+    path = write_nifti(tmp_path / "oblique.nii.gz", data, affine)
+    manifest = preprocess_scan(path, tmp_path / "w", PreprocessSettings(size=36, window="full", interpolation="nearest"))
+    output = nib.load(str(tmp_path / "w" / "preprocess" / "volume.nii.gz"))
+    image = nib.load(str(path))
+    assert_nearest_voxels_over_source(
+        np.asarray(output.dataobj), output.affine, np.asarray(image.dataobj, np.float32), image.affine, manifest["intensity"]
+    )

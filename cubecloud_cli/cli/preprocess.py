@@ -21,6 +21,8 @@ from cubecloud_cli.cli.common import (
     reports_errors,
 )
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
+from cubecloud_cli.preprocess.stage import PHASES
+from cubecloud_cli.progress import ProgressBar
 from cubecloud_cli.presets import resolve
 from cubecloud_cli.sample_data import SAMPLE_CT_ATTRIBUTION, sample_ct_path
 from cubecloud_cli.volume.intensity import WINDOW_NAMES
@@ -151,5 +153,19 @@ def preprocess_command(
     settings = settings_from_options(
         preset.value, size, fit, window, hu_min, hu_max, modality, percentiles, interpolation, spacing, volume_index
     )
-    manifest = preprocess_scan(scan_or_sample(scan), output, settings, force=force)
+    manifest = run_preprocess_with_progress(scan_or_sample(scan), output, settings, force)
     log.info(describe_result(manifest, output))
+
+
+def run_preprocess_with_progress(scan: Path, output: Path, settings: PreprocessSettings, force: bool) -> dict:
+    """The stage with a bar on the terminal, each phase weighted by its expected cost."""
+    with ProgressBar(1.0, "preprocess", unit=None) as bar:
+
+        def on_phase(phase: str, costs: dict[str, float], fraction: float) -> None:
+            total = sum(costs.values()) or 1.0
+            before = sum(costs[p] for p in PHASES[: PHASES.index(phase)])
+            bar.set_completed((before + fraction * costs[phase]) / total, f"preprocess: {phase}")
+
+        manifest = preprocess_scan(scan, output, settings, force=force, on_phase=on_phase)
+        bar.set_completed(1.0, "preprocess: done")
+    return manifest

@@ -27,6 +27,7 @@ from cubecloud_cli.cli.preprocess import (
     SpacingOption,
     VolumeIndexOption,
     WindowOption,
+    run_preprocess_with_progress,
     scan_or_sample,
     settings_from_options,
 )
@@ -68,7 +69,9 @@ def run_command(
     settings = settings_from_options(
         preset.value, size, fit, window, hu_min, hu_max, modality, percentiles, interpolation, spacing, volume_index
     )
-    outcomes = run_pipeline(scan_or_sample(scan), output, settings, force=force)
+    outcomes = run_pipeline(
+        scan_or_sample(scan), output, settings, force=force, run_preprocess=run_preprocess_with_progress
+    )
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status == "ran" else "skipped (already complete)"
         log.info(f"  {outcome.stage:<12} {when}")

@@ -1,0 +1,84 @@
+"""Progress on the terminal: a bar with rate, elapsed time, ETA and live fields (loss, PSNR).
+
+Stage code stays free of terminal concerns: it calls a plain callback, and the command line
+decides whether to draw (only when stderr is a terminal and the run is not --quiet, so logs and
+CI output stay clean).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from types import TracebackType
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+
+def terminal_wants_progress() -> bool:
+    return sys.stderr.isatty() and logging.getLogger("cubecloud").getEffectiveLevel() <= logging.INFO
+
+
+class ProgressBar:
+    """``with ProgressBar(total, "training") as bar: bar.advance(1, loss=0.1)``; silent when disabled."""
+
+    def __init__(
+        self, total: float, description: str, unit: str | None = "it", enabled: bool | None = None
+    ):
+        """``unit=None`` hides the rate and the M/N count (for bars in arbitrary work units)."""
+        self.enabled = terminal_wants_progress() if enabled is None else enabled
+        self.total = total
+        self.description = description
+        self.unit = unit
+        self._progress: Progress | None = None
+        self._task = None
+
+    def __enter__(self) -> "ProgressBar":
+        if self.enabled:
+            counts = [MofNCompleteColumn()] if self.unit else []
+            self._progress = Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                *counts,
+                TaskProgressColumn(),
+                TextColumn("{task.fields[rate]}"),
+                TimeElapsedColumn(),
+                TextColumn("ETA"),
+                TimeRemainingColumn(),
+                TextColumn("{task.fields[status]}"),
+                console=Console(stderr=True),
+                transient=False,
+            )
+            self._progress.__enter__()
+            self._task = self._progress.add_task(self.description, total=self.total, rate="", status="")
+        return self
+
+    def advance(self, steps: float = 1, description: str | None = None, **fields: float | str) -> None:
+        if self._progress is None:
+            return
+        status = "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in fields.items())
+        task = self._progress.tasks[0]
+        speed = task.speed
+        rate = f"{speed:.3g} {self.unit}/s" if speed and self.unit else ""
+        self._progress.update(
+            self._task, advance=steps, description=description or self.description, rate=rate, status=status
+        )
+
+    def set_completed(self, completed: float, description: str | None = None) -> None:
+        """Jump to an absolute amount of work done (for work reported as fractions)."""
+        if self._progress is not None:
+            self._progress.update(self._task, completed=completed, description=description or self.description)
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._progress is not None:
+            self._progress.__exit__(exc_type, exc, tb)
