@@ -51,6 +51,10 @@ def stage_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> 
     return True
 
 
+def _preprocess_quietly(scan: Path, work: Path, settings: PreprocessSettings, force: bool) -> dict:
+    return preprocess_scan(scan, work, settings, force=force)
+
+
 def run_pipeline(
     scan: Path,
     work: Path,
@@ -60,9 +64,7 @@ def run_pipeline(
     run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
 ) -> list[StageOutcome]:
     """Run the stages in order. ``run_preprocess`` lets the caller wrap the stage (progress)."""
-    if run_preprocess is None:
-        def run_preprocess(scan, work, settings, force):
-            return preprocess_scan(scan, work, settings, force=force)
+    run_preprocess = run_preprocess or _preprocess_quietly
     outcomes = []
     work = Path(work)
     start = time.perf_counter()

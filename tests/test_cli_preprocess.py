@@ -161,3 +161,21 @@ def test_help_teaches_with_examples():
     for text in ("Examples", "--window", "--fit", "--spacing", "--preset"):
         assert text in result.output
     assert invoke("--version").output.startswith("cubecloud ")
+
+
+@pytest.mark.parametrize("fmt", ["nii", "nrrd-gzip"])
+def test_float32_scans_with_nan_in_read_only_buffers(tmp_path, fmt):
+    data = body_phantom().astype(np.float32)
+    data[1, 1, 1] = np.nan
+    if fmt == "nii":
+        path = write_nifti(tmp_path / "f.nii", data)  # uncompressed: nibabel may memory-map it
+    else:
+        import nrrd
+
+        path = tmp_path / "f.nrrd"
+        nrrd.write(str(path), data, {"encoding": "gzip", "space": "left-posterior-superior",
+                                     "space directions": np.eye(3), "space origin": np.zeros(3)})
+    result = invoke("preprocess", path, "-o", tmp_path / "w", "--size", 16)
+    assert result.exit_code == 0, result.output
+    assert "1 voxels were NaN" in result.stderr
+    assert np.all(np.isfinite(_load(tmp_path / "w")))

@@ -41,7 +41,7 @@ def test_4d_needs_a_volume_index(tmp_path):
     with pytest.raises(CubecloudError, match="--volume-index 0..1"):
         read_scan(path)
     assert np.all(read_scan(path, volume_index=1).data == 1)
-    with pytest.raises(CubecloudError, match="out of range"):
+    with pytest.raises(CubecloudError, match="out of range: .* has volumes 0..1$"):
         read_scan(path, volume_index=5)
 
 
@@ -223,3 +223,17 @@ def test_real_jpeg2000_series_matches_nibabel_nicom():
             ours = scan.affine @ [column, row, k, 1]
             theirs = lps_to_ras @ wrapper.affine @ [row, column, 0, 1]
             assert np.allclose(ours, theirs, atol=1e-4)
+
+
+def test_read_only_reader_output_is_made_writable(tmp_path, monkeypatch, phantom_nifti):
+    import cubecloud_cli.volume.readers as readers
+
+    original = readers.read_nifti
+
+    def read_only(path, volume_index):
+        scan = original(path, volume_index)
+        scan.data.flags.writeable = False
+        return scan
+
+    monkeypatch.setattr(readers, "read_nifti", read_only)
+    assert read_scan(phantom_nifti).data.flags.writeable

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Callable, Optional
 
 import typer
 
@@ -115,29 +115,53 @@ def describe_result(manifest: dict, work: Path) -> str:
     )
 
 
-@reports_errors
-def preprocess_command(
-    scan: ScanArgument = None,
-    output: WorkOption = Path("work"),
-    preset: PresetOption = DEFAULT_PRESET_VALUE,
-    size: SizeOption = None,
-    fit: FitOption = None,
-    window: WindowOption = None,
-    hu_min: HuMinOption = None,
-    hu_max: HuMaxOption = None,
-    modality: ModalityOption = Modality.auto,
-    percentiles: PercentilesOption = "0.5,99.5",
-    interpolation: InterpolationOption = None,
-    spacing: SpacingOption = None,
-    volume_index: VolumeIndexOption = None,
-    force: ForceOption = False,
-    quiet: QuietOption = False,
-) -> None:
+ScanAction = Callable[[Path, Path, PreprocessSettings, bool], None]
+
+
+def scan_command(action: ScanAction, help_text: str) -> Callable[..., None]:
+    """A command taking a scan and every preprocess option, handing the settings to ``action``.
+
+    `preprocess` and `run` share this one signature, so their options cannot drift apart.
+    """
+
+    @reports_errors
+    def command(
+        scan: ScanArgument = None,
+        output: WorkOption = Path("work"),
+        preset: PresetOption = DEFAULT_PRESET_VALUE,
+        size: SizeOption = None,
+        fit: FitOption = None,
+        window: WindowOption = None,
+        hu_min: HuMinOption = None,
+        hu_max: HuMaxOption = None,
+        modality: ModalityOption = Modality.auto,
+        percentiles: PercentilesOption = "0.5,99.5",
+        interpolation: InterpolationOption = None,
+        spacing: SpacingOption = None,
+        volume_index: VolumeIndexOption = None,
+        force: ForceOption = False,
+        quiet: QuietOption = False,
+    ) -> None:
+        configure_logging(quiet)
+        settings = settings_from_options(
+            preset.value, size, fit, window, hu_min, hu_max, modality, percentiles, interpolation, spacing, volume_index
+        )
+        action(scan_or_sample(scan), output, settings, force)
+
+    command.__doc__ = help_text
+    return command
+
+
+def _preprocess(scan: Path, output: Path, settings: PreprocessSettings, force: bool) -> None:
+    manifest = run_preprocess_with_progress(scan, output, settings, force)
+    log.info(describe_result(manifest, output))
+
+
+preprocess_command = scan_command(
+    _preprocess,
     """Normalize a CT or MR scan into the cube volume every later stage reads.
 
-    Reorients to RAS+, clips to an intensity window, maps it to [0, 1] and resamples to an
-    isotropic S³ cube. Writes WORK/preprocess/: volume.npy (float32), volume.nii.gz (lies over
-    the original scan in 3D Slicer or ITK-SNAP), preview.png and manifest.json.
+    Reorients to RAS+, clips to an intensity window, maps it to [0, 1] and resamples to an isotropic S³ cube. Writes WORK/preprocess/: volume.npy (float32), volume.nii.gz (lies over the original scan in 3D Slicer or ITK-SNAP), preview.png and manifest.json.
 
     Examples:
 
@@ -148,13 +172,8 @@ def preprocess_command(
       cubecloud preprocess dicom_folder/ -o work --hu-min -1000 --hu-max 1000
 
       cubecloud preprocess array.npy -o work --spacing 0.7,0.7,2.5
-    """
-    configure_logging(quiet)
-    settings = settings_from_options(
-        preset.value, size, fit, window, hu_min, hu_max, modality, percentiles, interpolation, spacing, volume_index
-    )
-    manifest = run_preprocess_with_progress(scan_or_sample(scan), output, settings, force)
-    log.info(describe_result(manifest, output))
+    """,
+)
 
 
 def run_preprocess_with_progress(scan: Path, output: Path, settings: PreprocessSettings, force: bool) -> dict:

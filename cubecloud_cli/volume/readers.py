@@ -59,15 +59,14 @@ def read_nifti(path: Path, volume_index: int | None) -> Scan:
     scale = _NIFTI_UNIT_TO_MM.get(units, 1.0)
     affine[:3, :] *= scale
     notes = [f"header gives voxel sizes in {units}; converted to mm"] if scale != 1.0 else []
+    shape = image.shape
+    pick_volume = volume_index is not None and len(shape) == 4 and shape[3] > 1
+    if pick_volume and not 0 <= volume_index < shape[3]:
+        raise CubecloudError(f"--volume-index {volume_index} is out of range: {path} has volumes 0..{shape[3] - 1}")
     try:
         # Physical values in float32 directly: nibabel applies scl_slope/scl_inter in float, so
         # an int16 scan with a large slope cannot overflow, and we never hold a float64 copy.
-        shape = image.shape
-        if volume_index is not None and len(shape) == 4 and shape[3] > 1:
-            if not 0 <= volume_index < shape[3]:
-                raise CubecloudError(
-                    f"--volume-index {volume_index} is out of range: {path} has volumes 0..{shape[3] - 1}"
-                )
+        if pick_volume:
             data = np.asarray(image.dataobj[..., volume_index], dtype=np.float32)
             volume_index = None
         else:
@@ -160,6 +159,9 @@ def read_scan(
             scan.notes.append(f"{path} is one file: read the series in its folder {path.parent}")
         else:
             raise CubecloudError(f"{path} has an unknown file type {suffix!r}: cubecloud reads {SUPPORTED}")
+    if not scan.data.flags.writeable:
+        # Memory maps and decoded buffers can be read-only; later steps repair voxels in place.
+        scan.data = scan.data.copy()
     if spacing_mm is not None:
         scan.affine = override_spacing(scan.affine, spacing_mm)
     check_affine(scan.affine, f"the header of {path}")
