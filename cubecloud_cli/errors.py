@@ -4,5 +4,9 @@
 class CubecloudError(Exception):
     """A problem with the user's input or work directory, stated with its fix.
 
-    The message is a single line meant for the terminal: what is wrong, then what to do.
+    The message is a single line meant for the terminal: what is wrong, then what to do. Text
+    quoted from a library's exception may span lines, so white space is folded here.
     """
+
+    def __init__(self, message: str) -> None:
+        super().__init__(" ".join(str(message).split()))

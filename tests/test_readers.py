@@ -237,3 +237,20 @@ def test_read_only_reader_output_is_made_writable(tmp_path, monkeypatch, phantom
 
     monkeypatch.setattr(readers, "read_nifti", read_only)
     assert read_scan(phantom_nifti).data.flags.writeable
+
+
+def test_undecodable_compressed_pixels_name_the_fix(tmp_path):
+    from pydicom.encaps import encapsulate
+    from pydicom.uid import JPEGLosslessSV1
+
+    folder = _write_dicom_series(tmp_path / "series", body_phantom((8, 8, 2)).astype(np.float32), shuffle=False)
+    import pydicom
+
+    for path in folder.iterdir():
+        ds = pydicom.dcmread(path)
+        ds.file_meta.TransferSyntaxUID = JPEGLosslessSV1
+        ds.PixelData = encapsulate([b"\xff\xd8 not really a jpeg \xff\xd9"])
+        ds["PixelData"].VR = "OB"
+        ds.save_as(path, enforce_file_format=True)
+    with pytest.raises(CubecloudError, match=r"cannot decode the pixels .*1\.2\.840\.10008\.1\.2\.4\.70.*python-gdcm"):
+        read_scan(folder)

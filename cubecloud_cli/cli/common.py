@@ -44,8 +44,7 @@ def reports_errors(command: F) -> F:
         try:
             return command(*args, **kwargs)
         except CubecloudError as exc:
-            # Messages may quote a library's exception text, which can span lines.
-            typer.echo(f"error: {' '.join(str(exc).split())}", err=True)
+            typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except MemoryError:
             typer.echo("error: out of memory: choose a smaller --size", err=True)
