@@ -200,11 +200,6 @@ class StageWriter:
         self.inputs[label or str(path)] = digest
         return digest
 
-    def add_input_stage(self, stage_dir: Path, manifest: Mapping[str, Any]) -> None:
-        """Record an input stage's files by the hashes its own manifest holds."""
-        for relative, info in manifest.get("files", {}).items():
-            self.inputs[str(Path(stage_dir.name) / relative)] = info["sha256"]
-
     @contextmanager
     def phase(self, label: str) -> Iterator[None]:
         start = time.perf_counter()

@@ -21,7 +21,7 @@ def mid_slices(volume: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def write_preview(volume: np.ndarray, path: Path, caption: str = "") -> None:
+def write_preview(volume: np.ndarray, path: Path) -> None:
     """Write the three mid-slices side by side with labels, 8-bit grey."""
     from PIL import Image, ImageDraw
 
@@ -30,7 +30,7 @@ def write_preview(volume: np.ndarray, path: Path, caption: str = "") -> None:
     label_band = 14
     gap = 4
     width = sum(p.shape[1] for p in panels.values()) + gap * (len(panels) - 1)
-    canvas = np.zeros((height + label_band * 2, width), dtype=np.uint8)
+    canvas = np.zeros((height + label_band, width), dtype=np.uint8)
     x = 0
     positions = []
     for name, panel in panels.items():
@@ -42,6 +42,4 @@ def write_preview(volume: np.ndarray, path: Path, caption: str = "") -> None:
     draw = ImageDraw.Draw(image)
     for name, left in positions:
         draw.text((left + 2, 1), name, fill=255)
-    if caption:
-        draw.text((2, height + label_band + 1), caption, fill=200)
     image.save(path)

@@ -111,8 +111,7 @@ def preprocess_scan(
     """
     settings.validate()
     writer = StageWriter(Path(work), "preprocess", asdict(settings), force=force)
-    writer.check_can_start()  # refuse before reading a large scan
-    with writer:
+    with writer:  # refuses an existing stage before the scan is read
         costs = phase_costs(0, settings.size)
         on_phase("read", costs, 0.0)
         with writer.phase("read"):

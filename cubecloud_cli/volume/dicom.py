@@ -40,10 +40,6 @@ def _series_key(header) -> tuple:
     return (str(header.get("SeriesInstanceUID", "")), orientation, header.get("Rows"), header.get("Columns"))
 
 
-def is_dicom_folder(folder: Path) -> bool:
-    return folder.is_dir() and any(True for _ in _read_headers(folder))
-
-
 def read_dicom_series(folder: Path) -> Scan:
     """Read the largest series in ``folder`` as a Scan in RAS+ scanner millimetres."""
     headers = _read_headers(folder)

@@ -88,7 +88,6 @@ def read_nrrd(path: Path, volume_index: int | None) -> Scan:
         raise CubecloudError(f"cannot read {path} as NRRD ({exc}): the file is corrupt or not NRRD") from None
     data = np.asarray(data)
     directions = header.get("space directions")
-    spatial_axes = list(range(data.ndim))
     if directions is not None:
         # Non-spatial axes (a list of components, time) have "none" directions.
         rows = [None if d is None or np.any(np.isnan(np.asarray(d, dtype=float))) else np.asarray(d, float) for d in directions]

@@ -10,7 +10,7 @@ BLAS matrix product; the 3D result is the product of the three. Hence:
   averages over the input voxels an output voxel covers (anti-aliasing), and is plain linear
   interpolation when upsampling;
 * nearest picks the nearest input voxel (the resize the paper's CuNeRF data used);
-* output voxels whose centre lies outside the input get ``fill`` (air).
+* output voxels whose centre lies outside the input get 0 (air, after windowing).
 """
 
 from __future__ import annotations
@@ -55,8 +55,8 @@ def interpolation_matrix(
     return matrix.astype(np.float32)
 
 
-def resample_axes(volume: np.ndarray, matrices: Sequence[np.ndarray], fill: float = 0.0) -> np.ndarray:
-    """Apply one matrix per axis: ``out[a,b,c] = Σ W0[a,i] W1[b,j] W2[c,k] v[i,j,k]`` (+ fill).
+def resample_axes(volume: np.ndarray, matrices: Sequence[np.ndarray]) -> np.ndarray:
+    """Apply one matrix per axis: ``out[a,b,c] = Σ W0[a,i] W1[b,j] W2[c,k] v[i,j,k]``.
 
     Axes are processed smallest-output-first so later products run on less data; the input may
     be any float array view (it is not modified).
@@ -70,10 +70,6 @@ def resample_axes(volume: np.ndarray, matrices: Sequence[np.ndarray], fill: floa
     order = sorted(range(3), key=lambda a: matrices[a].shape[0] / volume.shape[a])
     for axis in order:
         current = _apply_along(current, matrices[axis], axis)
-    if fill != 0.0:
-        coverage = [m.sum(axis=1) for m in matrices]  # 1 inside the input, 0 outside
-        outside = 1.0 - np.einsum("a,b,c->abc", *coverage, optimize=True)
-        current += np.float32(fill) * outside.astype(np.float32)
     return current
 
 
