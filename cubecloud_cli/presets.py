@@ -22,6 +22,42 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     },
 }
 
+# cunerf presets hold one column per model, so `--model cunerf --preset fast` gets settings
+# meant for the MLP rather than the grid's learning rate. See README "cunerf" for the figures.
+_GRID = {"lr": 0.05, "lr_final": 5e-4, "warmup": 100, "cube_radius": 0.5, "samples_per_axis": 3, "importance": 0}
+# The paper's network and schedule (research/cunerf.md §8); CPU presets cut the batch and samples.
+_MLP = {"lr": 2e-3, "lr_final": 2e-5, "cube_radius": 1.0}
+CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "paper": "cunerf"}
+CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "fast": {
+        "fast": {**_GRID, "iterations": 2000, "batch_size": 4096, "val_every": 500, "checkpoint_every": 500},
+        "cunerf": {**_MLP, "warmup": 100, "iterations": 2000, "batch_size": 512, "samples_per_axis": 3,
+                   "importance": 32, "val_every": 500, "checkpoint_every": 100},
+    },
+    "balanced": {
+        "fast": {**_GRID, "iterations": 4000, "batch_size": 8192, "val_every": 1000, "checkpoint_every": 500},
+        "cunerf": {**_MLP, "warmup": 1000, "iterations": 10000, "batch_size": 1024, "samples_per_axis": 4,
+                   "importance": 64, "val_every": 1000, "checkpoint_every": 250},
+    },
+    "paper": {
+        "fast": {**_GRID, "iterations": 20000, "batch_size": 8192, "val_every": 2000, "checkpoint_every": 1000},
+        "cunerf": {**_MLP, "warmup": 1000, "iterations": 200000, "batch_size": 1024, "samples_per_axis": 4,
+                   "importance": 64, "val_every": 10000, "checkpoint_every": 10000},
+    },
+}
+
+
+def resolve_cunerf(preset: str, model: str | None, overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """The cunerf preset's values for the chosen model (the preset's own by default)."""
+    if preset not in PRESET_NAMES:
+        raise ValueError(f"unknown preset {preset!r}")
+    model = model or CUNERF_DEFAULT_MODEL[preset]
+    if model not in CUNERF_PRESETS[preset]:
+        raise ValueError(f"unknown model {model!r}")
+    values = {"model": model, **CUNERF_PRESETS[preset][model]}
+    values.update({key: value for key, value in overrides.items() if value is not None})
+    return values
+
 
 def resolve(stage: str, preset: str, overrides: Mapping[str, Any]) -> dict[str, Any]:
     """The preset's values for ``stage`` with every non-None override applied."""

@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 import typer
 
 from cubecloud_cli import __version__
+from cubecloud_cli.cli.cunerf import cunerf_command
 from cubecloud_cli.cli.preprocess import preprocess_command
 from cubecloud_cli.cli.run import run_command
 
@@ -42,6 +43,7 @@ def _root(
 
 
 app.command("preprocess")(preprocess_command)
+app.command("cunerf")(cunerf_command)
 app.command("run")(run_command)
 
 

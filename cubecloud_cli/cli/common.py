@@ -49,8 +49,10 @@ def reports_errors(command: F) -> F:
         except MemoryError:
             typer.echo("error: out of memory: choose a smaller --size", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
-        except KeyboardInterrupt:
-            typer.echo("interrupted: no stage was marked complete; run the command again to redo it", err=True)
+        except KeyboardInterrupt as exc:
+            # Stages that checkpoint say how to resume; the others leave nothing behind.
+            message = str(exc) or "interrupted: no stage was marked complete; run the command again to redo it"
+            typer.echo(message, err=True)
             raise typer.Exit(EXIT_INTERRUPTED) from None
 
     return wrapper  # type: ignore[return-value]

@@ -23,23 +23,39 @@ def mid_slices(volume: np.ndarray) -> dict[str, np.ndarray]:
 
 def write_preview(volume: np.ndarray, path: Path) -> None:
     """Write the three mid-slices side by side with labels, 8-bit grey."""
+    write_preview_rows([("", volume)], path)
+
+
+def write_preview_rows(rows: list[tuple[str, np.ndarray]], path: Path) -> None:
+    """One row of mid-slices per labelled volume (all S³ alike), values in [0, 1]."""
     from PIL import Image, ImageDraw
 
-    panels = mid_slices(volume)
-    height = max(p.shape[0] for p in panels.values())
-    label_band = 14
-    gap = 4
-    width = sum(p.shape[1] for p in panels.values()) + gap * (len(panels) - 1)
-    canvas = np.zeros((height + label_band, width), dtype=np.uint8)
-    x = 0
-    positions = []
-    for name, panel in panels.items():
-        pixels = np.clip(np.nan_to_num(panel) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        canvas[label_band : label_band + panel.shape[0], x : x + panel.shape[1]] = pixels
-        positions.append((name, x))
-        x += panel.shape[1] + gap
+    label_band, gap, margin = 14, 4, 2
+    all_panels = [mid_slices(volume) for _, volume in rows]
+    names = list(all_panels[0])
+    panel_width = [max(p[name].shape[1] for p in all_panels) for name in names]
+    row_height = max(p[name].shape[0] for p in all_panels for name in names)
+    width = sum(panel_width) + gap * (len(names) - 1)
+    height = label_band + len(rows) * (row_height + margin) - margin
+    canvas = np.zeros((height, width), dtype=np.uint8)
+    top = label_band
+    for panels in all_panels:
+        x = 0
+        for name, panel_w in zip(names, panel_width):
+            panel = panels[name]
+            pixels = np.clip(np.nan_to_num(panel) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            canvas[top : top + panel.shape[0], x : x + panel.shape[1]] = pixels
+            x += panel_w + gap
+        top += row_height + margin
     image = Image.fromarray(canvas)
     draw = ImageDraw.Draw(image)
-    for name, left in positions:
-        draw.text((left + 2, 1), name, fill=255)
+    x = 0
+    for name, panel_w in zip(names, panel_width):
+        draw.text((x + 2, 1), name, fill=255)
+        x += panel_w + gap
+    top = label_band
+    for label, _ in rows:
+        if label:
+            draw.text((2, top + 2), label, fill=255)
+        top += row_height + margin
     image.save(path)

@@ -1,0 +1,190 @@
+"""`cubecloud cunerf`: options and the call into cubecloud_cli.cunerf."""
+
+from __future__ import annotations
+
+import logging
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cubecloud_cli.artifacts import stage_dir_name
+from cubecloud_cli.cli.common import (
+    DEFAULT_PRESET_VALUE,
+    ForceOption,
+    PresetOption,
+    QuietOption,
+    configure_logging,
+    reports_errors,
+)
+from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
+from cubecloud_cli.presets import resolve_cunerf
+from cubecloud_cli.progress import ProgressBar
+
+log = logging.getLogger("cubecloud")
+
+
+class Model(str, Enum):
+    fast = "fast"
+    cunerf = "cunerf"
+
+
+class Density(str, Enum):
+    softplus = "softplus"
+    relu = "relu"
+
+
+class Layout(str, Enum):
+    stratified = "stratified"
+    uniform = "uniform"
+
+
+class Device(str, Enum):
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+def _opt(flag: str, help_text: str):
+    return typer.Option(flag, help=help_text, show_default=False)
+
+
+WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ (from `cubecloud preprocess`).")]
+ModelOption = Annotated[Optional[Model], _opt("--model", "fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional encoding, coarse + fine (GPU). [preset: fast, balanced -> fast; paper -> cunerf]")]
+IterationsOption = Annotated[Optional[int], _opt("--iterations", "Training iterations. [preset fast: 2000; balanced 4000; paper: 200000 for cunerf]")]
+BatchOption = Annotated[Optional[int], _opt("--batch-size", "Cubes (voxels) per iteration. [fast model 4096-8192; cunerf 512-1024]")]
+LrOption = Annotated[Optional[float], _opt("--lr", "Peak learning rate (Adam). [fast 0.05; cunerf 2e-3]")]
+LrFinalOption = Annotated[Optional[float], _opt("--lr-final", "Learning rate at the last iteration, reached by log-linear decay. [fast 5e-4; cunerf 2e-5]")]
+WarmupOption = Annotated[Optional[int], _opt("--warmup", "Iterations of sine warm-up from 1% of --lr. [fast 100; cunerf 1000]")]
+CubeRadiusOption = Annotated[Optional[float], _opt("--cube-radius", "Cube half-size in voxels (times --train-scale). [fast 0.5: the voxel itself; cunerf 1, the paper's]")]
+SamplesOption = Annotated[Optional[int], _opt("--samples-per-axis", "n: n³ points per cube. [fast 3; cunerf 4, the paper's 64]")]
+ImportanceOption = Annotated[Optional[int], _opt("--importance", "Fine points per cube drawn from the coarse weights; 0 = no fine pass. [fast 0; cunerf 64]")]
+LayoutOption = Annotated[Layout, typer.Option("--train-layout", help="Training points: stratified (one per sub-cell) or uniform (i.i.d. in the cube).")]
+OfficialOption = Annotated[bool, typer.Option("--official-quirks", help="Reproduce the official code's sampling and rendering quirks (corner-biased samples, asymmetric lattice, polar-crowded random directions, unbounded weights) for A/B comparison.")]
+DensityOption = Annotated[Density, typer.Option("--density", help="Density activation: softplus, or relu as in the official code (can die and render black).")]
+GridLevelsOption = Annotated[int, typer.Option("--grid-levels", help="fast model: grid levels, geometric from --grid-base to one vertex per voxel.")]
+GridBaseOption = Annotated[int, typer.Option("--grid-base", help="fast model: vertices per axis of the coarsest level.")]
+GridFeaturesOption = Annotated[int, typer.Option("--grid-features", help="fast model: features per grid vertex.")]
+GridHiddenOption = Annotated[int, typer.Option("--grid-hidden", help="fast model: width of the MLP's hidden layer.")]
+TrainScaleOption = Annotated[int, typer.Option("--train-scale", help="Zero-shot super-resolution: train on every s-th voxel per axis, score against all of them.")]
+HoldoutOption = Annotated[int, typer.Option("--holdout", help="Axial slices kept out of training for validation.")]
+ValEveryOption = Annotated[Optional[int], _opt("--val-every", "Validate on the held-out slices every K iterations. [fast 500]")]
+CheckpointEveryOption = Annotated[Optional[int], _opt("--checkpoint-every", "Save a checkpoint every K iterations (and on Ctrl-C). [fast 500]")]
+BodyFractionOption = Annotated[float, typer.Option("--body-fraction", help="Share of each batch drawn from non-air voxels; the rest is uniform.")]
+ExportScaleOption = Annotated[float, typer.Option("--export-scale", help="recon.nii.gz resolution as a multiple of the volume's (2 = twice as many voxels per axis).")]
+SkipAirOption = Annotated[bool, typer.Option("--skip-air/--no-skip-air", help="Skip rendering blocks that hold no non-zero training voxel (they read 0).")]
+SeedOption = Annotated[int, typer.Option("--seed", help="Seed of every random draw; the same seed repeats a run.")]
+DeviceOption = Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
+ThreadsOption = Annotated[Optional[int], _opt("--threads", "CPU threads for torch (default: torch's choice).")]
+NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/cunerf-NAME/ instead of WORK/cunerf/, for runs side by side.")]
+ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last checkpoint.")]
+
+
+@reports_errors
+def cunerf_command(
+    work: WorkArgument = Path("work"),
+    preset: PresetOption = DEFAULT_PRESET_VALUE,
+    model: ModelOption = None,
+    iterations: IterationsOption = None,
+    batch_size: BatchOption = None,
+    lr: LrOption = None,
+    lr_final: LrFinalOption = None,
+    warmup: WarmupOption = None,
+    cube_radius: CubeRadiusOption = None,
+    samples_per_axis: SamplesOption = None,
+    importance: ImportanceOption = None,
+    train_layout: LayoutOption = Layout.stratified,
+    official_quirks: OfficialOption = False,
+    density: DensityOption = Density.softplus,
+    grid_levels: GridLevelsOption = 3,
+    grid_base: GridBaseOption = 16,
+    grid_features: GridFeaturesOption = 2,
+    grid_hidden: GridHiddenOption = 32,
+    train_scale: TrainScaleOption = 1,
+    holdout: HoldoutOption = 8,
+    val_every: ValEveryOption = None,
+    checkpoint_every: CheckpointEveryOption = None,
+    body_fraction: BodyFractionOption = 0.8,
+    export_scale: ExportScaleOption = 1.0,
+    skip_air: SkipAirOption = True,
+    seed: SeedOption = 0,
+    device: DeviceOption = Device.auto,
+    threads: ThreadsOption = None,
+    name: NameOption = None,
+    resume: ResumeOption = False,
+    force: ForceOption = False,
+    quiet: QuietOption = False,
+) -> None:
+    """Train the cube-based neural field (CuNeRF) on the preprocessed volume.
+
+    Each iteration renders cubes centred on voxels, CuNeRF's isotropic volume rendering over n³ points per cube, against the voxels' values. Writes WORK/cunerf/: model.pt (load it with cubecloud_cli.cunerf.CunerfField.load), recon.nii.gz (the field at --export-scale, over the original scan), preview.png, log.csv and manifest.json with 3D PSNR/SSIM.
+
+    Ctrl-C saves a checkpoint; the same command with --resume continues it.
+
+    Examples:
+
+      cubecloud cunerf work                                 # fast grid model, about 3 min on 2 cores
+
+      cubecloud cunerf work --model cunerf --preset paper   # the paper's network (GPU)
+
+      cubecloud cunerf work --train-scale 2 --export-scale 2 --name sr2   # zero-shot super-resolution
+    """
+    configure_logging(quiet)
+    values = resolve_cunerf(
+        preset.value,
+        model.value if model else None,
+        {
+            "iterations": iterations,
+            "batch_size": batch_size,
+            "lr": lr,
+            "lr_final": lr_final,
+            "warmup": warmup,
+            "cube_radius": cube_radius,
+            "samples_per_axis": samples_per_axis,
+            "importance": importance,
+            "val_every": val_every,
+            "checkpoint_every": checkpoint_every,
+        },
+    )
+    settings = CunerfSettings(
+        **values,
+        train_layout=train_layout.value,
+        official=official_quirks,
+        density=density.value,
+        grid_levels=grid_levels,
+        grid_base=grid_base,
+        grid_features=grid_features,
+        grid_hidden=grid_hidden,
+        train_scale=train_scale,
+        holdout=holdout,
+        body_fraction=body_fraction,
+        export_scale=export_scale,
+        skip_air=skip_air,
+        seed=seed,
+    )
+    manifest = train_cunerf_with_progress(work, settings, force, resume, Runtime(device.value, threads), name)
+    metrics = manifest["metrics"]
+    log.info(
+        f"wrote {Path(work) / stage_dir_name('cunerf', name)}: 3D PSNR {metrics['psnr_3d']:.2f} dB, SSIM {metrics.get('ssim_3d', float('nan')):.4f}"
+        f" (held-out slices {metrics.get('val_psnr', float('nan')):.2f} dB), {manifest['timings_s']['total']:.0f} s"
+    )
+
+
+def train_cunerf_with_progress(
+    work: Path, settings: CunerfSettings, force: bool, resume: bool, runtime: Runtime, name: str | None = None
+) -> dict:
+    """The stage with a bar: iterations with rate, ETA, loss and validation PSNR."""
+    with ProgressBar(settings.iterations, f"cunerf ({settings.model})") as bar:
+        shown = {"done": 0}
+
+        def on_progress(phase: str, done: int, total: int, fields: dict) -> None:
+            if phase == "train":
+                bar.advance(done - shown["done"], **fields)
+                shown["done"] = done
+            else:
+                bar.advance(0, description=f"cunerf: {phase}")
+
+        return train_cunerf(
+            work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress
+        )

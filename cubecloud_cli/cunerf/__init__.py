@@ -1,0 +1,7 @@
+"""The cunerf stage: a cube-based neural field of the preprocessed volume (research/cunerf.md)."""
+
+from cubecloud_cli.cunerf.api import CunerfField
+from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.stage import Runtime, train_cunerf
+
+__all__ = ["CunerfField", "CunerfSettings", "Runtime", "train_cunerf"]

@@ -1,0 +1,203 @@
+"""Neural fields of the scan: world point (x, y, z) in [−1, 1]³ → (intensity, density).
+
+Both fields share one interface, so the cube sampler, the renderer and everything downstream
+(export's point cloud and images) never ask which one trained:
+
+* :class:`CuNeRFField`, the paper's network (research/cunerf.md §1): positional encoding with
+  11 frequencies of coordinates scaled to [−π, π], and an MLP of 7 applied layers of width 256
+  with the encoded input concatenated before the 5th (the official code builds an 8th layer
+  that it never applies; we do not build it).
+* :class:`GridField`, for CPUs: a multiresolution dense feature grid, trilinearly interpolated
+  by ``grid_sample``, and a small MLP. The finest level has one vertex per voxel, so the field
+  can hold every voxel's value, and the coarser levels fill in between.
+
+Intensity goes through a sigmoid, so it lies in [0, 1]; density through softplus (default) or
+ReLU (the official code; it can die and render black, official issue #18).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+DENSITY_ACTIVATIONS = ("softplus", "relu")
+POINT_LIMIT = 16.0
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Everything needed to rebuild a field (stored in the checkpoint)."""
+
+    kind: str = "grid"  # "cunerf" or "grid"
+    density_activation: str = "softplus"
+    # cunerf
+    frequencies: int = 11
+    width: int = 256
+    depth: int = 7
+    skip_at: int = 4
+    # grid
+    resolutions: tuple[int, ...] = (16, 32, 64, 128)
+    features: int = 4
+    hidden: int = 32
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "FieldConfig":
+        values = dict(values)
+        values["resolutions"] = tuple(values.get("resolutions", cls.resolutions))
+        return cls(**values)
+
+
+class NeuralField(nn.Module):
+    """Base class: ``forward(points) -> (intensity, density)``, each shaped like points[..., 0]."""
+
+    config: FieldConfig
+
+    def raw(self, points: torch.Tensor) -> torch.Tensor:  # (P, 3) -> (P, 2)
+        raise NotImplementedError
+
+    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        shape = points.shape[:-1]
+        # Far outside the cube ([−1, 1]³) the field has nothing to say, and sin(2¹⁰·huge) is
+        # noise or NaN: points are held within ±POINT_LIMIT world units.
+        points = torch.nan_to_num(points.reshape(-1, 3).float(), nan=0.0).clamp(-POINT_LIMIT, POINT_LIMIT)
+        raw = self.raw(points)
+        intensity = torch.sigmoid(raw[:, 0])
+        if self.config.density_activation == "relu":
+            density = F.relu(raw[:, 1])
+        else:
+            density = F.softplus(raw[:, 1])
+        return intensity.reshape(shape), density.reshape(shape)
+
+
+class PositionalEncoding(nn.Module):
+    """γ(p) = [p, sin(2⁰p), cos(2⁰p), …, sin(2^(L−1)p), cos(2^(L−1)p)] per coordinate."""
+
+    def __init__(self, frequencies: int):
+        super().__init__()
+        self.register_buffer("scales", 2.0 ** torch.arange(frequencies, dtype=torch.float32), persistent=False)
+        self.out_features = 3 * (1 + 2 * frequencies)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        scaled = points[..., None, :] * self.scales[:, None]  # (P, L, 3)
+        waves = torch.stack((torch.sin(scaled), torch.cos(scaled)), dim=-2)  # (P, L, 2, 3)
+        return torch.cat((points, waves.flatten(-3)), dim=-1)
+
+
+class CuNeRFField(NeuralField):
+    def __init__(self, config: FieldConfig):
+        super().__init__()
+        self.config = config
+        self.encoding = PositionalEncoding(config.frequencies)
+        encoded = self.encoding.out_features
+        layers = []
+        for index in range(config.depth):
+            inputs = encoded if index == 0 else config.width
+            if index == config.skip_at:
+                inputs += encoded
+            layers.append(nn.Linear(inputs, config.width))
+        self.layers = nn.ModuleList(layers)
+        self.head = nn.Linear(config.width, 2)
+
+    def raw(self, points: torch.Tensor) -> torch.Tensor:
+        # The official code scales each axis to [−π, π] (research/cunerf.md §3.3).
+        encoded = self.encoding(points * math.pi)
+        hidden = encoded
+        for index, layer in enumerate(self.layers):
+            if index == self.config.skip_at:
+                hidden = torch.cat((encoded, hidden), dim=-1)
+            hidden = F.relu(layer(hidden))
+        return self.head(hidden)
+
+
+class GridField(NeuralField):
+    def __init__(self, config: FieldConfig):
+        super().__init__()
+        if min(config.resolutions) < 2:
+            raise ValueError("every grid level needs at least 2 vertices per axis")
+        self.config = config
+        rows = sum(r**3 for r in config.resolutions)
+        # One table for all levels (rows of level l start at offsets[l]), so a single lookup
+        # serves every level; tiny random values break the symmetry between features.
+        self.table = nn.Parameter(1e-4 * torch.randn(rows, config.features))
+        starts = torch.tensor([0] + [r**3 for r in config.resolutions[:-1]]).cumsum(0)
+        self.register_buffer("offsets", starts, persistent=False)
+        inputs = config.features * len(config.resolutions)
+        self.mlp = nn.Sequential(nn.Linear(inputs, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 2))
+
+    def encode(self, points: torch.Tensor) -> torch.Tensor:
+        """(P, 3) -> (P, levels · features): each level's features, trilinearly interpolated."""
+        indices, weights = [], []
+        for level, resolution in enumerate(self.config.resolutions):
+            index, weight = trilinear_corners(points, resolution)
+            indices.append(index + self.offsets[level])
+            weights.append(weight)
+        index = torch.stack(indices, dim=1).reshape(-1, 8)
+        weight = torch.stack(weights, dim=1).reshape(-1, 8)
+        features = TrilinearLookup.apply(self.table, index, weight)
+        return features.reshape(points.shape[0], -1)
+
+    def raw(self, points: torch.Tensor) -> torch.Tensor:
+        return self.mlp(self.encode(points))
+
+
+_CORNERS = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+
+
+def trilinear_corners(points: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row indices (P, 8) into an r³ table (x-major) and trilinear weights (P, 8) summing to 1.
+
+    Vertex v of a level sits at world (2v + 1)/r − 1, the centre of voxel v of an r³ volume over
+    [−1, 1]³ (DESIGN §2). Points outside the outermost vertices take the border value.
+    """
+    r = resolution
+    continuous = ((points.detach() + 1.0) * (0.5 * r) - 0.5).clamp(0.0, r - 1.0)
+    continuous = torch.nan_to_num(continuous, nan=0.0)
+    low = continuous.floor().clamp(max=r - 2)
+    fraction = continuous - low
+    low = low.long()
+    base = (low[:, 0] * r + low[:, 1]) * r + low[:, 2]
+    steps = (_CORNERS.to(points.device) * torch.tensor([r * r, r, 1], device=points.device)).sum(-1)
+    index = base[:, None] + steps[None, :]
+    fx, fy, fz = fraction.unbind(-1)
+    wx = torch.stack((1 - fx, fx), -1)
+    wy = torch.stack((1 - fy, fy), -1)
+    wz = torch.stack((1 - fz, fz), -1)
+    weight = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+    return index, weight
+
+
+class TrilinearLookup(torch.autograd.Function):
+    """Σ_corners weight · table[row]. ``embedding_bag`` does the forward in one pass; the
+    backward scatters into a dense gradient with ``index_add_``, several times faster on a CPU
+    than either ``grid_sample``'s or ``embedding_bag``'s own backward. Points get no gradient."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(index, weight)
+        ctx.rows = table.shape[0]
+        return F.embedding_bag(index, table, per_sample_weights=weight, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad_output: torch.Tensor):
+        index, weight = ctx.saved_tensors
+        contributions = (weight[:, :, None] * grad_output[:, None, :]).reshape(-1, grad_output.shape[1])
+        grad_table = torch.zeros(ctx.rows, grad_output.shape[1], dtype=grad_output.dtype, device=grad_output.device)
+        grad_table.index_add_(0, index.reshape(-1), contributions)
+        return grad_table, None, None
+
+
+def build_field(config: FieldConfig) -> NeuralField:
+    if config.density_activation not in DENSITY_ACTIVATIONS:
+        raise ValueError(f"unknown density activation {config.density_activation!r}")
+    if config.kind == "cunerf":
+        return CuNeRFField(config)
+    if config.kind == "grid":
+        return GridField(config)
+    raise ValueError(f"unknown field kind {config.kind!r}")

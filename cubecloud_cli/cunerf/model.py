@@ -1,0 +1,130 @@
+"""A cube renderer around one or two neural fields: CuNeRF's coarse-to-fine pipeline
+(research/cunerf.md §2): sample the cube → coarse field → render → resample radii from the
+coarse weights → fine field on all points → render.
+
+The official behaviour, quirks included, is one switch (``RenderConfig.official``): the
+low-corner-biased training sampler and the asymmetric test lattice, polar angles drawn
+uniformly (crowding the poles) and random even at test, ties broken by the sort, unbounded
+weights clipped only in test renders.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+import torch
+from torch import nn
+
+from cubecloud_cli.cunerf.fields import FieldConfig, NeuralField, build_field
+from cubecloud_cli.cunerf.rendering import render_cubes, shell_edges
+from cubecloud_cli.cunerf.sampling import cube_offsets, sample_radii_from_weights, sphere_directions
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    cube_half_size: float  # world units
+    samples_per_axis: int = 4  # n: n³ coarse points per cube (official: 4, i.e. 64)
+    importance: int = 64  # fine points drawn from the coarse weights; 0 = coarse only
+    separate_fine: bool = True  # a second network for the fine pass (the paper's)
+    train_layout: str = "stratified"
+    official: bool = False
+
+    @property
+    def half_diagonal(self) -> float:
+        return self.cube_half_size * math.sqrt(3.0)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class CubeOutput:
+    value: torch.Tensor  # (B,) the prediction: fine when there is a fine pass, else coarse
+    coarse: torch.Tensor  # (B,) the coarse pass (the adaptive loss uses it)
+    has_fine: bool
+
+
+class CubeModel(nn.Module):
+    def __init__(self, field_config: FieldConfig, render_config: RenderConfig):
+        super().__init__()
+        self.field_config = field_config
+        self.render_config = render_config
+        self.coarse = build_field(field_config)
+        wants_fine = render_config.importance > 0 and render_config.separate_fine
+        self.fine: NeuralField | None = build_field(field_config) if wants_fine else None
+
+    @property
+    def final_field(self) -> NeuralField:
+        """The field whose values the prediction is made of (fine when there is one)."""
+        return self.fine if self.fine is not None else self.coarse
+
+    def render(
+        self, centres: torch.Tensor, train: bool, generator: torch.Generator | None = None
+    ) -> CubeOutput:
+        """Render cubes centred at ``centres`` (B, 3) world points."""
+        config = self.render_config
+        official = config.official
+        if train:
+            layout = "official-train" if official else config.train_layout
+        else:
+            layout = "official-lattice" if official else "lattice"
+        offsets = cube_offsets(
+            centres.shape[0], config.samples_per_axis, layout, config.cube_half_size, generator, centres.device
+        )
+        intensity, density = self.coarse(centres[:, None, :] + offsets)
+        coarse = render_cubes(
+            offsets, intensity, density, config.half_diagonal, tie_aware=not official, bounded=not official
+        )
+        coarse_value = coarse.value
+        if config.importance <= 0 or offsets.shape[1] < 3:
+            return CubeOutput(self._finish(coarse_value, train), self._finish(coarse_value, train), False)
+
+        edges = shell_edges(coarse.radii)
+        radii = sample_radii_from_weights(
+            edges, coarse.weights[:, 1:-1], config.importance, deterministic=not train, generator=generator
+        )
+        mode = "official" if official else ("uniform" if train else "fibonacci")
+        directions = sphere_directions(radii.shape, mode, generator, centres.device)  # type: ignore[arg-type]
+        extra = (radii * config.half_diagonal)[..., None] * directions
+        all_offsets = torch.cat((offsets.expand(centres.shape[0], -1, -1), extra.detach()), dim=1)
+        intensity, density = self.final_field(centres[:, None, :] + all_offsets)
+        fine = render_cubes(
+            all_offsets, intensity, density, config.half_diagonal, tie_aware=not official, bounded=not official
+        )
+        return CubeOutput(self._finish(fine.value, train), self._finish(coarse_value, train), True)
+
+    def _finish(self, value: torch.Tensor, train: bool) -> torch.Tensor:
+        # Official renders exceed 1 and are clipped only at test (research/cunerf.md §2.3).
+        if self.render_config.official and not train:
+            return value.clamp(0.0, 1.0)
+        return value
+
+
+@torch.no_grad()
+def render_many(
+    model: CubeModel,
+    centres: torch.Tensor,
+    chunk: int = 32768,
+    keep: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Test renders of any number of cubes, ``chunk`` at a time. Cubes for which ``keep``
+    is False (air, by the occupancy grid) are not rendered and read 0."""
+    values = torch.zeros(centres.shape[0], device=centres.device)
+    was_training = model.training
+    model.eval()
+    try:
+        for start in range(0, centres.shape[0], chunk):
+            block = centres[start : start + chunk]
+            if keep is None:
+                values[start : start + chunk] = model.render(block, train=False, generator=generator).value
+                continue
+            wanted = keep(block)
+            if bool(wanted.any()):
+                rendered = model.render(block[wanted], train=False, generator=generator).value
+                values[start : start + chunk][wanted] = rendered
+    finally:
+        model.train(was_training)
+    return values

@@ -1,0 +1,117 @@
+"""Every parameter of the cunerf stage (recorded in the manifest), and how it builds a model."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from cubecloud_cli.cunerf.fields import DENSITY_ACTIVATIONS, FieldConfig
+from cubecloud_cli.cunerf.model import RenderConfig
+from cubecloud_cli.errors import CubecloudError
+
+MODELS = ("fast", "cunerf")
+
+
+@dataclass(frozen=True)
+class CunerfSettings:
+    model: str = "fast"
+    iterations: int = 2000
+    batch_size: int = 4096  # cubes per iteration (official: 1024)
+    lr: float = 0.05
+    lr_final: float = 5e-4
+    warmup: int = 100  # iterations of sine warm-up from 1% of lr (official: 1000)
+    cube_radius: float = 0.5  # cube half-size in voxels of the training lattice (official: 1)
+    samples_per_axis: int = 3  # n: n³ points per cube (official: 4 → 64)
+    importance: int = 0  # fine points per cube from the coarse weights (official: 64)
+    train_layout: str = "stratified"
+    official: bool = False  # the official code's sampling and rendering quirks
+    density: str = "softplus"
+    grid_levels: int = 3
+    grid_base: int = 16
+    grid_features: int = 2
+    grid_hidden: int = 32
+    train_scale: int = 1
+    holdout: int = 8  # axial slices kept for validation
+    val_every: int = 500
+    checkpoint_every: int = 500
+    body_fraction: float = 0.8
+    export_scale: float = 1.0
+    skip_air: bool = True
+    seed: int = 0
+
+    def validate(self, volume_size: int | None = None) -> None:
+        def bad(message: str) -> CubecloudError:
+            return CubecloudError(message)
+
+        if self.model not in MODELS:
+            raise bad(f"--model {self.model!r} must be one of {', '.join(MODELS)}")
+        if self.iterations < 1:
+            raise bad(f"--iterations {self.iterations} must be at least 1")
+        if not 1 <= self.batch_size <= 1 << 20:
+            raise bad(f"--batch-size {self.batch_size} must be within 1..1048576 cubes")
+        if not (0 < self.lr < 10 and 0 < self.lr_final <= self.lr):
+            raise bad(f"--lr {self.lr:g} and --lr-final {self.lr_final:g} must satisfy 0 < lr-final <= lr < 10")
+        if self.warmup < 0:
+            raise bad(f"--warmup {self.warmup} must not be negative")
+        if not (math.isfinite(self.cube_radius) and 0.05 <= self.cube_radius <= 16):
+            raise bad(f"--cube-radius {self.cube_radius:g} must be within 0.05..16 voxels (the paper uses 1)")
+        if not 2 <= self.samples_per_axis <= 8:
+            raise bad(f"--samples-per-axis {self.samples_per_axis} must be within 2..8 (the paper uses 4)")
+        if not 0 <= self.importance <= 512:
+            raise bad(f"--importance {self.importance} must be within 0..512 (the paper uses 64)")
+        if self.train_layout not in ("stratified", "uniform"):
+            raise bad(f"--train-layout {self.train_layout!r} must be stratified or uniform")
+        if self.density not in DENSITY_ACTIVATIONS:
+            raise bad(f"--density {self.density!r} must be softplus or relu")
+        if not 1 <= self.grid_levels <= 8 or self.grid_base < 2 or not 1 <= self.grid_features <= 16:
+            raise bad("--grid-levels must be 1..8, --grid-base at least 2, --grid-features 1..16")
+        if not 1 <= self.train_scale <= 16:
+            raise bad(f"--train-scale {self.train_scale} must be within 1..16")
+        if self.holdout < 0 or self.val_every < 1 or self.checkpoint_every < 1:
+            raise bad("--holdout must be >= 0 and --val-every, --checkpoint-every >= 1")
+        if not 0.0 <= self.body_fraction <= 1.0:
+            raise bad(f"--body-fraction {self.body_fraction:g} must be within 0..1")
+        if not (math.isfinite(self.export_scale) and 0.05 <= self.export_scale <= 8):
+            raise bad(f"--export-scale {self.export_scale:g} must be within 0.05..8")
+        if volume_size is not None:
+            if volume_size // self.train_scale < 2:
+                raise bad(f"--train-scale {self.train_scale} leaves fewer than 2 voxels per axis of a {volume_size}³ volume")
+            out = round(volume_size * self.export_scale)
+            if not 2 <= out <= 2048:
+                raise bad(f"--export-scale {self.export_scale:g} gives a {out}³ reconstruction: keep it within 2..2048")
+
+    def field_config(self, volume_size: int) -> FieldConfig:
+        if self.model == "cunerf":
+            return FieldConfig(kind="cunerf", density_activation=self.density)
+        return FieldConfig(
+            kind="grid",
+            density_activation=self.density,
+            # A coarse level of at most S/8 vertices carries the field across held-out slices.
+            resolutions=grid_resolutions(min(self.grid_base, max(2, volume_size // 8)), volume_size, self.grid_levels),
+            features=self.grid_features,
+            hidden=self.grid_hidden,
+        )
+
+    def render_config(self, volume_size: int) -> RenderConfig:
+        voxel = 2.0 / volume_size  # world units per voxel
+        return RenderConfig(
+            cube_half_size=self.cube_radius * self.train_scale * voxel,
+            samples_per_axis=self.samples_per_axis,
+            importance=self.importance,
+            separate_fine=self.model == "cunerf",
+            train_layout=self.train_layout,
+            official=self.official,
+        )
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def grid_resolutions(base: int, finest: int, levels: int) -> tuple[int, ...]:
+    """Geometric from ``base`` to ``finest`` (one vertex per voxel at the finest level)."""
+    base = min(base, finest)
+    if levels == 1 or base == finest:
+        return (max(finest, 2),)
+    growth = (finest / base) ** (1.0 / (levels - 1))
+    values = [max(2, int(round(base * growth**level))) for level in range(levels)]
+    return tuple(sorted(set(values)))

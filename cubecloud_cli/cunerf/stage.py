@@ -1,0 +1,247 @@
+"""The cunerf stage: train the cube-based field on the preprocessed volume and write it out.
+
+WORK/cunerf/ holds
+  model.pt        the field's weights with the configuration that rebuilds it (CunerfField.load)
+  recon.nii.gz    the field rendered at --export-scale × the volume's resolution, with the
+                  affine that lays it over the original scan
+  preview.png     mid-slices: volume, reconstruction, |difference| × 4
+  log.csv         iteration, seconds, loss, learning rate and validation metrics
+  manifest.json   parameters, input sha256, timings, 3D and held-out metrics
+
+While training, WORK/.cunerf.partial/checkpoint.pt is written every --checkpoint-every
+iterations and on Ctrl-C; `--resume` continues from it exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import resource
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage
+from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField, resolve_device
+from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
+from cubecloud_cli.cunerf.model import CubeModel
+from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.training import Trainer, learning_rate
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.metrics import volume_metrics
+from cubecloud_cli.preprocess.preview import write_preview_rows
+from cubecloud_cli.volume.nifti import write_nifti
+
+log = logging.getLogger("cubecloud")
+
+CHECKPOINT_FILE = "checkpoint.pt"
+RECON_FILE = "recon.nii.gz"
+PREVIEW_FILE = "preview.png"
+LOG_FILE = "log.csv"
+LOG_COLUMNS = ("iteration", "seconds", "loss", "lr", "val_psnr", "val_ssim", "val_psnr_body", "val_ssim_body")
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """How to run, not what to compute: kept out of the parameters that identify the result."""
+
+    device: str = "auto"
+    threads: int | None = None
+
+
+ProgressCallback = Callable[[str, int, int, dict], None]
+
+
+def _peak_memory_mb(device: torch.device) -> dict[str, float]:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    peak = {"peak_rss_mb": round(rss / (1024 if sys.platform != "darwin" else 1024 * 1024), 1)}
+    if device.type == "cuda":
+        peak["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+    return peak
+
+
+def _check_resume(checkpoint: Path, settings: CunerfSettings, resume: bool, force: bool) -> dict | None:
+    """The checkpoint to continue from, or None to start afresh; refuses to guess."""
+    if resume:
+        if not checkpoint.is_file():
+            raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
+        try:
+            state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        except Exception as exc:
+            raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
+        recorded = state.get("settings", {})
+        changed = [k for k, v in settings.as_dict().items() if k != "iterations" and recorded.get(k) != v]
+        if changed:
+            raise CubecloudError(
+                f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the "
+                f"same options, or start again with --force"
+            )
+        return state
+    if checkpoint.is_file() and not force:
+        raise CubecloudError(
+            f"an interrupted run is waiting in {checkpoint.parent}: pass --resume to continue it, "
+            f"or --force to start again"
+        )
+    return None
+
+
+def _write_log(path: Path, history: list[dict]) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in history:
+            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+
+
+def train_cunerf(
+    work: Path,
+    settings: CunerfSettings,
+    *,
+    force: bool = False,
+    resume: bool = False,
+    runtime: Runtime = Runtime(),
+    name: str | None = None,
+    on_progress: ProgressCallback = lambda phase, done, total, fields: None,
+) -> dict:
+    """Run the stage; returns the manifest written to WORK/cunerf/manifest.json.
+
+    ``on_progress(phase, done, total, fields)`` reports "train" iterations (with loss and the
+    latest validation PSNR in ``fields``) and then the "reconstruct" and "write" phases.
+    """
+    work = Path(work)
+    settings.validate()
+    preprocess = require_stage(work, "preprocess")
+    size = int(preprocess["volume"]["shape"][0])
+    settings.validate(size)
+    device = resolve_device(runtime.device)
+    if runtime.threads is not None:
+        if runtime.threads < 1:
+            raise CubecloudError(f"--threads {runtime.threads} must be at least 1")
+        torch.set_num_threads(runtime.threads)
+
+    writer = StageWriter(work, "cunerf", settings.as_dict(), force=force, name=name, keep_partial=True)
+    writer.check_can_start()
+    checkpoint = writer.directory / CHECKPOINT_FILE
+    state = _check_resume(checkpoint, settings, resume, force)
+    if state is None and writer.directory.exists():
+        shutil.rmtree(writer.directory)
+
+    with writer:
+        volume_path = work / "preprocess" / "volume.npy"
+        with writer.phase("load"):
+            writer.add_input(volume_path, "preprocess/volume.npy")
+            volume_np = np.load(volume_path)
+            if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
+                raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")
+            volume = torch.from_numpy(volume_np.astype(np.float32)).to(device)
+            held_out = holdout_slices(volume_np, settings.holdout, settings.train_scale)
+            voxels = TrainingVoxels(volume, settings.train_scale, held_out, settings.body_fraction)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(settings.seed)
+                model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
+            generator = torch.Generator(device=device).manual_seed(settings.seed)
+            trainer = Trainer(model, voxels, settings, generator)
+            if state is not None:
+                trainer.restore(state)
+                log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
+        if voxels.body_voxels == 0:
+            log.warning("the volume holds no non-zero voxel: the field will learn empty space only")
+
+        with writer.phase("train"):
+            _train(trainer, checkpoint, on_progress)
+
+        field = CunerfField(model, size, np.asarray(preprocess["geometry"]["voxel_to_scanner"]),
+                            voxels.occupancy() if settings.skip_air else None, settings.as_dict())
+        with writer.phase("reconstruct"):
+            recon = field.bake(size, on_progress=lambda f: on_progress("reconstruct", int(f * 100), 100, {}))
+            metrics = volume_metrics(volume_np, recon)
+            export_size = round(size * settings.export_scale)
+            exported = recon if export_size == size else field.bake(export_size)
+
+        with writer.phase("write"):
+            on_progress("write", 0, 1, {})
+            field.to_file(writer.directory / MODEL_FILE)
+            write_nifti(exported, field.bake_affine(export_size), writer.directory / RECON_FILE,
+                        f"cubecloud cunerf x{settings.export_scale:g}")
+            difference = np.clip(4.0 * np.abs(recon - volume_np), 0.0, 1.0)
+            write_preview_rows([("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)],
+                               writer.directory / PREVIEW_FILE)
+            _write_log(writer.directory / LOG_FILE, trainer.history)
+            checkpoint.unlink(missing_ok=True)
+
+        final = trainer.history[-1] if trainer.history else {}
+        writer.metrics.update({f"{k}_3d": v for k, v in metrics.items()})
+        writer.metrics.update({k: v for k, v in final.items() if k.startswith("val_")})
+        writer.metrics.update(
+            {
+                "iterations": trainer.iteration,
+                "train_seconds": round(trainer.elapsed_s, 2),
+                "seconds_per_1000_iterations": round(1000 * trainer.elapsed_s / max(trainer.iteration, 1), 2),
+                "parameters": sum(p.numel() for p in model.parameters()),
+                **_peak_memory_mb(device),
+            }
+        )
+        writer.extra.update(
+            {
+                "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
+                "data": {
+                    "volume_size": size,
+                    "training_voxels": voxels.training_voxels,
+                    "body_voxels": voxels.body_voxels,
+                    "held_out_slices": held_out,
+                    "air_blocks_skipped": None if field.occupancy is None else round(1 - field.occupancy.fraction(), 4),
+                },
+                "model": {"field": model.field_config.as_dict(), "render": model.render_config.as_dict()},
+                "reconstruction": {"file": RECON_FILE, "shape": [export_size] * 3, "scale": settings.export_scale},
+            }
+        )
+    return read_manifest(writer.final_dir)
+
+
+def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) -> None:
+    settings = trainer.settings
+    total = settings.iterations
+    log_every = max(1, total // 200)
+    latest: dict = {}
+    running = None
+    try:
+        while trainer.iteration < total:
+            loss = trainer.step()
+            running = loss if running is None else 0.9 * running + 0.1 * loss
+            it = trainer.iteration
+            row = None
+            if it % settings.val_every == 0 or it == total:
+                latest = trainer.validate()
+                row = {**latest}
+            if row is not None or it % log_every == 0:
+                trainer.history.append(
+                    {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
+                     "lr": learning_rate(it - 1, settings), **(row or {})}
+                )
+            fields = {"loss": running}
+            if "val_psnr" in latest:
+                fields["val PSNR"] = latest["val_psnr"]
+            on_progress("train", it, total, fields)
+            if it % settings.checkpoint_every == 0 and it < total:
+                trainer.save(checkpoint)
+    except KeyboardInterrupt:
+        trainer.save(checkpoint)
+        raise CubecloudInterrupted(checkpoint, trainer.iteration) from None
+    except FloatingPointError as exc:
+        raise CubecloudError(f"training diverged: {exc}; lower --lr") from None
+
+
+class CubecloudInterrupted(KeyboardInterrupt):
+    """Ctrl-C during training, after the checkpoint was saved."""
+
+    def __init__(self, checkpoint: Path, iteration: int):
+        super().__init__(
+            f"interrupted: saved iteration {iteration} to {checkpoint}; continue with the same command and --resume"
+        )
+        self.checkpoint = checkpoint
+        self.iteration = iteration

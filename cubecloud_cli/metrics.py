@@ -1,0 +1,132 @@
+"""Image and volume metrics of DESIGN.md §5, vectorised over stacks of slices.
+
+* PSNR with data range 1 (MSE of 0 gives +inf, never a division by zero).
+* SSIM after Wang et al., as ``skimage.metrics.structural_similarity(..., gaussian_weights=True,
+  sigma=1.5, use_sample_covariance=False, data_range=1)`` computes it: an 11-tap Gaussian
+  window (σ = 1.5, truncated at 3.5σ), K1 = 0.01, K2 = 0.03, averaged over the pixels whose
+  window lies inside the image (skimage crops the 5-pixel border the same way).
+* Masked variants average only over foreground pixels (where the reference is non-zero), since
+  black background inflates both numbers.
+* 3D: PSNR over all voxels; SSIM as the mean of 2D SSIM over the slices along all three axes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+SSIM_SIGMA = 1.5
+SSIM_TRUNCATE = 3.5
+SSIM_RADIUS = int(SSIM_TRUNCATE * SSIM_SIGMA + 0.5)  # 5, so an 11-tap window
+K1, K2 = 0.01, 0.03
+
+
+def _as_tensor(array) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(array, dtype=np.float64))
+
+
+def psnr_from_mse(mse: float, data_range: float = 1.0) -> float:
+    if not math.isfinite(mse):
+        return float("nan")
+    if mse <= 0.0:
+        return float("inf")
+    return 10.0 * math.log10(data_range * data_range / mse)
+
+
+def mse(reference, estimate, mask=None) -> float:
+    """Mean squared error, over ``mask`` when given (NaN for an empty mask)."""
+    difference = (_as_tensor(estimate) - _as_tensor(reference)) ** 2
+    if mask is not None:
+        mask = torch.as_tensor(np.asarray(mask, dtype=bool))
+        if not bool(mask.any()):
+            return float("nan")
+        return float(difference[mask].mean())
+    return float(difference.mean())
+
+
+def psnr(reference, estimate, mask=None, data_range: float = 1.0) -> float:
+    return psnr_from_mse(mse(reference, estimate, mask), data_range)
+
+
+def _gaussian_window() -> torch.Tensor:
+    x = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=torch.float64)
+    window = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+    return window / window.sum()
+
+
+def ssim_maps(reference, estimate, data_range: float = 1.0) -> torch.Tensor:
+    """SSIM maps (N, H−10, W−10) of a stack of 2D images (N, H, W) or one image (H, W)."""
+    x, y = _as_tensor(reference), _as_tensor(estimate)
+    if x.ndim == 2:
+        x, y = x[None], y[None]
+    if min(x.shape[-2:]) < 2 * SSIM_RADIUS + 1:
+        raise ValueError(f"SSIM needs images of at least {2 * SSIM_RADIUS + 1}×{2 * SSIM_RADIUS + 1} pixels")
+    window = _gaussian_window()
+    rows, cols = window.view(1, 1, -1, 1), window.view(1, 1, 1, -1)
+
+    def blur(image: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(F.conv2d(image[:, None], rows), cols)[:, 0]
+
+    c1, c2 = (K1 * data_range) ** 2, (K2 * data_range) ** 2
+    mean_x, mean_y = blur(x), blur(y)
+    var_x = blur(x * x) - mean_x * mean_x
+    var_y = blur(y * y) - mean_y * mean_y
+    cov = blur(x * y) - mean_x * mean_y
+    numerator = (2 * mean_x * mean_y + c1) * (2 * cov + c2)
+    denominator = (mean_x * mean_x + mean_y * mean_y + c1) * (var_x + var_y + c2)
+    return numerator / denominator  # c1, c2 > 0 keep the denominator positive
+
+
+def _crop_mask(mask, shape) -> torch.Tensor:
+    mask = torch.as_tensor(np.asarray(mask, dtype=bool))
+    if mask.ndim == 2:
+        mask = mask[None]
+    r = SSIM_RADIUS
+    return mask[:, r : mask.shape[1] - r, r : mask.shape[2] - r].expand(shape)
+
+
+def ssim(reference, estimate, mask=None, data_range: float = 1.0) -> float:
+    """Mean SSIM over the images of a stack (each image's own mean, then their mean).
+
+    With ``mask``, one mean over all foreground pixels of the stack (NaN if there are none).
+    """
+    maps = ssim_maps(reference, estimate, data_range)
+    if mask is None:
+        return float(maps.mean(dim=(-2, -1)).mean())
+    inside = _crop_mask(mask, maps.shape)
+    if not bool(inside.any()):
+        return float("nan")
+    return float(maps[inside].mean())
+
+
+def volume_metrics(reference: np.ndarray, estimate: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+    """3D PSNR, SSIM (mean over slices along the three axes) and MSE, also inside ``mask``
+    (default: the body, where the reference is non-zero)."""
+    reference = np.asarray(reference, dtype=np.float32)
+    estimate = np.asarray(estimate, dtype=np.float32)
+    if reference.shape != estimate.shape:
+        raise ValueError(f"shapes differ: {reference.shape} vs {estimate.shape}")
+    mask = reference > 0 if mask is None else mask
+    result = {
+        "psnr": psnr(reference, estimate),
+        "mse": mse(reference, estimate),
+        "psnr_body": psnr(reference, estimate, mask),
+        "mse_body": mse(reference, estimate, mask),
+    }
+    if min(reference.shape) >= 2 * SSIM_RADIUS + 1:
+        scores, body_scores = [], []
+        for axis in range(3):
+            ref_stack = np.moveaxis(reference, axis, 0)
+            est_stack = np.moveaxis(estimate, axis, 0)
+            mask_stack = np.moveaxis(mask, axis, 0)
+            maps = ssim_maps(ref_stack, est_stack)
+            scores.append(maps.mean(dim=(-2, -1)))
+            inside = _crop_mask(mask_stack, maps.shape)
+            body_scores.append(maps[inside])
+        result["ssim"] = float(torch.cat(scores).mean())
+        body = torch.cat(body_scores)
+        result["ssim_body"] = float(body.mean()) if body.numel() else float("nan")
+    return result

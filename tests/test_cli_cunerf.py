@@ -1,0 +1,176 @@
+"""`cubecloud cunerf` end to end on the bundled CT at 32³: outputs, API, resume, refusals."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import nibabel as nib
+import numpy as np
+import pytest
+import torch
+
+from cli_helpers import assert_one_line_error, invoke
+from cubecloud_cli.cunerf import CunerfField
+from cubecloud_cli.cunerf.training import Trainer
+
+FAST = ["--iterations", "40", "--batch-size", "1024", "--val-every", "20", "--holdout", "2"]
+
+
+@pytest.fixture(scope="module")
+def preprocessed(tmp_path_factory):
+    work = tmp_path_factory.mktemp("cunerf") / "work"
+    result = invoke(*["preprocess", "-o", str(work), "--size", "32", "-q"])
+    assert result.exit_code == 0, result.output
+    return work
+
+
+@pytest.fixture(scope="module")
+def trained(preprocessed):
+    result = invoke(*["cunerf", str(preprocessed), *FAST, "-q"])
+    assert result.exit_code == 0, result.output
+    return preprocessed
+
+
+def _copy_preprocess(source, tmp_path):
+    work = tmp_path / "work"
+    shutil.copytree(source / "preprocess", work / "preprocess")
+    return work
+
+
+def test_stage_writes_model_recon_preview_log_and_manifest(trained):
+    stage = trained / "cunerf"
+    for name in ("model.pt", "recon.nii.gz", "preview.png", "log.csv", "manifest.json"):
+        assert (stage / name).is_file(), name
+    assert not (stage / "checkpoint.pt").exists()
+    manifest = json.loads((stage / "manifest.json").read_text())
+    metrics = manifest["metrics"]
+    for key in ("psnr_3d", "ssim_3d", "psnr_body_3d", "val_psnr", "val_ssim", "seconds_per_1000_iterations", "peak_rss_mb"):
+        assert isinstance(metrics[key], float), key
+    assert metrics["iterations"] == 40 and metrics["psnr_3d"] > 12
+    assert manifest["params"]["model"] == "fast" and manifest["data"]["held_out_slices"]
+    assert set(manifest["timings_s"]) >= {"load", "train", "reconstruct", "write", "total"}
+    rows = (stage / "log.csv").read_text().splitlines()
+    assert rows[0].startswith("iteration,seconds,loss") and len(rows) == 41
+
+
+def test_recon_lies_exactly_over_the_preprocessed_volume(trained):
+    recon = nib.load(trained / "cunerf" / "recon.nii.gz")
+    volume = nib.load(trained / "preprocess" / "volume.nii.gz")
+    assert recon.shape == volume.shape
+    np.testing.assert_allclose(recon.affine, volume.affine, atol=1e-5)
+    data = np.asarray(recon.dataobj)
+    assert np.isfinite(data).all() and data.min() >= 0 and data.max() <= 1
+
+
+def test_python_api_queries_renders_and_bakes(trained):
+    field = CunerfField.load(trained, device="cpu")
+    points = np.random.default_rng(0).uniform(-1.2, 1.2, (1000, 3))
+    intensity, density = field.query(points, chunk=300)
+    assert intensity.shape == density.shape == (1000,)
+    assert (intensity >= 0).all() and (intensity <= 1).all() and (density >= 0).all()
+    rendered = field.render_cubes(points[:50], chunk=7)
+    np.testing.assert_array_equal(rendered, field.render_cubes(points[:50], chunk=50))
+    baked = field.bake(16)
+    assert baked.shape == (16, 16, 16) and (baked >= 0).all() and (baked <= 1).all()
+    recon = np.asarray(nib.load(trained / "cunerf" / "recon.nii.gz").dataobj)
+    np.testing.assert_allclose(field.bake(32), recon, atol=1e-6)
+    with pytest.raises(ValueError):
+        field.query(np.zeros((4, 2)))
+
+
+def test_bake_affine_keeps_the_physical_cube(trained):
+    field = CunerfField.load(trained, device="cpu")
+    volume_affine = nib.load(trained / "preprocess" / "volume.nii.gz").affine
+    fine = field.bake_affine(64)
+    # Voxel i of the volume covers voxels 2i and 2i+1 at scale 2; its centre lies between them.
+    for i in (0, 7, 31):
+        centre = volume_affine @ np.array([i, i, i, 1.0])
+        between = fine @ np.array([2 * i + 0.5] * 3 + [1.0])
+        np.testing.assert_allclose(between, centre, atol=1e-6)
+
+
+def test_super_resolution_mode_exports_at_a_finer_scale(preprocessed, tmp_path):
+    work = _copy_preprocess(preprocessed, tmp_path)
+    result = invoke(*["cunerf", str(work), *FAST, "--train-scale", "2", "--export-scale", "2", "--name", "sr", "-q"])
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "cunerf-sr" / "manifest.json").read_text())
+    assert all(k % 2 == 1 for k in manifest["data"]["held_out_slices"])
+    assert manifest["data"]["training_voxels"] < 32**3 / 8 + 1
+    assert nib.load(work / "cunerf-sr" / "recon.nii.gz").shape == (64, 64, 64)
+
+
+def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monkeypatch):
+    straight = _copy_preprocess(preprocessed, tmp_path / "a")
+    assert invoke(*["cunerf", str(straight), *FAST, "--checkpoint-every", "10", "-q"]).exit_code == 0
+
+    work = _copy_preprocess(preprocessed, tmp_path / "b")
+    original_step = Trainer.step
+
+    def interrupted_step(self):
+        if self.iteration == 25:
+            raise KeyboardInterrupt
+        return original_step(self)
+
+    monkeypatch.setattr(Trainer, "step", interrupted_step)
+    result = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "-q"])
+    assert result.exit_code == 130 and "--resume" in result.output
+    assert (work / ".cunerf.partial" / "checkpoint.pt").is_file() and not (work / "cunerf").exists()
+
+    refused = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "-q"])
+    assert_one_line_error(refused, "--resume")
+    changed = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "--lr", "0.01", "--resume", "-q"])
+    assert_one_line_error(changed, "other settings")
+
+    monkeypatch.setattr(Trainer, "step", original_step)
+    resumed = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "--resume", "-q"])
+    assert resumed.exit_code == 0, resumed.output
+    a = torch.load(straight / "cunerf" / "model.pt", weights_only=True)["model"]
+    b = torch.load(work / "cunerf" / "model.pt", weights_only=True)["model"]
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["--iterations", "0"], "--iterations"),
+        (["--cube-radius", "0"], "--cube-radius"),
+        (["--samples-per-axis", "1"], "--samples-per-axis"),
+        (["--train-scale", "20"], "--train-scale"),
+        (["--export-scale", "100"], "--export-scale"),
+        (["--lr", "-1"], "--lr"),
+        (["--threads", "0"], "--threads"),
+        (["--resume"], "no interrupted run"),
+    ],
+)
+def test_bad_options_give_one_line_errors(preprocessed, tmp_path, arguments, message):
+    work = _copy_preprocess(preprocessed, tmp_path)
+    result = invoke(*["cunerf", str(work), *FAST, *arguments])
+    assert_one_line_error(result, message)
+    assert sorted(p.name for p in work.iterdir()) == ["preprocess"]
+
+
+def test_missing_or_incomplete_preprocess_is_named(tmp_path):
+    assert_one_line_error(invoke(*["cunerf", str(tmp_path / "nowhere")]), "cubecloud preprocess")
+    (tmp_path / "work" / "preprocess").mkdir(parents=True)
+    assert_one_line_error(invoke(*["cunerf", str(tmp_path / "work")]), "incomplete")
+
+
+def test_a_complete_stage_is_kept_without_force(trained):
+    before = (trained / "cunerf" / "manifest.json").read_text()
+    assert_one_line_error(invoke(*["cunerf", str(trained), *FAST]), "--force")
+    assert (trained / "cunerf" / "manifest.json").read_text() == before
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_asking_for_cuda_without_a_gpu_is_refused(preprocessed, tmp_path):
+    work = _copy_preprocess(preprocessed, tmp_path)
+    assert_one_line_error(invoke(*["cunerf", str(work), "--device", "cuda"]), "--device cpu")
+
+
+def test_corrupt_model_file_is_named(trained, tmp_path):
+    broken = tmp_path / "model.pt"
+    broken.write_bytes(b"not a model")
+    with pytest.raises(Exception, match="not a readable cubecloud model"):
+        CunerfField.from_file(broken, device="cpu")

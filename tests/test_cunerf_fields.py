@@ -1,0 +1,98 @@
+"""The two fields: the paper's MLP and the CPU grid; shapes, ranges and the grid lookup."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cubecloud_cli.cunerf.fields import (
+    CuNeRFField,
+    FieldConfig,
+    GridField,
+    PositionalEncoding,
+    TrilinearLookup,
+    build_field,
+    trilinear_corners,
+)
+from cubecloud_cli.cunerf.settings import grid_resolutions
+
+
+def test_positional_encoding_matches_the_paper():
+    encoding = PositionalEncoding(11)
+    assert encoding.out_features == 69
+    p = torch.tensor([[0.3, -1.2, 2.0]])
+    out = encoding(p)[0]
+    assert torch.equal(out[:3], p[0])
+    # Frequency 2^k: sin block then cos block, each over (x, y, z).
+    k = 3
+    np.testing.assert_allclose(out[3 + 6 * k : 6 + 6 * k].numpy(), torch.sin(p[0] * 2**k).numpy(), rtol=1e-6)
+    np.testing.assert_allclose(out[6 + 6 * k : 9 + 6 * k].numpy(), torch.cos(p[0] * 2**k).numpy(), rtol=1e-6)
+
+
+def test_cunerf_network_has_the_papers_shape():
+    field = CuNeRFField(FieldConfig(kind="cunerf"))
+    widths = [(layer.in_features, layer.out_features) for layer in field.layers]
+    assert widths == [(69, 256)] + [(256, 256)] * 3 + [(325, 256)] + [(256, 256)] * 2
+    assert (field.head.in_features, field.head.out_features) == (256, 2)
+    parameters = sum(p.numel() for p in field.parameters())
+    assert 425_000 < parameters < 435_000  # ~431k effective (research/cunerf.md §1.2)
+
+
+@pytest.mark.parametrize("kind", ["cunerf", "grid"])
+@pytest.mark.parametrize("activation", ["softplus", "relu"])
+def test_outputs_are_in_range_even_far_outside_the_volume(kind, activation):
+    torch.manual_seed(0)
+    field = build_field(FieldConfig(kind=kind, density_activation=activation, resolutions=(4, 8)))
+    points = torch.tensor([[0.0, 0.0, 0.0], [1e6, -1e6, 3.0], [-1.0, 1.0, -1.0], [1e-30, 0, 0]])
+    intensity, density = field(points)
+    assert intensity.shape == density.shape == (4,)
+    assert torch.isfinite(intensity).all() and torch.isfinite(density).all()
+    assert (intensity >= 0).all() and (intensity <= 1).all() and (density >= 0).all()
+    half = field(points.half().float())
+    assert torch.isfinite(half[0]).all()
+
+
+def test_grid_lookup_equals_grid_sample_with_border_padding():
+    torch.manual_seed(1)
+    field = GridField(FieldConfig(kind="grid", resolutions=(4, 7), features=3)).double()
+    points = torch.rand(300, 3, dtype=torch.float64) * 2.6 - 1.3
+    for level, r in enumerate((4, 7)):
+        rows = field.table[field.offsets[level] : field.offsets[level] + r**3].reshape(r, r, r, 3)
+        grid = rows.permute(3, 2, 1, 0)[None]  # (1, F, z, y, x) for grid_sample's (x, y, z)
+        expected = F.grid_sample(grid, points.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=False)
+        ours = field.encode(points)[:, 3 * level : 3 * level + 3]
+        np.testing.assert_allclose(ours.detach().numpy(), expected.reshape(3, -1).t().detach().numpy(), atol=1e-12)
+
+
+def test_grid_vertices_sit_at_voxel_centres():
+    index, weight = trilinear_corners(torch.tensor([[(2 * 2 + 1) / 8 - 1, (2 * 0 + 1) / 8 - 1, (2 * 7 + 1) / 8 - 1]]), 8)
+    hit = index[0, weight[0].argmax()].item()
+    assert hit == (2 * 8 + 0) * 8 + 7 and weight.max().item() == pytest.approx(1.0)
+
+
+def test_grid_lookup_gradient():
+    points = torch.rand(40, 3, dtype=torch.float64) * 2 - 1
+    index, weight = trilinear_corners(points, 4)
+    table = torch.randn(64, 2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: TrilinearLookup.apply(t, index, weight), (table,))
+
+
+def test_grid_resolutions_end_at_one_vertex_per_voxel():
+    assert grid_resolutions(16, 128, 3) == (16, 45, 128)
+    assert grid_resolutions(16, 8, 3) == (8,)
+    assert grid_resolutions(16, 128, 1) == (128,)
+    assert all(r >= 2 for r in grid_resolutions(2, 3, 4))
+
+
+def test_grid_rejects_a_single_vertex_level():
+    with pytest.raises(ValueError):
+        GridField(FieldConfig(kind="grid", resolutions=(1, 4)))
+
+
+def test_nan_points_do_not_poison_the_grid_lookup():
+    index, weight = trilinear_corners(torch.tensor([[math.nan, 0.0, 0.0]]), 4)
+    assert (index >= 0).all() and (index < 64).all() and torch.isfinite(weight).all()

@@ -1,0 +1,152 @@
+"""Training: schedule, loss, batches, no collapse, exact resume, the model's render paths."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices, voxel_centres
+from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
+from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.training import Trainer, adaptive_mse, learning_rate
+from cubecloud_cli.metrics import psnr
+
+
+def _settings(**changes) -> CunerfSettings:
+    base = dict(iterations=60, batch_size=512, lr=0.05, lr_final=5e-3, warmup=5, holdout=2, val_every=30)
+    return CunerfSettings(**{**base, **changes})
+
+
+def _trainer(volume: np.ndarray, settings: CunerfSettings) -> Trainer:
+    size = volume.shape[0]
+    torch.manual_seed(settings.seed)
+    model = CubeModel(settings.field_config(size), settings.render_config(size))
+    held = holdout_slices(volume, settings.holdout, settings.train_scale)
+    voxels = TrainingVoxels(torch.from_numpy(volume), settings.train_scale, held, settings.body_fraction)
+    return Trainer(model, voxels, settings, torch.Generator().manual_seed(settings.seed))
+
+
+def _ball(size=16, radius=0.35, value=0.8) -> np.ndarray:
+    axis = (2 * np.arange(size) + 1) / size - 1
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    return np.where(x**2 + y**2 + z**2 < radius**2, value, 0.0).astype(np.float32)
+
+
+def test_learning_rate_warms_up_then_decays_log_linearly():
+    s = CunerfSettings(iterations=1000, lr=1e-2, lr_final=1e-4, warmup=100)
+    assert learning_rate(0, s) == pytest.approx(1e-4)  # 1% of lr
+    at_warm = learning_rate(100, s)
+    assert at_warm == pytest.approx(math.exp(0.9 * math.log(1e-2) + 0.1 * math.log(1e-4)))
+    assert learning_rate(1000, s) == pytest.approx(1e-4)
+    after = [learning_rate(t, s) for t in range(100, 1001, 50)]
+    assert all(a > b for a, b in zip(after, after[1:]))
+    assert learning_rate(500, CunerfSettings(iterations=1000, lr=1e-2, lr_final=1e-2, warmup=0)) == pytest.approx(1e-2)
+
+
+def test_adaptive_loss_is_the_papers_and_stops_its_weight_gradient():
+    target = torch.tensor([0.5, 0.2])
+    fine = torch.tensor([0.9, 0.2], requires_grad=True)
+    coarse = torch.tensor([0.1, 0.6], requires_grad=True)
+    loss = adaptive_mse(CubeOutput(fine, coarse, True), target)
+    expected = ((0.4**2 + 0) / 2) + ((math.sqrt(0.4) * 0.4**2 + 0 * 0.4**2) / 2)
+    assert loss.item() == pytest.approx(expected, rel=1e-6)
+    loss.backward()
+    # d/dfine only through the MSE term: 2·(fine − C)/2.
+    assert fine.grad.tolist() == pytest.approx([0.4, 0.0], rel=1e-6)
+    plain = adaptive_mse(CubeOutput(fine.detach(), fine.detach(), False), target)
+    assert plain.item() == pytest.approx(0.08, rel=1e-6)
+
+
+def test_batches_skip_held_out_slices_and_follow_the_lattice():
+    volume = _ball(16)
+    held = holdout_slices(volume, 3, 2)
+    assert held and all(k % 2 == 1 for k in held)
+    voxels = TrainingVoxels(torch.from_numpy(volume), 2, held, 0.5)
+    centres, targets = voxels.batch(4000, torch.Generator().manual_seed(0))
+    index = torch.round((centres + 1) * 8 - 0.5).long()
+    assert (index % 2 == 0).all()
+    assert not set(index[:, 2].tolist()) & set(held)
+    np.testing.assert_array_equal(targets.numpy(), volume[index[:, 0], index[:, 1], index[:, 2]])
+    assert 0.45 < (targets > 0).float().mean() < 0.7  # half from the body, the rest uniform
+
+
+def test_holdout_slices_avoid_the_ends_and_empty_slices():
+    volume = np.zeros((20, 20, 20), np.float32)
+    volume[5:15, 5:15, 4:16] = 0.5
+    picks = holdout_slices(volume, 4, 1)
+    assert len(picks) == 4 and min(picks) > 4 and max(picks) < 15
+    assert holdout_slices(np.zeros((8, 8, 8), np.float32), 2, 1) == [2, 5]
+
+
+def test_a_mostly_air_scan_still_learns_its_body():
+    # 0.5% of the voxels are body: without body sampling a batch holds ~3 of them.
+    volume = _ball(24, radius=0.2, value=0.8)
+    assert (volume > 0).mean() < 0.01
+    trainer = _trainer(volume, _settings(iterations=150, holdout=0))
+    for _ in range(150):
+        trainer.step()
+    inside = torch.from_numpy(np.argwhere(volume > 0))
+    rendered = render_many(trainer.model, voxel_centres(inside, 24))
+    assert rendered.mean() > 0.6
+    assert torch.isfinite(rendered).all() and (rendered <= 1).all()
+
+
+@pytest.mark.parametrize("model", ["fast", "cunerf"])
+def test_all_air_batches_and_cubes_reaching_outside_stay_finite(model):
+    settings = _settings(model=model, lr=2e-3 if model == "cunerf" else 0.05, batch_size=64, importance=8,
+                         cube_radius=4.0, samples_per_axis=2)
+    trainer = _trainer(np.zeros((8, 8, 8), np.float32), settings)
+    for _ in range(3):
+        assert math.isfinite(trainer.step())
+    corners = torch.tensor([[-1.0, -1.0, -1.0], [0.99, 0.99, 0.99], [5.0, 0.0, 0.0]])
+    for train in (True, False):
+        out = trainer.model.render(corners, train=train, generator=torch.Generator().manual_seed(0))
+        assert torch.isfinite(out.value).all() and torch.isfinite(out.coarse).all()
+        assert (out.value >= 0).all() and (out.value <= 1).all()
+
+
+def test_official_quirks_render_and_clip_at_test():
+    settings = _settings(official=True, importance=8, samples_per_axis=4, density="relu")
+    trainer = _trainer(_ball(8), settings)
+    trainer.step()
+    out = trainer.model.render(torch.zeros(5, 3), train=False, generator=torch.Generator().manual_seed(0))
+    assert out.has_fine and (out.value >= 0).all() and (out.value <= 1).all()
+
+
+def test_resume_continues_exactly_like_an_uninterrupted_run(tmp_path):
+    volume = _ball(16)
+    settings = _settings(iterations=40, val_every=10)
+    straight = _trainer(volume, settings)
+    for _ in range(40):
+        straight.step()
+
+    first = _trainer(volume, settings)
+    for _ in range(17):
+        first.step()
+    first.save(tmp_path / "checkpoint.pt")
+    second = _trainer(volume, settings.__class__(**{**settings.as_dict(), "seed": settings.seed}))
+    second.model.coarse.table.data.add_(1.0)  # a fresh process would start from other values
+    second.restore(torch.load(tmp_path / "checkpoint.pt", weights_only=False))
+    for _ in range(23):
+        second.step()
+
+    for a, b in zip(straight.model.state_dict().values(), second.model.state_dict().values()):
+        assert torch.equal(a, b)
+    assert second.iteration == 40
+
+
+def test_fitting_a_small_volume_reaches_a_useful_psnr():
+    # A smooth blob: held-out slices between training slices are predictable from them.
+    axis = (2 * np.arange(32) + 1) / 32 - 1
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    volume = (0.8 * np.exp(-(x**2 + 2 * y**2 + z**2) / 0.2)).astype(np.float32)
+    trainer = _trainer(volume, _settings(iterations=300, batch_size=1024, holdout=2))
+    for _ in range(300):
+        trainer.step()
+    assert trainer.validate()["val_psnr"] > 30
+    everything = torch.from_numpy(np.argwhere(np.ones_like(volume, dtype=bool)))
+    rendered = render_many(trainer.model, voxel_centres(everything, 32)).reshape(32, 32, 32).numpy()
+    assert psnr(volume, rendered) > 30
