@@ -189,7 +189,9 @@ class StageWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
             self._commit()
-        elif not self.keep_partial:
+            return
+        if not self.keep_partial or not any(self.directory.iterdir()):
+            # Keep a partial directory only when it holds something to resume from.
             shutil.rmtree(self.directory, ignore_errors=True)
             if self._created_work and not any(self.work.iterdir()):
                 self.work.rmdir()  # a failed first run leaves no trace

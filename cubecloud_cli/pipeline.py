@@ -11,7 +11,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from cubecloud_cli.artifacts import is_complete, read_manifest, sha256_of_path
+from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, sha256_of_path
+from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
+from cubecloud_cli.cunerf.stage import CHECKPOINT_FILE
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 
@@ -19,7 +21,7 @@ from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 @dataclass(frozen=True)
 class StageOutcome:
     stage: str
-    status: str  # "ran" or "skipped"
+    status: str  # "ran", "resumed" or "skipped"
     seconds: float
 
 
@@ -55,22 +57,46 @@ def _preprocess_quietly(scan: Path, work: Path, settings: PreprocessSettings, fo
     return preprocess_scan(scan, work, settings, force=force)
 
 
+def _cunerf_quietly(work: Path, settings: CunerfSettings, force: bool, resume: bool, runtime: Runtime) -> dict:
+    return train_cunerf(work, settings, force=force, resume=resume, runtime=runtime)
+
+
 def run_pipeline(
     scan: Path,
     work: Path,
     preprocess_settings: PreprocessSettings,
+    cunerf_settings: CunerfSettings,
     *,
     force: bool = False,
+    runtime: Runtime = Runtime(),
     run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
+    run_cunerf: Callable[[Path, CunerfSettings, bool, bool, Runtime], dict] | None = None,
 ) -> list[StageOutcome]:
-    """Run the stages in order. ``run_preprocess`` lets the caller wrap the stage (progress)."""
+    """Run the stages in order. ``run_*`` let the caller wrap a stage (progress display).
+
+    A stage whose input was just rebuilt is rebuilt too; an interrupted cunerf run with a
+    checkpoint is resumed.
+    """
     run_preprocess = run_preprocess or _preprocess_quietly
+    run_cunerf = run_cunerf or _cunerf_quietly
     outcomes = []
     work = Path(work)
+
     start = time.perf_counter()
     if not force and stage_is_current(work / "preprocess", asdict(preprocess_settings), [Path(scan)]):
         outcomes.append(StageOutcome("preprocess", "skipped", 0.0))
     else:
         run_preprocess(scan, work, preprocess_settings, force)
         outcomes.append(StageOutcome("preprocess", "ran", time.perf_counter() - start))
+    upstream_changed = force or outcomes[-1].status == "ran"
+
+    start = time.perf_counter()
+    volume = work / "preprocess" / "volume.npy"
+    if not upstream_changed and stage_is_current(work / "cunerf", cunerf_settings.as_dict(), [volume]):
+        outcomes.append(StageOutcome("cunerf", "skipped", 0.0))
+    else:
+        checkpoint = work / f".cunerf{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
+        resume = checkpoint.is_file() and not upstream_changed
+        run_cunerf(work, cunerf_settings, upstream_changed or (work / "cunerf").exists(), resume, runtime)
+        outcomes.append(StageOutcome("cunerf", "resumed" if resume else "ran", time.perf_counter() - start))
     return outcomes

@@ -52,6 +52,14 @@ def test_keep_partial_keeps_checkpoints_for_resume(tmp_path):
     assert not (tmp_path / "cunerf").exists()
 
 
+def test_keep_partial_drops_a_partial_with_nothing_to_resume(tmp_path):
+    work = tmp_path / "w"
+    with pytest.raises(RuntimeError):
+        with StageWriter(work, "cunerf", {}, keep_partial=True):
+            raise RuntimeError("failed before the first checkpoint")
+    assert not work.exists()
+
+
 def test_complete_stage_is_kept_unless_forced(tmp_path):
     _write_stage(tmp_path, "first")
     with pytest.raises(CubecloudError, match="--force"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import nibabel as nib
@@ -174,3 +175,52 @@ def test_corrupt_model_file_is_named(trained, tmp_path):
     broken.write_bytes(b"not a model")
     with pytest.raises(Exception, match="not a readable cubecloud model"):
         CunerfField.from_file(broken, device="cpu")
+
+
+@pytest.mark.parametrize("value", [-1000, 40])  # all air, and constant soft tissue
+def test_a_constant_volume_trains_to_finite_outputs(tmp_path, value):
+    from conftest import write_nifti
+
+    scan = write_nifti(tmp_path / "flat.nii.gz", np.full((12, 12, 12), value, np.int16), np.diag([2.0, 2.0, 2.0, 1.0]))
+    work = tmp_path / "work"
+    assert invoke("preprocess", scan, "-o", work, "--size", 16, "-q").exit_code == 0
+    result = invoke("cunerf", work, *FAST)
+    assert result.exit_code == 0, result.output
+    assert "3D PSNR" in result.stderr
+    recon = np.asarray(nib.load(work / "cunerf" / "recon.nii.gz").dataobj)
+    assert np.isfinite(recon).all() and recon.min() >= 0 and recon.max() <= 1
+    json.loads((work / "cunerf" / "manifest.json").read_text())
+
+
+def test_float16_points_are_accepted(trained):
+    field = CunerfField.load(trained, device="cpu")
+    points = np.random.default_rng(1).uniform(-1, 1, (64, 3))
+    single, _ = field.query(points)
+    half, _ = field.query(points.astype(np.float16))
+    np.testing.assert_allclose(half, single, atol=5e-3)
+
+
+def test_resume_is_refused_when_the_volume_changed(preprocessed, tmp_path, monkeypatch):
+    work = _copy_preprocess(preprocessed, tmp_path)
+    original_step = Trainer.step
+
+    def interrupted_step(self):
+        if self.iteration == 5:
+            raise KeyboardInterrupt
+        return original_step(self)
+
+    monkeypatch.setattr(Trainer, "step", interrupted_step)
+    assert invoke("cunerf", work, *FAST, "--checkpoint-every", "10", "-q").exit_code == 130
+    monkeypatch.setattr(Trainer, "step", original_step)
+    assert invoke("preprocess", "-o", work, "--size", 32, "--window", "bone", "--force", "-q").exit_code == 0
+    assert_one_line_error(invoke("cunerf", work, *FAST, "--resume"), "preprocess/ changed")
+
+
+def test_help_shows_the_preset_values():
+    # Square brackets would be eaten as rich markup; the hints use parentheses.
+    def words(command: str) -> str:  # rich wraps and boxes the text
+        return " ".join(re.sub("[│╭╮╰╯─]", " ", invoke(command, "--help").output).split())
+
+    help_text = words("cunerf")
+    assert "fast 4000, balanced 6000" in help_text and "isotropic volume rendering" in help_text
+    assert "balanced 256" in words("preprocess")

@@ -3,31 +3,58 @@ import numpy as np
 from cli_helpers import assert_one_line_error, invoke
 from conftest import body_phantom, write_nifti
 
+QUICK = ("--cunerf-iterations", 3)
+
 
 def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, phantom_nifti):
     work = tmp_path / "w"
-    first = invoke("run", phantom_nifti, "-o", work, "--size", 16)
+    first = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
     assert first.exit_code == 0, first.output
     assert "preprocess" in first.stderr and "total" in first.stderr
     stamp = (work / "preprocess" / "manifest.json").stat().st_mtime_ns
 
-    again = invoke("run", phantom_nifti, "-o", work, "--size", 16)
+    again = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
     assert again.exit_code == 0 and "skipped" in again.stderr
     assert (work / "preprocess" / "manifest.json").stat().st_mtime_ns == stamp
 
-    error = assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--size", 24), "other settings")
+    error = assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--size", 24, *QUICK), "other settings")
     assert "size: 16 -> 24" in error and "--force" in error
-    assert invoke("run", phantom_nifti, "-o", work, "--size", 24, "--force").exit_code == 0
+    assert invoke("run", phantom_nifti, "-o", work, "--size", 24, *QUICK, "--force").exit_code == 0
 
 
 def test_run_notices_a_different_scan(tmp_path, phantom_nifti):
     work = tmp_path / "w"
-    assert invoke("run", phantom_nifti, "-o", work, "--size", 16).exit_code == 0
+    assert invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK).exit_code == 0
     other = write_nifti(tmp_path / "other.nii.gz", body_phantom(seed=7), np.diag([1.5, 1.5, 3.0, 1.0]))
-    assert_one_line_error(invoke("run", other, "-o", work, "--size", 16), "input scan differs")
+    assert_one_line_error(invoke("run", other, "-o", work, "--size", 16, *QUICK), "input scan differs")
 
 
 def test_run_on_the_bundled_scan(tmp_path):
-    result = invoke("run", "-o", tmp_path / "w", "--size", 32)
+    result = invoke("run", "-o", tmp_path / "w", "--size", 32, *QUICK)
     assert result.exit_code == 0 and "bundled" in result.stderr
     assert (tmp_path / "w" / "preprocess" / "preview.png").exists()
+
+
+def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nifti, monkeypatch):
+    from cubecloud_cli.cunerf.training import Trainer
+
+    work = tmp_path / "w"
+    original_step = Trainer.step
+
+    def interrupted_step(self):
+        if self.iteration == 4:
+            raise KeyboardInterrupt
+        return original_step(self)
+
+    monkeypatch.setattr(Trainer, "step", interrupted_step)
+    options = ("run", phantom_nifti, "-o", work, "--size", 16, "--cunerf-iterations", 6)
+    interrupted = invoke(*options)
+    assert interrupted.exit_code == 130 and (work / "preprocess").is_dir() and not (work / "cunerf").exists()
+
+    monkeypatch.setattr(Trainer, "step", original_step)
+    resumed = invoke(*options)
+    assert resumed.exit_code == 0, resumed.output
+    assert "resumed" in resumed.stderr and "skipped" in resumed.stderr
+    assert (work / "cunerf" / "manifest.json").is_file()
+    again = invoke(*options)
+    assert again.exit_code == 0 and again.stderr.count("skipped") == 2

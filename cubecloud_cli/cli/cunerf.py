@@ -51,15 +51,15 @@ def _opt(flag: str, help_text: str):
 
 
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ (from `cubecloud preprocess`).")]
-ModelOption = Annotated[Optional[Model], _opt("--model", "fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional encoding, coarse + fine (GPU). [preset: fast, balanced -> fast; paper -> cunerf]")]
-IterationsOption = Annotated[Optional[int], _opt("--iterations", "Training iterations. [preset fast: 2000; balanced 4000; paper: 200000 for cunerf]")]
-BatchOption = Annotated[Optional[int], _opt("--batch-size", "Cubes (voxels) per iteration. [fast model 4096-8192; cunerf 512-1024]")]
-LrOption = Annotated[Optional[float], _opt("--lr", "Peak learning rate (Adam). [fast 0.05; cunerf 2e-3]")]
-LrFinalOption = Annotated[Optional[float], _opt("--lr-final", "Learning rate at the last iteration, reached by log-linear decay. [fast 5e-4; cunerf 2e-5]")]
-WarmupOption = Annotated[Optional[int], _opt("--warmup", "Iterations of sine warm-up from 1% of --lr. [fast 100; cunerf 1000]")]
-CubeRadiusOption = Annotated[Optional[float], _opt("--cube-radius", "Cube half-size in voxels (times --train-scale). [fast 0.5: the voxel itself; cunerf 1, the paper's]")]
-SamplesOption = Annotated[Optional[int], _opt("--samples-per-axis", "n: n³ points per cube. [fast 3; cunerf 4, the paper's 64]")]
-ImportanceOption = Annotated[Optional[int], _opt("--importance", "Fine points per cube drawn from the coarse weights; 0 = no fine pass. [fast 0; cunerf 64]")]
+ModelOption = Annotated[Optional[Model], _opt("--model", "fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional encoding, coarse + fine (GPU). (preset: fast, balanced -> fast; paper -> cunerf)")]
+IterationsOption = Annotated[Optional[int], _opt("--iterations", "Training iterations. (preset fast 4000, balanced 6000; paper 200000 with the cunerf model)")]
+BatchOption = Annotated[Optional[int], _opt("--batch-size", "Cubes (voxels) per iteration. (fast model 4096-8192; cunerf 512-1024)")]
+LrOption = Annotated[Optional[float], _opt("--lr", "Peak learning rate (Adam). (fast 0.05; cunerf 2e-3)")]
+LrFinalOption = Annotated[Optional[float], _opt("--lr-final", "Learning rate at the last iteration, reached by log-linear decay. (fast 5e-4; cunerf 2e-5)")]
+WarmupOption = Annotated[Optional[int], _opt("--warmup", "Iterations of sine warm-up from 1% of --lr. (fast 100; cunerf 1000)")]
+CubeRadiusOption = Annotated[Optional[float], _opt("--cube-radius", "Cube half-size in voxels (times --train-scale). (fast 0.5: the voxel itself; cunerf 1, the paper's)")]
+SamplesOption = Annotated[Optional[int], _opt("--samples-per-axis", "n: n³ points per cube. (fast model 2; cunerf 4, the paper's 64)")]
+ImportanceOption = Annotated[Optional[int], _opt("--importance", "Fine points per cube drawn from the coarse weights; 0 = no fine pass. (fast 0; cunerf 64)")]
 LayoutOption = Annotated[Layout, typer.Option("--train-layout", help="Training points: stratified (one per sub-cell) or uniform (i.i.d. in the cube).")]
 OfficialOption = Annotated[bool, typer.Option("--official-quirks", help="Reproduce the official code's sampling and rendering quirks (corner-biased samples, asymmetric lattice, polar-crowded random directions, unbounded weights) for A/B comparison.")]
 DensityOption = Annotated[Density, typer.Option("--density", help="Density activation: softplus, or relu as in the official code (can die and render black).")]
@@ -69,8 +69,8 @@ GridFeaturesOption = Annotated[int, typer.Option("--grid-features", help="fast m
 GridHiddenOption = Annotated[int, typer.Option("--grid-hidden", help="fast model: width of the MLP's hidden layer.")]
 TrainScaleOption = Annotated[int, typer.Option("--train-scale", help="Zero-shot super-resolution: train on every s-th voxel per axis, score against all of them.")]
 HoldoutOption = Annotated[int, typer.Option("--holdout", help="Axial slices kept out of training for validation.")]
-ValEveryOption = Annotated[Optional[int], _opt("--val-every", "Validate on the held-out slices every K iterations. [fast 500]")]
-CheckpointEveryOption = Annotated[Optional[int], _opt("--checkpoint-every", "Save a checkpoint every K iterations (and on Ctrl-C). [fast 500]")]
+ValEveryOption = Annotated[Optional[int], _opt("--val-every", "Validate on the held-out slices every K iterations. (fast model 1000)")]
+CheckpointEveryOption = Annotated[Optional[int], _opt("--checkpoint-every", "Save a checkpoint every K iterations (and on Ctrl-C). (fast model 500)")]
 BodyFractionOption = Annotated[float, typer.Option("--body-fraction", help="Share of each batch drawn from non-air voxels; the rest is uniform.")]
 ExportScaleOption = Annotated[float, typer.Option("--export-scale", help="recon.nii.gz resolution as a multiple of the volume's (2 = twice as many voxels per axis).")]
 SkipAirOption = Annotated[bool, typer.Option("--skip-air/--no-skip-air", help="Skip rendering blocks that hold no non-zero training voxel (they read 0).")]
@@ -124,7 +124,7 @@ def cunerf_command(
 
     Examples:
 
-      cubecloud cunerf work                                 # fast grid model, about 3 min on 2 cores
+      cubecloud cunerf work                                 # fast grid model, under 3 min on 2 cores
 
       cubecloud cunerf work --model cunerf --preset paper   # the paper's network (GPU)
 
@@ -164,11 +164,22 @@ def cunerf_command(
         seed=seed,
     )
     manifest = train_cunerf_with_progress(work, settings, force, resume, Runtime(device.value, threads), name)
+    log.info(f"wrote {Path(work) / stage_dir_name('cunerf', name)}: {describe_metrics(manifest)}")
+
+
+def _number(value, digits: int) -> str:
+    # The manifest stores inf and nan as strings (JSON has neither).
+    return f"{value:.{digits}f}" if isinstance(value, (int, float)) else str(value)
+
+
+def describe_metrics(manifest: dict) -> str:
     metrics = manifest["metrics"]
-    log.info(
-        f"wrote {Path(work) / stage_dir_name('cunerf', name)}: 3D PSNR {metrics['psnr_3d']:.2f} dB, SSIM {metrics.get('ssim_3d', float('nan')):.4f}"
-        f" (held-out slices {metrics.get('val_psnr', float('nan')):.2f} dB), {manifest['timings_s']['total']:.0f} s"
-    )
+    text = f"3D PSNR {_number(metrics['psnr_3d'], 2)} dB"
+    if "ssim_3d" in metrics:
+        text += f", SSIM {_number(metrics['ssim_3d'], 4)}"
+    if "val_psnr" in metrics:
+        text += f" (held-out slices {_number(metrics['val_psnr'], 2)} dB)"
+    return text + f", {manifest['timings_s']['total']:.0f} s"
 
 
 def train_cunerf_with_progress(

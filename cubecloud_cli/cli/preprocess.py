@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import inspect
 import logging
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Callable, Optional
+from typing import Annotated, Callable, Optional, Sequence
 
 import typer
 
@@ -48,14 +49,14 @@ class Interpolation(str, Enum):
     nearest = "nearest"
 
 
-SizeOption = Annotated[Optional[int], typer.Option("--size", help="Cube side S in voxels (paper: 512). [preset: fast 128, balanced 256, paper 512]", show_default=False)]
-FitOption = Annotated[Optional[Fit], typer.Option("--fit", help="pad: keep the physical aspect ratio, pad with air. stretch: resize each axis to S (the paper). [preset: pad; paper stretch]", show_default=False)]
-WindowOption = Annotated[Optional[Window], typer.Option("--window", help="CT window, W/L in HU: abdomen 400/40, soft-tissue 350/50, liver 150/90, lung 1500/-600, bone 2500/480, brain 80/40; full = the scan's min..max (the paper). [preset: abdomen; paper full]", show_default=False)]  # type: ignore[valid-type]
+SizeOption = Annotated[Optional[int], typer.Option("--size", help="Cube side S in voxels (paper: 512). (preset: fast 128, balanced 256, paper 512)", show_default=False)]
+FitOption = Annotated[Optional[Fit], typer.Option("--fit", help="pad: keep the physical aspect ratio, pad with air. stretch: resize each axis to S (the paper). (preset: pad; paper stretch)", show_default=False)]
+WindowOption = Annotated[Optional[Window], typer.Option("--window", help="CT window, W/L in HU: abdomen 400/40, soft-tissue 350/50, liver 150/90, lung 1500/-600, bone 2500/480, brain 80/40; full = the scan's min..max (the paper). (preset: abdomen; paper full)", show_default=False)]  # type: ignore[valid-type]
 HuMinOption = Annotated[Optional[float], typer.Option("--hu-min", help="Lower end of a custom HU window (with --hu-max); replaces --window.", show_default=False)]
 HuMaxOption = Annotated[Optional[float], typer.Option("--hu-max", help="Upper end of a custom HU window (with --hu-min).", show_default=False)]
 ModalityOption = Annotated[Modality, typer.Option("--modality", help="ct, mr, or auto: the DICOM header, else CT when values reach -500 HU (air).")]
 PercentilesOption = Annotated[str, typer.Option("--percentiles", help="MR only: the LOW,HIGH percentiles mapped to 0 and 1.")]
-InterpolationOption = Annotated[Optional[Interpolation], typer.Option("--interpolation", help="linear (anti-aliased when shrinking) or nearest (the paper's resize). [preset: linear; paper nearest]", show_default=False)]
+InterpolationOption = Annotated[Optional[Interpolation], typer.Option("--interpolation", help="linear (anti-aliased when shrinking) or nearest (the paper's resize). (preset: linear; paper nearest)", show_default=False)]
 SpacingOption = Annotated[Optional[str], typer.Option("--spacing", help="Voxel size X,Y,Z in mm: required for .npy (axes in RAS order), overrides a wrong header otherwise.", show_default=False)]
 VolumeIndexOption = Annotated[Optional[int], typer.Option("--volume-index", help="Which volume of a 4D file to use (0-based).", show_default=False)]
 
@@ -115,44 +116,59 @@ def describe_result(manifest: dict, work: Path) -> str:
     )
 
 
-ScanAction = Callable[[Path, Path, PreprocessSettings, bool], None]
+ScanAction = Callable[[Path, Path, PreprocessSettings, bool, str, dict], None]
 
 
-def scan_command(action: ScanAction, help_text: str) -> Callable[..., None]:
+def _scan_options(
+    scan: ScanArgument = None,
+    output: WorkOption = Path("work"),
+    preset: PresetOption = DEFAULT_PRESET_VALUE,
+    size: SizeOption = None,
+    fit: FitOption = None,
+    window: WindowOption = None,
+    hu_min: HuMinOption = None,
+    hu_max: HuMaxOption = None,
+    modality: ModalityOption = Modality.auto,
+    percentiles: PercentilesOption = "0.5,99.5",
+    interpolation: InterpolationOption = None,
+    spacing: SpacingOption = None,
+    volume_index: VolumeIndexOption = None,
+    force: ForceOption = False,
+    quiet: QuietOption = False,
+) -> None:
+    """The options every scan-taking command shares (only its signature is used)."""
+
+
+def scan_command(
+    action: ScanAction, help_text: str, extra: Sequence[inspect.Parameter] = ()
+) -> Callable[..., None]:
     """A command taking a scan and every preprocess option, handing the settings to ``action``.
 
-    `preprocess` and `run` share this one signature, so their options cannot drift apart.
+    `preprocess` and `run` share this one signature, so their options cannot drift apart;
+    ``extra`` parameters (typer options) are appended and reach ``action`` as a dict.
     """
+    shared = list(inspect.signature(_scan_options, eval_str=True).parameters.values())
+    extra_names = [parameter.name for parameter in extra]
 
     @reports_errors
-    def command(
-        scan: ScanArgument = None,
-        output: WorkOption = Path("work"),
-        preset: PresetOption = DEFAULT_PRESET_VALUE,
-        size: SizeOption = None,
-        fit: FitOption = None,
-        window: WindowOption = None,
-        hu_min: HuMinOption = None,
-        hu_max: HuMaxOption = None,
-        modality: ModalityOption = Modality.auto,
-        percentiles: PercentilesOption = "0.5,99.5",
-        interpolation: InterpolationOption = None,
-        spacing: SpacingOption = None,
-        volume_index: VolumeIndexOption = None,
-        force: ForceOption = False,
-        quiet: QuietOption = False,
-    ) -> None:
-        configure_logging(quiet)
+    def command(**options) -> None:
+        configure_logging(options["quiet"])
+        extras = {name: options[name] for name in extra_names}
+        preset = options["preset"].value
         settings = settings_from_options(
-            preset.value, size, fit, window, hu_min, hu_max, modality, percentiles, interpolation, spacing, volume_index
+            preset, options["size"], options["fit"], options["window"], options["hu_min"], options["hu_max"],
+            options["modality"], options["percentiles"], options["interpolation"], options["spacing"],
+            options["volume_index"],
         )
-        action(scan_or_sample(scan), output, settings, force)
+        action(scan_or_sample(options["scan"]), options["output"], settings, options["force"], preset, extras)
 
+    # Typer reads the signature: the shared options first, then the command's own.
+    command.__signature__ = inspect.Signature(shared + list(extra))  # type: ignore[attr-defined]
     command.__doc__ = help_text
     return command
 
 
-def _preprocess(scan: Path, output: Path, settings: PreprocessSettings, force: bool) -> None:
+def _preprocess(scan: Path, output: Path, settings: PreprocessSettings, force: bool, preset: str, extras: dict) -> None:
     manifest = run_preprocess_with_progress(scan, output, settings, force)
     log.info(describe_result(manifest, output))
 

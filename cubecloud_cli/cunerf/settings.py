@@ -15,13 +15,13 @@ MODELS = ("fast", "cunerf")
 @dataclass(frozen=True)
 class CunerfSettings:
     model: str = "fast"
-    iterations: int = 2000
+    iterations: int = 4000
     batch_size: int = 4096  # cubes per iteration (official: 1024)
     lr: float = 0.05
     lr_final: float = 5e-4
     warmup: int = 100  # iterations of sine warm-up from 1% of lr (official: 1000)
     cube_radius: float = 0.5  # cube half-size in voxels of the training lattice (official: 1)
-    samples_per_axis: int = 3  # n: n³ points per cube (official: 4 → 64)
+    samples_per_axis: int = 2  # n: n³ points per cube (official: 4 → 64)
     importance: int = 0  # fine points per cube from the coarse weights (official: 64)
     train_layout: str = "stratified"
     official: bool = False  # the official code's sampling and rendering quirks
@@ -32,7 +32,7 @@ class CunerfSettings:
     grid_hidden: int = 32
     train_scale: int = 1
     holdout: int = 8  # axial slices kept for validation
-    val_every: int = 500
+    val_every: int = 1000
     checkpoint_every: int = 500
     body_fraction: float = 0.8
     export_scale: float = 1.0

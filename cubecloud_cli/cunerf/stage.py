@@ -65,7 +65,9 @@ def _peak_memory_mb(device: torch.device) -> dict[str, float]:
     return peak
 
 
-def _check_resume(checkpoint: Path, settings: CunerfSettings, resume: bool, force: bool) -> dict | None:
+def _check_resume(
+    checkpoint: Path, settings: CunerfSettings, volume_sha256: str, resume: bool, force: bool
+) -> dict | None:
     """The checkpoint to continue from, or None to start afresh; refuses to guess."""
     if resume:
         if not checkpoint.is_file():
@@ -75,6 +77,10 @@ def _check_resume(checkpoint: Path, settings: CunerfSettings, resume: bool, forc
         except Exception as exc:
             raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
         recorded = state.get("settings", {})
+        if state.get("context", {}).get("volume_sha256") != volume_sha256:
+            raise CubecloudError(
+                "preprocess/ changed since the interrupted run started: start again with --force"
+            )
         changed = [k for k, v in settings.as_dict().items() if k != "iterations" and recorded.get(k) != v]
         if changed:
             raise CubecloudError(
@@ -127,12 +133,13 @@ def train_cunerf(
     writer = StageWriter(work, "cunerf", settings.as_dict(), force=force, name=name, keep_partial=True)
     writer.check_can_start()
     checkpoint = writer.directory / CHECKPOINT_FILE
-    state = _check_resume(checkpoint, settings, resume, force)
+    volume_path = work / "preprocess" / "volume.npy"
+    volume_sha256 = preprocess["files"]["volume.npy"]["sha256"]
+    state = _check_resume(checkpoint, settings, volume_sha256, resume, force)
     if state is None and writer.directory.exists():
         shutil.rmtree(writer.directory)
 
     with writer:
-        volume_path = work / "preprocess" / "volume.npy"
         with writer.phase("load"):
             writer.add_input(volume_path, "preprocess/volume.npy")
             volume_np = np.load(volume_path)
@@ -145,7 +152,7 @@ def train_cunerf(
                 torch.manual_seed(settings.seed)
                 model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
             generator = torch.Generator(device=device).manual_seed(settings.seed)
-            trainer = Trainer(model, voxels, settings, generator)
+            trainer = Trainer(model, voxels, settings, generator, context={"volume_sha256": volume_sha256})
             if state is not None:
                 trainer.restore(state)
                 log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")

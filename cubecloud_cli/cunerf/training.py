@@ -67,6 +67,7 @@ class Trainer:
     iteration: int = 0
     elapsed_s: float = 0.0
     history: list[dict[str, float]] = field(default_factory=list)
+    context: dict[str, Any] = field(default_factory=dict)  # saved as is, e.g. the input's sha256
 
     def __post_init__(self) -> None:
         self.optimizer = make_optimizer(self.model, self.settings)
@@ -128,6 +129,7 @@ class Trainer:
             "iteration": self.iteration,
             "elapsed_s": self.elapsed_s,
             "history": self.history,
+            "context": self.context,
         }
 
     def save(self, path: Path) -> None:

@@ -1,0 +1,125 @@
+"""Time–PSNR curves of the two cunerf models, seconds per 1000 iterations and peak memory.
+
+Each model trains in a fresh Python process (so its peak RSS is its own) on the bundled abdomen
+CT preprocessed to 128³ (the `fast` preset), with the preset's settings for that model. At
+intervals of training time it pauses the clock and scores the field on a fixed random sample
+of voxels (3D PSNR estimated over all voxels and over the body), so the curve costs the same
+to draw for both models; the grid model is also scored on the whole volume at the end.
+
+    python bench/cunerf.py                            # fast (full preset) and cunerf (10 min)
+    python bench/cunerf.py --models fast --size 64
+    python bench/cunerf.py --models cunerf --seconds 1800 --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+CHILD = r"""
+import json, math, resource, sys, time
+import numpy as np, torch
+from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices, voxel_centres
+from cubecloud_cli.cunerf.model import CubeModel, render_many
+from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.training import Trainer
+from cubecloud_cli.cunerf.api import CunerfField, resolve_device
+from cubecloud_cli.metrics import psnr, volume_metrics
+from cubecloud_cli.presets import resolve_cunerf
+
+volume_path, model_name, seconds, points, eval_every, device_name, iterations = sys.argv[1:8]
+device = resolve_device(device_name)
+volume = np.load(volume_path)
+size = volume.shape[0]
+overrides = {"iterations": int(iterations)} if int(iterations) > 0 else {}
+settings = CunerfSettings(**resolve_cunerf("fast", model_name, overrides))
+torch.manual_seed(0)
+model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
+held = holdout_slices(volume, settings.holdout, 1)
+voxels = TrainingVoxels(torch.from_numpy(volume).to(device), 1, held, settings.body_fraction)
+trainer = Trainer(model, voxels, settings, torch.Generator(device=device).manual_seed(0))
+rng = np.random.default_rng(0)
+sample = rng.integers(0, size, (int(points), 3))
+truth = volume[sample[:, 0], sample[:, 1], sample[:, 2]]
+centres = voxel_centres(torch.from_numpy(sample).to(device), size)
+
+def score():
+    predicted = render_many(model, centres, 8192, generator=torch.Generator(device=device).manual_seed(0)).cpu().numpy()
+    return psnr(truth, predicted), psnr(truth, predicted, truth > 0)
+
+budget, every = float(seconds), float(eval_every)
+next_eval = every
+print(json.dumps({"event": "start", "model": model_name, "settings": settings.as_dict(), "device": str(device)}), flush=True)
+while trainer.iteration < settings.iterations and trainer.elapsed_s < budget:
+    loss = trainer.step()
+    if trainer.elapsed_s >= next_eval or trainer.iteration == settings.iterations:
+        next_eval += every
+        p, pb = score()
+        print(json.dumps({"event": "point", "iteration": trainer.iteration, "train_s": trainer.elapsed_s,
+                          "loss": loss, "psnr_est": p, "psnr_body_est": pb}), flush=True)
+final = {"event": "end", "model": model_name, "iterations": trainer.iteration, "train_s": trainer.elapsed_s,
+         "s_per_1000": 1000 * trainer.elapsed_s / max(trainer.iteration, 1),
+         "parameters": sum(p.numel() for p in model.parameters())}
+if model_name == "fast":
+    start = time.perf_counter()
+    field = CunerfField(model, size, np.eye(4), voxels.occupancy())
+    recon = field.bake(size)
+    final["bake_s"] = time.perf_counter() - start
+    final.update({f"{k}_3d": v for k, v in volume_metrics(volume, recon).items()})
+final["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+if device.type == "cuda":
+    final["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+print(json.dumps(final), flush=True)
+"""
+
+
+def preprocessed_volume(work: Path, size: int) -> Path:
+    from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
+    from cubecloud_cli.sample_data import sample_ct_path
+
+    volume = work / "preprocess" / "volume.npy"
+    if not volume.exists():
+        preprocess_scan(sample_ct_path(), work, PreprocessSettings(size=size))
+    return volume
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--models", nargs="+", default=["fast", "cunerf"], choices=["fast", "cunerf"])
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--seconds", type=float, default=600.0, help="training-time budget per model")
+    parser.add_argument("--iterations", type=int, default=0, help="override the preset's iterations")
+    parser.add_argument("--points", type=int, default=32768, help="voxels scored at each curve point")
+    parser.add_argument("--eval-every", type=float, default=20.0, help="seconds of training between points")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--work", type=Path, default=None, help="reuse this work directory's preprocess/")
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as temporary:
+        work = args.work or Path(temporary) / "work"
+        volume = preprocessed_volume(work, args.size)
+        for model in args.models:
+            command = [sys.executable, "-c", CHILD, str(volume), model, str(args.seconds), str(args.points),
+                       str(args.eval_every), args.device, str(args.iterations)]
+            process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+            assert process.stdout is not None
+            print(f"\n== {model} on the bundled CT at {args.size}³ ({args.device}) ==")
+            print(f"{'iteration':>9} {'train s':>8} {'loss':>10} {'PSNR est':>9} {'body':>7}")
+            for line in process.stdout:
+                record = json.loads(line)
+                if record["event"] == "point":
+                    print(f"{record['iteration']:>9} {record['train_s']:>8.1f} {record['loss']:>10.3e} "
+                          f"{record['psnr_est']:>9.2f} {record['psnr_body_est']:>7.2f}", flush=True)
+                elif record["event"] == "end":
+                    summary = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in record.items() if k != "event"}
+                    print("summary:", json.dumps(summary))
+            if process.wait() != 0:
+                raise SystemExit(f"the {model} run failed")
+
+
+if __name__ == "__main__":
+    main()
