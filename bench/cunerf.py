@@ -9,6 +9,7 @@ to draw for both models; the grid model is also scored on the whole volume at th
     python bench/cunerf.py                            # fast (full preset) and cunerf (10 min)
     python bench/cunerf.py --models fast --size 64
     python bench/cunerf.py --models cunerf --seconds 1800 --device cuda
+    python bench/cunerf.py --models fast --train-scale 2    # zero-shot ×2 super-resolution
 """
 
 from __future__ import annotations
@@ -31,16 +32,18 @@ from cubecloud_cli.cunerf.api import CunerfField, resolve_device
 from cubecloud_cli.metrics import psnr, volume_metrics
 from cubecloud_cli.presets import resolve_cunerf
 
-volume_path, model_name, seconds, points, eval_every, device_name, iterations = sys.argv[1:8]
+volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale = sys.argv[1:9]
+train_scale = int(train_scale)
 device = resolve_device(device_name)
 volume = np.load(volume_path)
 size = volume.shape[0]
 overrides = {"iterations": int(iterations)} if int(iterations) > 0 else {}
+overrides["train_scale"] = train_scale
 settings = CunerfSettings(**resolve_cunerf("fast", model_name, overrides))
 torch.manual_seed(0)
 model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
-held = holdout_slices(volume, settings.holdout, 1)
-voxels = TrainingVoxels(torch.from_numpy(volume).to(device), 1, held, settings.body_fraction)
+held = holdout_slices(volume, settings.holdout, train_scale)
+voxels = TrainingVoxels(torch.from_numpy(volume).to(device), train_scale, held, settings.body_fraction)
 trainer = Trainer(model, voxels, settings, torch.Generator(device=device).manual_seed(0))
 rng = np.random.default_rng(0)
 sample = rng.integers(0, size, (int(points), 3))
@@ -70,6 +73,13 @@ if model_name == "fast":
     recon = field.bake(size)
     final["bake_s"] = time.perf_counter() - start
     final.update({f"{k}_3d": v for k, v in volume_metrics(volume, recon).items()})
+    if train_scale > 1:
+        # The baseline: trilinear interpolation between the training voxels (every s-th).
+        low = torch.from_numpy(volume[::train_scale, ::train_scale, ::train_scale].copy())[None, None]
+        n = low.shape[-1]
+        up = torch.nn.functional.interpolate(low, size=(n - 1) * train_scale + 1, mode="trilinear", align_corners=True)[0, 0]
+        baseline = np.pad(up.numpy(), [(0, size - up.shape[0])] * 3, mode="edge")
+        final.update({f"trilinear_{k}_3d": v for k, v in volume_metrics(volume, baseline).items()})
 final["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 if device.type == "cuda":
     final["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
@@ -96,6 +106,9 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=32768, help="voxels scored at each curve point")
     parser.add_argument("--eval-every", type=float, default=20.0, help="seconds of training between points")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--train-scale", type=int, default=1,
+                        help="zero-shot super-resolution: train on every s-th voxel, score on all, "
+                        "beside trilinear interpolation of the same voxels")
     parser.add_argument("--work", type=Path, default=None, help="reuse this work directory's preprocess/")
     args = parser.parse_args()
 
@@ -104,10 +117,10 @@ def main() -> None:
         volume = preprocessed_volume(work, args.size)
         for model in args.models:
             command = [sys.executable, "-c", CHILD, str(volume), model, str(args.seconds), str(args.points),
-                       str(args.eval_every), args.device, str(args.iterations)]
+                       str(args.eval_every), args.device, str(args.iterations), str(args.train_scale)]
             process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
             assert process.stdout is not None
-            print(f"\n== {model} on the bundled CT at {args.size}³ ({args.device}) ==")
+            print(f"\n== {model} on the bundled CT at {args.size}³ ({args.device}, train scale {args.train_scale}) ==")
             print(f"{'iteration':>9} {'train s':>8} {'loss':>10} {'PSNR est':>9} {'body':>7}")
             for line in process.stdout:
                 record = json.loads(line)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import os
 import re
 import shutil
+import signal
 
 import nibabel as nib
 import numpy as np
@@ -13,7 +16,6 @@ import torch
 
 from cli_helpers import assert_one_line_error, invoke
 from cubecloud_cli.cunerf import CunerfField
-from cubecloud_cli.cunerf.training import Trainer
 
 FAST = ["--iterations", "40", "--batch-size", "1024", "--val-every", "20", "--holdout", "2"]
 
@@ -31,6 +33,21 @@ def trained(preprocessed):
     result = invoke(*["cunerf", str(preprocessed), *FAST, "-q"])
     assert result.exit_code == 0, result.output
     return preprocessed
+
+
+def interrupt_at_step(monkeypatch, step: int) -> None:
+    """Send a real SIGINT (Ctrl-C) in the middle of training step ``step``, inside the loss."""
+    import cubecloud_cli.cunerf.training as training
+
+    original_loss, calls = training.adaptive_mse, []
+
+    def interrupted_loss(output, target):
+        calls.append(1)
+        if len(calls) == step:
+            os.kill(os.getpid(), signal.SIGINT)
+        return original_loss(output, target)
+
+    monkeypatch.setattr(training, "adaptive_mse", interrupted_loss)
 
 
 def _copy_preprocess(source, tmp_path):
@@ -105,17 +122,12 @@ def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monke
     straight = _copy_preprocess(preprocessed, tmp_path / "a")
     assert invoke(*["cunerf", str(straight), *FAST, "--checkpoint-every", "10", "-q"]).exit_code == 0
 
+    # A real Ctrl-C arrives mid-step, after the step's random draws: here inside the loss.
     work = _copy_preprocess(preprocessed, tmp_path / "b")
-    original_step = Trainer.step
-
-    def interrupted_step(self):
-        if self.iteration == 25:
-            raise KeyboardInterrupt
-        return original_step(self)
-
-    monkeypatch.setattr(Trainer, "step", interrupted_step)
+    interrupt_at_step(monkeypatch, 25)
     result = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "-q"])
-    assert result.exit_code == 130 and "--resume" in result.output
+    assert result.exit_code == 130 and "--resume" in result.output and "iteration 25 " in result.output
+    monkeypatch.undo()
     assert (work / ".cunerf.partial" / "checkpoint.pt").is_file() and not (work / "cunerf").exists()
 
     refused = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "-q"])
@@ -123,13 +135,18 @@ def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monke
     changed = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "--lr", "0.01", "--resume", "-q"])
     assert_one_line_error(changed, "other settings")
 
-    monkeypatch.setattr(Trainer, "step", original_step)
     resumed = invoke(*["cunerf", str(work), *FAST, "--checkpoint-every", "10", "--resume", "-q"])
     assert resumed.exit_code == 0, resumed.output
     a = torch.load(straight / "cunerf" / "model.pt", weights_only=True)["model"]
     b = torch.load(work / "cunerf" / "model.pt", weights_only=True)["model"]
     for key in a:
         assert torch.equal(a[key], b[key]), key
+
+    def logged(work):  # everything but the wall-clock seconds
+        rows = list(csv.DictReader(open(work / "cunerf" / "log.csv")))
+        return [{k: v for k, v in row.items() if k != "seconds"} for row in rows]
+
+    assert logged(work) == logged(straight)
 
 
 @pytest.mark.parametrize(
@@ -142,6 +159,8 @@ def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monke
         (["--export-scale", "100"], "--export-scale"),
         (["--lr", "-1"], "--lr"),
         (["--threads", "0"], "--threads"),
+        (["--grid-hidden", "-3"], "--grid-hidden"),
+        (["--batch-size", "1000000", "--importance", "512"], "GiB.*--batch-size"),
         (["--resume"], "no interrupted run"),
     ],
 )
@@ -202,16 +221,9 @@ def test_float16_points_are_accepted(trained):
 
 def test_resume_is_refused_when_the_volume_changed(preprocessed, tmp_path, monkeypatch):
     work = _copy_preprocess(preprocessed, tmp_path)
-    original_step = Trainer.step
-
-    def interrupted_step(self):
-        if self.iteration == 5:
-            raise KeyboardInterrupt
-        return original_step(self)
-
-    monkeypatch.setattr(Trainer, "step", interrupted_step)
+    interrupt_at_step(monkeypatch, 5)
     assert invoke("cunerf", work, *FAST, "--checkpoint-every", "10", "-q").exit_code == 130
-    monkeypatch.setattr(Trainer, "step", original_step)
+    monkeypatch.undo()
     assert invoke("preprocess", "-o", work, "--size", 32, "--window", "bone", "--force", "-q").exit_code == 0
     assert_one_line_error(invoke("cunerf", work, *FAST, "--resume"), "preprocess/ changed")
 

@@ -36,22 +36,16 @@ def test_run_on_the_bundled_scan(tmp_path):
 
 
 def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nifti, monkeypatch):
-    from cubecloud_cli.cunerf.training import Trainer
+    from test_cli_cunerf import interrupt_at_step
 
     work = tmp_path / "w"
-    original_step = Trainer.step
-
-    def interrupted_step(self):
-        if self.iteration == 4:
-            raise KeyboardInterrupt
-        return original_step(self)
-
-    monkeypatch.setattr(Trainer, "step", interrupted_step)
+    interrupt_at_step(monkeypatch, 4)
     options = ("run", phantom_nifti, "-o", work, "--size", 16, "--cunerf-iterations", 6)
     interrupted = invoke(*options)
     assert interrupted.exit_code == 130 and (work / "preprocess").is_dir() and not (work / "cunerf").exists()
+    assert "resumes by itself" in interrupted.stderr
 
-    monkeypatch.setattr(Trainer, "step", original_step)
+    monkeypatch.undo()
     resumed = invoke(*options)
     assert resumed.exit_code == 0, resumed.output
     assert "resumed" in resumed.stderr and "skipped" in resumed.stderr

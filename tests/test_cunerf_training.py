@@ -74,11 +74,17 @@ def test_batches_skip_held_out_slices_and_follow_the_lattice():
 
 
 def test_holdout_slices_avoid_the_ends_and_empty_slices():
-    volume = np.zeros((20, 20, 20), np.float32)
-    volume[5:15, 5:15, 4:16] = 0.5
+    volume = np.zeros((40, 40, 40), np.float32)
+    volume[5:35, 5:35, 4:36] = 0.5
     picks = holdout_slices(volume, 4, 1)
-    assert len(picks) == 4 and min(picks) > 4 and max(picks) < 15
-    assert holdout_slices(np.zeros((8, 8, 8), np.float32), 2, 1) == [2, 5]
+    assert len(picks) == 4 and min(picks) > 4 and max(picks) < 35
+    assert holdout_slices(np.zeros((16, 16, 16), np.float32), 2, 1) == [5, 10]
+
+
+def test_a_thin_body_keeps_most_of_its_slices_for_training():
+    volume = np.zeros((64, 64, 64), np.float32)
+    volume[:, :, 20:34] = 0.5  # 14 slices of body
+    assert len(holdout_slices(volume, 8, 1)) == 1
 
 
 def test_a_mostly_air_scan_still_learns_its_body():
@@ -108,12 +114,34 @@ def test_all_air_batches_and_cubes_reaching_outside_stay_finite(model):
         assert (out.value >= 0).all() and (out.value <= 1).all()
 
 
-def test_official_quirks_render_and_clip_at_test():
-    settings = _settings(official=True, importance=8, samples_per_axis=4, density="relu")
-    trainer = _trainer(_ball(8), settings)
-    trainer.step()
-    out = trainer.model.render(torch.zeros(5, 3), train=False, generator=torch.Generator().manual_seed(0))
-    assert out.has_fine and (out.value >= 0).all() and (out.value <= 1).all()
+@pytest.mark.parametrize("official", [False, True])
+def test_the_official_switch_picks_the_official_samplers(official, monkeypatch):
+    import cubecloud_cli.cunerf.model as model_module
+
+    layouts, directions = [], []
+    original_offsets, original_directions = model_module.cube_offsets, model_module.sphere_directions
+    monkeypatch.setattr(model_module, "cube_offsets", lambda *a, **k: layouts.append(a[2]) or original_offsets(*a, **k))
+    monkeypatch.setattr(model_module, "sphere_directions", lambda *a, **k: directions.append(a[1]) or original_directions(*a, **k))
+    trainer = _trainer(_ball(8), _settings(official=official, importance=8, samples_per_axis=4))
+    generator = torch.Generator().manual_seed(0)
+    for train in (True, False):
+        out = trainer.model.render(torch.zeros(5, 3), train=train, generator=generator)
+        assert out.has_fine and torch.isfinite(out.value).all()
+    if official:
+        assert layouts == ["official-train", "official-lattice"] and directions == ["official", "official"]
+    else:
+        assert layouts == ["stratified", "lattice"] and directions == ["uniform", "fibonacci"]
+
+
+def test_test_time_fine_points_are_centred_on_the_cube():
+    # Radii come sorted; directions must not be, or long radii would all point one way.
+    from cubecloud_cli.cunerf.sampling import sphere_directions
+
+    for count in (7, 16, 32, 59, 64):
+        radii = torch.linspace(0.1, 1.0, count)[:, None]
+        centroid = (radii * sphere_directions((count,), "fibonacci")).mean(0)
+        # Paired in spiral order the z offset would be about −(1.0 − 0.1)/6 = −0.15.
+        assert centroid.abs().max() < 0.03, (count, centroid)
 
 
 def test_resume_continues_exactly_like_an_uninterrupted_run(tmp_path):
@@ -127,7 +155,7 @@ def test_resume_continues_exactly_like_an_uninterrupted_run(tmp_path):
     for _ in range(17):
         first.step()
     first.save(tmp_path / "checkpoint.pt")
-    second = _trainer(volume, settings.__class__(**{**settings.as_dict(), "seed": settings.seed}))
+    second = _trainer(volume, settings)
     second.model.coarse.table.data.add_(1.0)  # a fresh process would start from other values
     second.restore(torch.load(tmp_path / "checkpoint.pt", weights_only=False))
     for _ in range(23):

@@ -27,12 +27,16 @@ def voxel_centres(indices: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def holdout_slices(volume: np.ndarray, count: int, train_scale: int) -> list[int]:
-    """``count`` axial slice indices, evenly spread over the slices that hold body (or over all
-    slices when none does), never on the training lattice when ``train_scale`` > 1."""
+    """Up to ``count`` axial slice indices, evenly spread over the slices that hold body (or
+    over all slices when none does). At ``train_scale`` 1 at most an eighth of those slices
+    are held out; above it, held-out slices are never on the training lattice."""
     size = volume.shape[2]
     occupied = np.flatnonzero(volume.reshape(-1, size).max(axis=0) > 0)
     low, high = (int(occupied[0]), int(occupied[-1])) if occupied.size else (0, size - 1)
     candidates = [k for k in range(low, high + 1) if train_scale == 1 or k % train_scale != 0]
+    if train_scale == 1:
+        # Held-out slices are taken from training: never more than an eighth of the body's.
+        count = min(count, len(candidates) // 8)
     if count <= 0 or not candidates:
         return []
     if count >= len(candidates):

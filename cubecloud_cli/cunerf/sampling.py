@@ -78,19 +78,31 @@ def sphere_directions(
     """Unit vectors of shape ``shape + (3,)``.
 
     ``uniform``: area-uniform (cos θ ~ U(−1, 1)). ``official``: θ ~ U(0, π), which crowds the
-    poles, as the official code does. ``fibonacci``: a deterministic Fibonacci sphere over the
-    last dimension of ``shape``, the same for every cube (for repeatable test renders).
+    poles, as the official code does. ``fibonacci``: deterministic antipodal pairs over a
+    Fibonacci sphere along the last dimension of ``shape``, the same for every cube (for
+    repeatable test renders).
     """
     device = torch.device(device)
     if mode == "fibonacci":
+        # The caller pairs direction j with the j-th smallest radius. Consecutive directions
+        # are antipodal pairs (d, −d) over a Fibonacci spiral of half the count, so a cube's
+        # points stay centred: neighbouring radii cancel instead of all long radii pointing
+        # the same way (the spiral alone runs from +z to −z).
         count = shape[-1]
-        index = torch.arange(count, device=device, dtype=torch.float32) + 0.5
-        cos_theta = 1.0 - 2.0 * index / count
+        half = (count + 1) // 2
+        index = torch.arange(half, device=device, dtype=torch.float32) + 0.5
+        cos_theta = 1.0 - 2.0 * index / half
         phi = index * (math.pi * (3.0 - math.sqrt(5.0)))
-    else:
-        u = torch.rand(shape, generator=generator, device=device)
-        phi = 2.0 * math.pi * torch.rand(shape, generator=generator, device=device)
-        cos_theta = 1.0 - 2.0 * u if mode == "uniform" else torch.cos(math.pi * u)
+        sin_theta = torch.sqrt(torch.clamp(1.0 - cos_theta * cos_theta, min=0.0))
+        spiral = torch.stack((sin_theta * torch.cos(phi), sin_theta * torch.sin(phi), cos_theta), dim=-1)
+        if count % 2:  # the one unpaired direction goes with the smallest radius
+            paired = torch.cat((spiral[:1], torch.stack((spiral[1:], -spiral[1:]), dim=1).reshape(-1, 3)))
+        else:
+            paired = torch.stack((spiral, -spiral), dim=1).reshape(-1, 3)
+        return paired.expand(*shape, 3)
+    u = torch.rand(shape, generator=generator, device=device)
+    phi = 2.0 * math.pi * torch.rand(shape, generator=generator, device=device)
+    cos_theta = 1.0 - 2.0 * u if mode == "uniform" else torch.cos(math.pi * u)
     sin_theta = torch.sqrt(torch.clamp(1.0 - cos_theta * cos_theta, min=0.0))
     directions = torch.stack((sin_theta * torch.cos(phi), sin_theta * torch.sin(phi), cos_theta), dim=-1)
     return directions.expand(*shape, 3)

@@ -65,6 +65,8 @@ class CunerfSettings:
             raise bad(f"--density {self.density!r} must be softplus or relu")
         if not 1 <= self.grid_levels <= 8 or self.grid_base < 2 or not 1 <= self.grid_features <= 16:
             raise bad("--grid-levels must be 1..8, --grid-base at least 2, --grid-features 1..16")
+        if not 1 <= self.grid_hidden <= 1024:
+            raise bad(f"--grid-hidden {self.grid_hidden} must be within 1..1024")
         if not 1 <= self.train_scale <= 16:
             raise bad(f"--train-scale {self.train_scale} must be within 1..16")
         if self.holdout < 0 or self.val_every < 1 or self.checkpoint_every < 1:
@@ -79,6 +81,21 @@ class CunerfSettings:
             out = round(volume_size * self.export_scale)
             if not 2 <= out <= 2048:
                 raise bad(f"--export-scale {self.export_scale:g} gives a {out}³ reconstruction: keep it within 2..2048")
+
+    def points_per_cube(self) -> int:
+        return self.samples_per_axis**3 + self.importance
+
+    def training_bytes(self, volume_size: int) -> int:
+        """A rough estimate of the memory training allocates (torch itself not counted): the
+        volume, the parameters with a gradient and Adam's two moments, and one batch's
+        activations (about 1.3 kB per point for the grid field, 14 kB for the 8×256 MLP)."""
+        volume = 4 * volume_size**3 * 2  # the volume and the body-voxel index
+        if self.model == "cunerf":
+            parameters, per_point = 2 * 431_000, 14_000
+        else:
+            rows = sum(r**3 for r in self.field_config(volume_size).resolutions)
+            parameters, per_point = rows * self.grid_features, 1_300
+        return volume + 16 * parameters + self.batch_size * self.points_per_cube() * per_point
 
     def field_config(self, volume_size: int) -> FieldConfig:
         if self.model == "cunerf":

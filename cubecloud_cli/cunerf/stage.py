@@ -16,12 +16,16 @@ from __future__ import annotations
 
 import csv
 import logging
+import os
 import resource
 import shutil
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -65,8 +69,36 @@ def _peak_memory_mb(device: torch.device) -> dict[str, float]:
     return peak
 
 
+def _check_memory(settings: CunerfSettings, size: int, device: torch.device) -> None:
+    """Refuse before allocating when training clearly cannot fit."""
+    needed = settings.training_bytes(size)
+    try:
+        if device.type == "cuda":
+            available = torch.cuda.get_device_properties(device).total_memory
+        else:
+            available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError, RuntimeError):
+        return
+    if needed > 0.8 * available:
+        raise CubecloudError(
+            f"training needs about {needed / 2**30:.1f} GiB and the {device.type} has "
+            f"{available / 2**30:.1f} GiB: lower --batch-size (now {settings.batch_size}), "
+            f"--samples-per-axis or --importance"
+        )
+
+
+def _out_of_memory(exc: BaseException) -> bool:
+    text = str(exc)
+    return isinstance(exc, (MemoryError, torch.OutOfMemoryError)) or "can't allocate memory" in text or "out of memory" in text
+
+
 def _check_resume(
-    checkpoint: Path, settings: CunerfSettings, volume_sha256: str, resume: bool, force: bool
+    checkpoint: Path,
+    settings: CunerfSettings,
+    volume_sha256: str,
+    device: torch.device,
+    resume: bool,
+    force: bool,
 ) -> dict | None:
     """The checkpoint to continue from, or None to start afresh; refuses to guess."""
     if resume:
@@ -77,6 +109,12 @@ def _check_resume(
         except Exception as exc:
             raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
         recorded = state.get("settings", {})
+        trained_on = state.get("context", {}).get("device", device.type)
+        if trained_on != device.type:
+            raise CubecloudError(
+                f"the interrupted run trained on {trained_on}: resume it with --device {trained_on}, "
+                f"or start again with --force"
+            )
         if state.get("context", {}).get("volume_sha256") != volume_sha256:
             raise CubecloudError(
                 "preprocess/ changed since the interrupted run started: start again with --force"
@@ -130,12 +168,14 @@ def train_cunerf(
             raise CubecloudError(f"--threads {runtime.threads} must be at least 1")
         torch.set_num_threads(runtime.threads)
 
+    _check_memory(settings, size, device)
+
     writer = StageWriter(work, "cunerf", settings.as_dict(), force=force, name=name, keep_partial=True)
     writer.check_can_start()
     checkpoint = writer.directory / CHECKPOINT_FILE
     volume_path = work / "preprocess" / "volume.npy"
     volume_sha256 = preprocess["files"]["volume.npy"]["sha256"]
-    state = _check_resume(checkpoint, settings, volume_sha256, resume, force)
+    state = _check_resume(checkpoint, settings, volume_sha256, device, resume, force)
     if state is None and writer.directory.exists():
         shutil.rmtree(writer.directory)
 
@@ -152,34 +192,31 @@ def train_cunerf(
                 torch.manual_seed(settings.seed)
                 model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
             generator = torch.Generator(device=device).manual_seed(settings.seed)
-            trainer = Trainer(model, voxels, settings, generator, context={"volume_sha256": volume_sha256})
+            trainer = Trainer(model, voxels, settings, generator, context={"volume_sha256": volume_sha256, "device": device.type})
             if state is not None:
                 trainer.restore(state)
                 log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
         if voxels.body_voxels == 0:
             log.warning("the volume holds no non-zero voxel: the field will learn empty space only")
 
-        with writer.phase("train"):
-            _train(trainer, checkpoint, on_progress)
-
-        field = CunerfField(model, size, np.asarray(preprocess["geometry"]["voxel_to_scanner"]),
-                            voxels.occupancy() if settings.skip_air else None, settings.as_dict())
-        with writer.phase("reconstruct"):
-            recon = field.bake(size, on_progress=lambda f: on_progress("reconstruct", int(f * 100), 100, {}))
-            metrics = volume_metrics(volume_np, recon)
-            export_size = round(size * settings.export_scale)
-            exported = recon if export_size == size else field.bake(export_size)
-
-        with writer.phase("write"):
-            on_progress("write", 0, 1, {})
-            field.to_file(writer.directory / MODEL_FILE)
-            write_nifti(exported, field.bake_affine(export_size), writer.directory / RECON_FILE,
-                        f"cubecloud cunerf x{settings.export_scale:g}")
-            difference = np.clip(4.0 * np.abs(recon - volume_np), 0.0, 1.0)
-            write_preview_rows([("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)],
-                               writer.directory / PREVIEW_FILE)
-            _write_log(writer.directory / LOG_FILE, trainer.history)
-            checkpoint.unlink(missing_ok=True)
+        try:
+            with writer.phase("train"):
+                _train(trainer, checkpoint, on_progress)
+            field, metrics, export_size = _reconstruct_and_write(
+                writer, trainer, voxels, volume_np, preprocess, on_progress
+            )
+        except CubecloudInterrupted:
+            raise
+        except KeyboardInterrupt:
+            raise CubecloudInterrupted(checkpoint, trainer.iteration) from None
+        except (RuntimeError, MemoryError) as exc:
+            if not _out_of_memory(exc):
+                raise
+            raise CubecloudError(
+                f"out of memory at iteration {trainer.iteration}: lower --batch-size (now "
+                f"{settings.batch_size}), --samples-per-axis or --importance, and pass --force"
+            ) from None
+        checkpoint.unlink(missing_ok=True)
 
         final = trainer.history[-1] if trainer.history else {}
         writer.metrics.update({f"{k}_3d": v for k, v in metrics.items()})
@@ -210,45 +247,108 @@ def train_cunerf(
     return read_manifest(writer.final_dir)
 
 
+def _reconstruct_and_write(
+    writer: StageWriter,
+    trainer: Trainer,
+    voxels: TrainingVoxels,
+    volume_np: np.ndarray,
+    preprocess: dict,
+    on_progress: ProgressCallback,
+) -> tuple[CunerfField, dict, int]:
+    """Render the field at every voxel, score it, and write the stage's files."""
+    settings, model, size = trainer.settings, trainer.model, voxels.size
+    field = CunerfField(model, size, np.asarray(preprocess["geometry"]["voxel_to_scanner"]),
+                        voxels.occupancy() if settings.skip_air else None, settings.as_dict())
+    with writer.phase("reconstruct"):
+        recon = field.bake(size, on_progress=lambda f: on_progress("reconstruct", int(f * 100), 100, {}))
+        metrics = volume_metrics(volume_np, recon)
+        export_size = round(size * settings.export_scale)
+        exported = recon if export_size == size else field.bake(export_size)
+
+    with writer.phase("write"):
+        on_progress("write", 0, 1, {})
+        field.to_file(writer.directory / MODEL_FILE)
+        write_nifti(exported, field.bake_affine(export_size), writer.directory / RECON_FILE,
+                    f"cubecloud cunerf x{settings.export_scale:g}")
+        difference = np.clip(4.0 * np.abs(recon - volume_np), 0.0, 1.0)
+        write_preview_rows([("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)],
+                           writer.directory / PREVIEW_FILE)
+        _write_log(writer.directory / LOG_FILE, trainer.history)
+    return field, metrics, export_size
+
+
+@contextmanager
+def deferred_interrupt() -> Iterator[dict]:
+    """Ctrl-C sets a flag that the loop reads between steps, so the checkpoint it then saves
+    is the state after a whole step. A second Ctrl-C interrupts at once."""
+    flag = {"requested": False}
+    if threading.current_thread() is not threading.main_thread():
+        yield flag  # signal handlers can only be set from the main thread
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum, frame) -> None:
+        if flag["requested"]:
+            raise KeyboardInterrupt
+        flag["requested"] = True
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) -> None:
     settings = trainer.settings
     total = settings.iterations
     log_every = max(1, total // 200)
     latest: dict = {}
-    running = None
-    try:
-        while trainer.iteration < total:
-            loss = trainer.step()
-            running = loss if running is None else 0.9 * running + 0.1 * loss
-            it = trainer.iteration
-            row = None
-            if it % settings.val_every == 0 or it == total:
-                latest = trainer.validate()
-                row = {**latest}
-            if row is not None or it % log_every == 0:
-                trainer.history.append(
-                    {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
-                     "lr": learning_rate(it - 1, settings), **(row or {})}
-                )
-            fields = {"loss": running}
-            if "val_psnr" in latest:
-                fields["val PSNR"] = latest["val_psnr"]
-            on_progress("train", it, total, fields)
-            if it % settings.checkpoint_every == 0 and it < total:
-                trainer.save(checkpoint)
-    except KeyboardInterrupt:
-        trainer.save(checkpoint)
-        raise CubecloudInterrupted(checkpoint, trainer.iteration) from None
-    except FloatingPointError as exc:
-        raise CubecloudError(f"training diverged: {exc}; lower --lr") from None
+    saved = trainer.iteration
+    with deferred_interrupt() as interrupt:
+        try:
+            while trainer.iteration < total:
+                trainer.step()
+                running = trainer.smoothed_loss
+                it = trainer.iteration
+                row = None
+                if it % settings.val_every == 0 or it == total:
+                    latest = trainer.validate()
+                    row = {**latest}
+                if row is not None or it % log_every == 0:
+                    trainer.history.append(
+                        {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
+                         "lr": learning_rate(it - 1, settings), **(row or {})}
+                    )
+                fields = {"loss": running}
+                if "val_psnr" in latest:
+                    fields["val PSNR"] = latest["val_psnr"]
+                on_progress("train", it, total, fields)
+                # The last iteration is saved too: reconstruction can be long, and a resume
+                # then goes straight to it.
+                if it % settings.checkpoint_every == 0 or it == total or interrupt["requested"]:
+                    trainer.save(checkpoint)
+                    saved = it
+                if interrupt["requested"]:
+                    raise CubecloudInterrupted(checkpoint, it)
+        except CubecloudInterrupted:
+            raise
+        except KeyboardInterrupt:
+            # A second Ctrl-C, mid-step: the state may be half-updated, so keep the last save.
+            if not checkpoint.is_file():
+                raise KeyboardInterrupt("interrupted before the first checkpoint: run the command again") from None
+            raise CubecloudInterrupted(checkpoint, saved) from None
+        except FloatingPointError as exc:
+            raise CubecloudError(f"training diverged: {exc}; lower --lr and pass --force to start again") from None
 
 
 class CubecloudInterrupted(KeyboardInterrupt):
-    """Ctrl-C during training, after the checkpoint was saved."""
+    """Ctrl-C during the stage, with where its checkpoint stands."""
 
     def __init__(self, checkpoint: Path, iteration: int):
         super().__init__(
-            f"interrupted: saved iteration {iteration} to {checkpoint}; continue with the same command and --resume"
+            f"interrupted: iteration {iteration} is saved in {checkpoint}; continue with the same "
+            f"command and --resume (`cubecloud run` resumes by itself)"
         )
         self.checkpoint = checkpoint
         self.iteration = iteration

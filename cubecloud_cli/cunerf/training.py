@@ -67,6 +67,7 @@ class Trainer:
     iteration: int = 0
     elapsed_s: float = 0.0
     history: list[dict[str, float]] = field(default_factory=list)
+    smoothed_loss: float | None = None  # running mean shown in the bar and log.csv
     context: dict[str, Any] = field(default_factory=dict)  # saved as is, e.g. the input's sha256
 
     def __post_init__(self) -> None:
@@ -88,6 +89,7 @@ class Trainer:
         value = float(loss.detach())
         if not math.isfinite(value):
             raise FloatingPointError(f"the loss became {value} at iteration {self.iteration}")
+        self.smoothed_loss = value if self.smoothed_loss is None else 0.9 * self.smoothed_loss + 0.1 * value
         return value
 
     def validate(self, chunk: int = 32768) -> dict[str, float]:
@@ -129,6 +131,7 @@ class Trainer:
             "iteration": self.iteration,
             "elapsed_s": self.elapsed_s,
             "history": self.history,
+            "smoothed_loss": self.smoothed_loss,
             "context": self.context,
         }
 
@@ -145,3 +148,4 @@ class Trainer:
         self.iteration = int(state["iteration"])
         self.elapsed_s = float(state["elapsed_s"])
         self.history = list(state["history"])
+        self.smoothed_loss = state.get("smoothed_loss")
