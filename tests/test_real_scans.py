@@ -127,3 +127,23 @@ def test_oblique_scan_lies_over_the_original(tmp_path):
     assert_nearest_voxels_over_source(
         np.asarray(output.dataobj), output.affine, np.asarray(image.dataobj, np.float32), image.affine, manifest["intensity"]
     )
+
+
+@pytest.mark.parametrize("key", ["chest", "mr"])
+def test_cunerf_on_real_scans_lies_over_the_scan(tmp_path, key):
+    """A short cunerf run on other real scans (lung window, MR percentiles): finite, in range,
+    the reconstruction on the preprocessed volume's grid and better than a constant guess."""
+    from cubecloud_cli.cunerf import CunerfSettings, train_cunerf
+
+    work = tmp_path / "w"
+    preprocess_scan(_scan_path(key), work, PreprocessSettings(size=32, window="lung" if key == "chest" else "abdomen"))
+    settings = CunerfSettings(iterations=150, batch_size=2048, holdout=2, val_every=75)
+    manifest = train_cunerf(work, settings)
+    recon = nib.load(work / "cunerf" / "recon.nii.gz")
+    volume = nib.load(work / "preprocess" / "volume.nii.gz")
+    np.testing.assert_allclose(recon.affine, volume.affine, atol=1e-5)
+    data = np.asarray(recon.dataobj)
+    assert np.isfinite(data).all() and 0 <= data.min() and data.max() <= 1
+    reference = np.asarray(volume.dataobj)
+    constant_mse = float(((reference - reference.mean()) ** 2).mean())
+    assert manifest["metrics"]["mse_3d"] < 0.2 * constant_mse
