@@ -48,7 +48,7 @@ def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nift
     monkeypatch.undo()
     resumed = invoke(*options)
     assert resumed.exit_code == 0, resumed.output
-    assert "resumed" in resumed.stderr and "skipped" in resumed.stderr
+    assert "resumed" in resumed.stderr and "skipped" in resumed.stderr and "3D PSNR" in resumed.stderr
     assert (work / "cunerf" / "manifest.json").is_file()
     again = invoke(*options)
     assert again.exit_code == 0 and again.stderr.count("skipped") == 2

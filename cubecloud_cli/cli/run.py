@@ -9,7 +9,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cubecloud_cli.cli.cunerf import Device, train_cunerf_with_progress
+from cubecloud_cli.artifacts import read_manifest
+from cubecloud_cli.cli.cunerf import Device, describe_metrics, train_cunerf_with_progress
 from cubecloud_cli.cli.preprocess import run_preprocess_with_progress, scan_command
 from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
@@ -47,6 +48,7 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
         note = "  (resumed from its checkpoint)" if outcome.status == "resumed" else ""
         log.info(f"  {outcome.stage:<12} {when}{note}")
     log.info(f"  {'total':<12} {sum(o.seconds for o in outcomes):7.1f} s   results in {output}")
+    log.info(f"cunerf: {describe_metrics(read_manifest(Path(output) / 'cunerf'))}")
 
 
 run_command = scan_command(
