@@ -146,6 +146,9 @@ class StageWriter:
     force: bool = False
     name: str | None = None
     keep_partial: bool = False
+    # Files that only serve an unfinished run (checkpoints): never listed in the manifest, and
+    # deleted only once the stage is in place, so a failure up to then can still resume.
+    transient: tuple[str, ...] = ()
     inputs: dict[str, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
@@ -214,7 +217,7 @@ class StageWriter:
         files = {}
         for path in sorted(p for p in self.directory.rglob("*") if p.is_file()):
             relative = str(path.relative_to(self.directory))
-            if relative == MANIFEST_NAME:
+            if relative == MANIFEST_NAME or relative in self.transient:
                 continue
             files[relative] = {"bytes": path.stat().st_size, "sha256": sha256_of_file(path)}
         return files
@@ -247,6 +250,8 @@ class StageWriter:
             backup = self.work / f".{self.final_dir.name}.old-{os.getpid()}"
             os.replace(self.final_dir, backup)
         os.replace(self.directory, self.final_dir)
+        for name in self.transient:
+            (self.final_dir / name).unlink(missing_ok=True)
         if backup is not None:
             shutil.rmtree(backup, ignore_errors=True)
 

@@ -236,3 +236,45 @@ def test_help_shows_the_preset_values():
     help_text = words("cunerf")
     assert "fast 4000, balanced 6000" in help_text and "isotropic volume rendering" in help_text
     assert "balanced 256" in words("preprocess")
+
+
+def test_a_second_ctrl_c_before_any_checkpoint_leaves_nothing_to_resume(preprocessed, tmp_path, monkeypatch):
+    import cubecloud_cli.cunerf.training as training
+
+    work = _copy_preprocess(preprocessed, tmp_path)
+    original_loss, calls = training.adaptive_mse, []
+
+    def twice_interrupted_loss(output, target):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)  # the second one raises at once
+        return original_loss(output, target)
+
+    monkeypatch.setattr(training, "adaptive_mse", twice_interrupted_loss)
+    result = invoke("cunerf", work, *FAST, "--checkpoint-every", "10", "-q")
+    assert result.exit_code == 130 and "before the first checkpoint" in result.output
+    assert sorted(p.name for p in work.iterdir()) == ["preprocess"]
+
+
+def test_an_interrupt_while_committing_resumes_without_retraining(preprocessed, tmp_path, monkeypatch):
+    from cubecloud_cli.artifacts import StageWriter
+    from cubecloud_cli.cunerf.training import Trainer
+
+    work = _copy_preprocess(preprocessed, tmp_path)
+    original_list = StageWriter._list_files
+
+    def interrupted_listing(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(StageWriter, "_list_files", interrupted_listing)
+    result = invoke("cunerf", work, *FAST, "-q")
+    assert result.exit_code == 130 and "iteration 40 is saved" in result.output
+
+    monkeypatch.setattr(StageWriter, "_list_files", original_list)
+    monkeypatch.setattr(Trainer, "step", lambda self: pytest.fail("training ran again"))
+    resumed = invoke("cunerf", work, *FAST, "--resume", "-q")
+    assert resumed.exit_code == 0, resumed.output
+    manifest = json.loads((work / "cunerf" / "manifest.json").read_text())
+    assert "checkpoint.pt" not in manifest["files"] and not (work / "cunerf" / "checkpoint.pt").exists()
+    assert manifest["metrics"]["iterations"] == 40

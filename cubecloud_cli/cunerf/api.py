@@ -131,7 +131,7 @@ class CunerfField:
     def _keep(self, skip_air: bool) -> Callable[[torch.Tensor], torch.Tensor] | None:
         return self.occupancy.occupied if (skip_air and self.occupancy is not None) else None
 
-    def render_cubes(self, centres, chunk: int = 32768, skip_air: bool = True) -> np.ndarray:
+    def render_cubes(self, centres, chunk: int | None = None, skip_air: bool = True) -> np.ndarray:
         """CuNeRF's test render of cubes centred at world points (deterministic)."""
         centres = self._as_points(centres)
         generator = torch.Generator(device=self.device).manual_seed(0)
@@ -141,7 +141,7 @@ class CunerfField:
     def bake(
         self,
         size: int,
-        chunk: int = 32768,
+        chunk: int | None = None,
         skip_air: bool = True,
         on_progress: Callable[[float], None] = lambda fraction: None,
     ) -> np.ndarray:

@@ -18,7 +18,7 @@ ReLU (the official code; it can die and render black, official issue #18).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F

@@ -102,16 +102,27 @@ class CubeModel(nn.Module):
         return value
 
 
+RENDER_POINTS_PER_CHUNK = 1 << 18  # ~1 GB of activations for the 8×256 MLP without gradients
+
+
+def render_chunk(config: RenderConfig) -> int:
+    """Cubes per chunk for test renders, so a chunk holds about 262 k points whatever the
+    model's points per cube (8 for the fast preset, 128 for the paper's)."""
+    points = config.samples_per_axis**3 + max(config.importance, 0)
+    return max(64, min(32768, RENDER_POINTS_PER_CHUNK // points))
+
+
 @torch.no_grad()
 def render_many(
     model: CubeModel,
     centres: torch.Tensor,
-    chunk: int = 32768,
+    chunk: int | None = None,
     keep: Callable[[torch.Tensor], torch.Tensor] | None = None,
     generator: torch.Generator | None = None,
 ) -> torch.Tensor:
     """Test renders of any number of cubes, ``chunk`` at a time. Cubes for which ``keep``
     is False (air, by the occupancy grid) are not rendered and read 0."""
+    chunk = chunk or render_chunk(model.render_config)
     values = torch.zeros(centres.shape[0], device=centres.device)
     was_training = model.training
     model.eval()

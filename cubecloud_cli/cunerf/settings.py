@@ -6,7 +6,7 @@ import math
 from dataclasses import asdict, dataclass
 
 from cubecloud_cli.cunerf.fields import DENSITY_ACTIVATIONS, FieldConfig
-from cubecloud_cli.cunerf.model import RenderConfig
+from cubecloud_cli.cunerf.model import RENDER_POINTS_PER_CHUNK, RenderConfig
 from cubecloud_cli.errors import CubecloudError
 
 MODELS = ("fast", "cunerf")
@@ -87,15 +87,18 @@ class CunerfSettings:
 
     def training_bytes(self, volume_size: int) -> int:
         """A rough estimate of the memory training allocates (torch itself not counted): the
-        volume, the parameters with a gradient and Adam's two moments, and one batch's
-        activations (about 1.3 kB per point for the grid field, 14 kB for the 8×256 MLP)."""
+        volume, the parameters with a gradient and Adam's two moments, and the larger of one
+        batch's activations (about 1.3 kB per point for the grid field, 14 kB for the 8×256
+        MLP) and one test-render chunk's."""
         volume = 4 * volume_size**3 * 2  # the volume and the body-voxel index
         if self.model == "cunerf":
             parameters, per_point = 2 * 431_000, 14_000
         else:
             rows = sum(r**3 for r in self.field_config(volume_size).resolutions)
             parameters, per_point = rows * self.grid_features, 1_300
-        return volume + 16 * parameters + self.batch_size * self.points_per_cube() * per_point
+        batch = self.batch_size * self.points_per_cube() * per_point
+        render = RENDER_POINTS_PER_CHUNK * per_point // 3  # test renders keep no gradients
+        return volume + 16 * parameters + max(batch, render)
 
     def field_config(self, volume_size: int) -> FieldConfig:
         if self.model == "cunerf":

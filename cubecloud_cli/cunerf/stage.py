@@ -19,13 +19,10 @@ import logging
 import os
 import resource
 import shutil
-import signal
 import sys
-import threading
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 import torch
@@ -33,6 +30,13 @@ import torch
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField, resolve_device
 from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
+from cubecloud_cli.cunerf.interrupts import (
+    CubecloudInterrupted,
+    NothingToResume,
+    deferred_interrupt,
+    interrupted,
+    saved_iteration,
+)
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer, learning_rate
@@ -89,7 +93,8 @@ def _check_memory(settings: CunerfSettings, size: int, device: torch.device) -> 
 
 def _out_of_memory(exc: BaseException) -> bool:
     text = str(exc)
-    return isinstance(exc, (MemoryError, torch.OutOfMemoryError)) or "can't allocate memory" in text or "out of memory" in text
+    torch_oom = getattr(torch, "OutOfMemoryError", getattr(torch.cuda, "OutOfMemoryError", MemoryError))
+    return isinstance(exc, (MemoryError, torch_oom)) or "can't allocate memory" in text or "out of memory" in text
 
 
 def _check_resume(
@@ -170,7 +175,9 @@ def train_cunerf(
 
     _check_memory(settings, size, device)
 
-    writer = StageWriter(work, "cunerf", settings.as_dict(), force=force, name=name, keep_partial=True)
+    writer = StageWriter(
+        work, "cunerf", settings.as_dict(), force=force, name=name, keep_partial=True, transient=(CHECKPOINT_FILE,)
+    )
     writer.check_can_start()
     checkpoint = writer.directory / CHECKPOINT_FILE
     volume_path = work / "preprocess" / "volume.npy"
@@ -179,72 +186,114 @@ def train_cunerf(
     if state is None and writer.directory.exists():
         shutil.rmtree(writer.directory)
 
-    with writer:
-        with writer.phase("load"):
-            writer.add_input(volume_path, "preprocess/volume.npy")
-            volume_np = np.load(volume_path)
-            if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
-                raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")
-            volume = torch.from_numpy(volume_np.astype(np.float32)).to(device)
-            held_out = holdout_slices(volume_np, settings.holdout, settings.train_scale)
-            voxels = TrainingVoxels(volume, settings.train_scale, held_out, settings.body_fraction)
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(settings.seed)
-                model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
-            generator = torch.Generator(device=device).manual_seed(settings.seed)
-            trainer = Trainer(model, voxels, settings, generator, context={"volume_sha256": volume_sha256, "device": device.type})
-            if state is not None:
-                trainer.restore(state)
-                log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
-        if voxels.body_voxels == 0:
-            log.warning("the volume holds no non-zero voxel: the field will learn empty space only")
-
-        try:
-            with writer.phase("train"):
-                _train(trainer, checkpoint, on_progress)
-            field, metrics, export_size = _reconstruct_and_write(
-                writer, trainer, voxels, volume_np, preprocess, on_progress
-            )
-        except CubecloudInterrupted:
-            raise
-        except KeyboardInterrupt:
-            raise CubecloudInterrupted(checkpoint, trainer.iteration) from None
-        except (RuntimeError, MemoryError) as exc:
-            if not _out_of_memory(exc):
-                raise
-            raise CubecloudError(
-                f"out of memory at iteration {trainer.iteration}: lower --batch-size (now "
-                f"{settings.batch_size}), --samples-per-axis or --importance, and pass --force"
-            ) from None
-        checkpoint.unlink(missing_ok=True)
-
-        final = trainer.history[-1] if trainer.history else {}
-        writer.metrics.update({f"{k}_3d": v for k, v in metrics.items()})
-        writer.metrics.update({k: v for k, v in final.items() if k.startswith("val_")})
-        writer.metrics.update(
-            {
-                "iterations": trainer.iteration,
-                "train_seconds": round(trainer.elapsed_s, 2),
-                "seconds_per_1000_iterations": round(1000 * trainer.elapsed_s / max(trainer.iteration, 1), 2),
-                "parameters": sum(p.numel() for p in model.parameters()),
-                **_peak_memory_mb(device),
-            }
-        )
-        writer.extra.update(
-            {
-                "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
-                "data": {
-                    "volume_size": size,
-                    "training_voxels": voxels.training_voxels,
-                    "body_voxels": voxels.body_voxels,
-                    "held_out_slices": held_out,
-                    "air_blocks_skipped": None if field.occupancy is None else round(1 - field.occupancy.fraction(), 4),
-                },
-                "model": {"field": model.field_config.as_dict(), "render": model.render_config.as_dict()},
-                "reconstruction": {"file": RECON_FILE, "shape": [export_size] * 3, "scale": settings.export_scale},
-            }
-        )
+    # Ctrl-C anywhere up to the commit (hashing the outputs included) leaves the checkpoint.
+    try:
+        with writer:
+            phase = "load"
+            try:
+                with writer.phase("load"):
+                    context = {"volume_sha256": volume_sha256, "device": device.type}
+                    trainer, voxels, volume_np, held_out = _prepare(
+                        writer, volume_path, settings, size, device, state, context
+                    )
+                phase = "train"
+                with writer.phase("train"):
+                    _train(trainer, checkpoint, on_progress)
+                phase = "reconstruct"
+                field, metrics, export_size = _reconstruct_and_write(
+                    writer, trainer, voxels, volume_np, preprocess, on_progress
+                )
+            except (RuntimeError, MemoryError) as exc:
+                if not _out_of_memory(exc):
+                    raise
+                raise CubecloudError(_out_of_memory_advice(phase, settings, checkpoint)) from None
+            _record_results(writer, trainer, voxels, field, metrics, export_size, held_out, device)
+    except (CubecloudInterrupted, NothingToResume):
+        raise
+    except KeyboardInterrupt:
+        raise interrupted(checkpoint) from None
     return read_manifest(writer.final_dir)
+
+
+def _record_results(
+    writer: StageWriter,
+    trainer: Trainer,
+    voxels: TrainingVoxels,
+    field: CunerfField,
+    metrics: dict,
+    export_size: int,
+    held_out: list[int],
+    device: torch.device,
+) -> None:
+    """Metrics and descriptions for manifest.json."""
+    model, settings = trainer.model, trainer.settings
+    final = trainer.history[-1] if trainer.history else {}
+    writer.metrics.update({f"{k}_3d": v for k, v in metrics.items()})
+    writer.metrics.update({k: v for k, v in final.items() if k.startswith("val_")})
+    writer.metrics.update(
+        {
+            "iterations": trainer.iteration,
+            "train_seconds": round(trainer.elapsed_s, 2),
+            "seconds_per_1000_iterations": round(1000 * trainer.elapsed_s / max(trainer.iteration, 1), 2),
+            "parameters": sum(p.numel() for p in model.parameters()),
+            **_peak_memory_mb(device),
+        }
+    )
+    writer.extra.update(
+        {
+            "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
+            "data": {
+                "volume_size": voxels.size,
+                "training_voxels": voxels.training_voxels,
+                "body_voxels": voxels.body_voxels,
+                "held_out_slices": held_out,
+                "air_blocks_skipped": None if field.occupancy is None else round(1 - field.occupancy.fraction(), 4),
+            },
+            "model": {"field": model.field_config.as_dict(), "render": model.render_config.as_dict()},
+            "reconstruction": {"file": RECON_FILE, "shape": [export_size] * 3, "scale": settings.export_scale},
+        }
+    )
+
+
+def _prepare(
+    writer: StageWriter,
+    volume_path: Path,
+    settings: CunerfSettings,
+    size: int,
+    device: torch.device,
+    state: dict | None,
+    context: dict,
+) -> tuple[Trainer, TrainingVoxels, np.ndarray, list[int]]:
+    """Load the volume, build the model and its trainer, and restore a checkpoint if any."""
+    writer.add_input(volume_path, "preprocess/volume.npy")
+    volume_np = np.load(volume_path)
+    if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
+        raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")
+    volume = torch.from_numpy(volume_np.astype(np.float32)).to(device)
+    held_out = holdout_slices(volume_np, settings.holdout, settings.train_scale)
+    voxels = TrainingVoxels(volume, settings.train_scale, held_out, settings.body_fraction)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(settings.seed)
+        model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
+    generator = torch.Generator(device=device).manual_seed(settings.seed)
+    trainer = Trainer(model, voxels, settings, generator, context=context)
+    if state is not None:
+        trainer.restore(state)
+        log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
+    if voxels.body_voxels == 0:
+        log.warning("the volume holds no non-zero voxel: the field will learn empty space only")
+    return trainer, voxels, volume_np, held_out
+
+
+def _out_of_memory_advice(phase: str, settings: CunerfSettings, checkpoint: Path) -> str:
+    if phase == "train" or phase == "load":
+        return (
+            f"out of memory while {'training' if phase == 'train' else 'loading'}: lower --batch-size "
+            f"(now {settings.batch_size}), --samples-per-axis or --importance, and pass --force"
+        )
+    saved = saved_iteration(checkpoint) if checkpoint.is_file() else None
+    where = f"training is saved (iteration {saved}): free memory and rerun with --resume" if saved else "free memory and rerun"
+    return f"out of memory while rendering the trained field; {where}"
 
 
 def _reconstruct_and_write(
@@ -277,34 +326,11 @@ def _reconstruct_and_write(
     return field, metrics, export_size
 
 
-@contextmanager
-def deferred_interrupt() -> Iterator[dict]:
-    """Ctrl-C sets a flag that the loop reads between steps, so the checkpoint it then saves
-    is the state after a whole step. A second Ctrl-C interrupts at once."""
-    flag = {"requested": False}
-    if threading.current_thread() is not threading.main_thread():
-        yield flag  # signal handlers can only be set from the main thread
-        return
-    previous = signal.getsignal(signal.SIGINT)
-
-    def handler(signum, frame) -> None:
-        if flag["requested"]:
-            raise KeyboardInterrupt
-        flag["requested"] = True
-
-    signal.signal(signal.SIGINT, handler)
-    try:
-        yield flag
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) -> None:
     settings = trainer.settings
     total = settings.iterations
     log_every = max(1, total // 200)
     latest: dict = {}
-    saved = trainer.iteration
     with deferred_interrupt() as interrupt:
         try:
             while trainer.iteration < total:
@@ -328,27 +354,12 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
                 # then goes straight to it.
                 if it % settings.checkpoint_every == 0 or it == total or interrupt["requested"]:
                     trainer.save(checkpoint)
-                    saved = it
                 if interrupt["requested"]:
                     raise CubecloudInterrupted(checkpoint, it)
-        except CubecloudInterrupted:
+        except (CubecloudInterrupted, NothingToResume):
             raise
         except KeyboardInterrupt:
             # A second Ctrl-C, mid-step: the state may be half-updated, so keep the last save.
-            if not checkpoint.is_file():
-                raise KeyboardInterrupt("interrupted before the first checkpoint: run the command again") from None
-            raise CubecloudInterrupted(checkpoint, saved) from None
+            raise interrupted(checkpoint) from None
         except FloatingPointError as exc:
             raise CubecloudError(f"training diverged: {exc}; lower --lr and pass --force to start again") from None
-
-
-class CubecloudInterrupted(KeyboardInterrupt):
-    """Ctrl-C during the stage, with where its checkpoint stands."""
-
-    def __init__(self, checkpoint: Path, iteration: int):
-        super().__init__(
-            f"interrupted: iteration {iteration} is saved in {checkpoint}; continue with the same "
-            f"command and --resume (`cubecloud run` resumes by itself)"
-        )
-        self.checkpoint = checkpoint
-        self.iteration = iteration

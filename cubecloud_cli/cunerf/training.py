@@ -92,7 +92,7 @@ class Trainer:
         self.smoothed_loss = value if self.smoothed_loss is None else 0.9 * self.smoothed_loss + 0.1 * value
         return value
 
-    def validate(self, chunk: int = 32768) -> dict[str, float]:
+    def validate(self, chunk: int | None = None) -> dict[str, float]:
         """PSNR/SSIM on the held-out slices (whole image and body only)."""
         slices = self.voxels.held_out
         if not slices:
