@@ -278,3 +278,18 @@ def test_an_interrupt_while_committing_resumes_without_retraining(preprocessed, 
     manifest = json.loads((work / "cunerf" / "manifest.json").read_text())
     assert "checkpoint.pt" not in manifest["files"] and not (work / "cunerf" / "checkpoint.pt").exists()
     assert manifest["metrics"]["iterations"] == 40
+
+
+def test_the_api_example_runs(trained, tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    out = tmp_path / "x1_5.nii.gz"
+    result = subprocess.run(
+        [sys.executable, str(REPO / "examples" / "cunerf_field.py"), str(trained), "--scale", "1.5", "--out", str(out), "--device", "cpu"],
+        capture_output=True, text=True, check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "intensity" in result.stdout and nib.load(out).shape == (48, 48, 48)
