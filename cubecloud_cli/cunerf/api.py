@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.artifacts import require_stage, stage_dir_name
-from cubecloud_cli.cunerf.data import Occupancy
+from cubecloud_cli.cunerf.data import Occupancy, voxel_centres
 from cubecloud_cli.cunerf.fields import FieldConfig
 from cubecloud_cli.cunerf.model import CubeModel, RenderConfig, render_many
 from cubecloud_cli.errors import CubecloudError
@@ -42,7 +42,7 @@ def resolve_device(device: str) -> torch.device:
 def grid_centres(size: int, device: torch.device, x_range: tuple[int, int] | None = None) -> torch.Tensor:
     """World centres of the voxels of a size³ grid over [−1, 1]³ (x-major), optionally only
     the x-slab ``x_range``."""
-    axis = (2.0 * torch.arange(size, device=device, dtype=torch.float32) + 1.0) / size - 1.0
+    axis = voxel_centres(torch.arange(size, device=device), size)
     xs = axis if x_range is None else axis[x_range[0] : x_range[1]]
     x, y, z = torch.meshgrid(xs, axis, axis, indexing="ij")
     return torch.stack((x, y, z), dim=-1).reshape(-1, 3)
