@@ -79,7 +79,8 @@ class CubeModel(nn.Module):
         )
         coarse_value = coarse.value
         if config.importance <= 0 or offsets.shape[1] < 3:
-            return CubeOutput(self._finish(coarse_value, train), self._finish(coarse_value, train), False)
+            value = self._finish(coarse_value, train)
+            return CubeOutput(value, value, False)
 
         edges = shell_edges(coarse.radii)
         radii = sample_radii_from_weights(

@@ -39,7 +39,7 @@ from cubecloud_cli.cunerf.interrupts import (
 )
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
-from cubecloud_cli.cunerf.training import Trainer, learning_rate
+from cubecloud_cli.cunerf.training import Trainer
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.metrics import volume_metrics
 from cubecloud_cli.preprocess.preview import write_preview_rows
@@ -344,7 +344,7 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
                 if row is not None or it % log_every == 0:
                     trainer.history.append(
                         {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
-                         "lr": learning_rate(it - 1, settings), **(row or {})}
+                         "lr": trainer.optimizer.param_groups[0]["lr"], **(row or {})}
                     )
                 fields = {"loss": running}
                 if "val_psnr" in latest:
