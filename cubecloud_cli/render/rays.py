@@ -1,0 +1,37 @@
+"""Rays through pixel centres and where they cross an axis-aligned box."""
+
+from __future__ import annotations
+
+import torch
+
+from cubecloud_cli.cameras import PinholeCameras
+
+# Direction components smaller than this are treated as parallel to the slab: 1/d would
+# overflow to inf and inf·0 gives NaN at the slab faces.
+PARALLEL = 1e-12
+
+
+def camera_rays(cameras: PinholeCameras, index: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The camera centre (3,) shared by all rays of view ``index``, and the rays' unit
+    directions (H·W, 3), pixels in row-major (v, u) order."""
+    directions = torch.as_tensor(cameras.pixel_directions(index), dtype=torch.float32, device=device)
+    origin = torch.as_tensor(cameras.centres()[index], dtype=torch.float32, device=device)
+    return origin, directions
+
+
+def ray_box(
+    origins: torch.Tensor, directions: torch.Tensor, low: torch.Tensor, high: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances of rays through the box [low, high] (slab method); ``origins``
+    is (P, 3) or one (3,) origin for all rays.
+
+    Rays that miss get ``near >= far``; ``near`` is clamped at 0 so nothing behind the camera
+    counts.
+    """
+    safe = torch.where(directions.abs() < PARALLEL, torch.full_like(directions, PARALLEL), directions)
+    inverse = 1.0 / safe
+    t_low = (low - origins) * inverse
+    t_high = (high - origins) * inverse
+    near = torch.minimum(t_low, t_high).amax(dim=1).clamp_min(0.0)
+    far = torch.maximum(t_low, t_high).amin(dim=1)
+    return near, far

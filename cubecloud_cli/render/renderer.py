@@ -1,0 +1,128 @@
+"""One renderer for every image model and every field (DESIGN §3).
+
+The same code draws the reference images from the preprocessed volume and the training images
+from CuNeRF, so the two differ only by their fields. Marching models sample each ray at
+t_k = t_entry + (k + ½)Δ from where it enters the cube, so both fields are sampled at the same
+points; the runs of the ray outside the field's support are skipped, which changes no pixel.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.render.image_models import ACCUMULATORS, ImageModel
+from cubecloud_cli.render.rays import camera_rays, ray_box
+from cubecloud_cli.render.samplers import ScalarField, Support
+
+RAYS_PER_CHUNK = 1 << 14
+STEPS_PER_BLOCK = 32
+
+
+def slice_plane_values(field: ScalarField, origin: torch.Tensor, directions: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """The field where each ray meets the plane through the origin with this normal."""
+    facing = directions @ normal
+    # Rays inside the field of view have facing = cos(angle to the optical axis) > 0; the guard
+    # keeps a grazing ray finite (it lands far outside the cube, where the field is 0).
+    facing = torch.where(facing.abs() < 1e-12, torch.full_like(facing, 1e-12), facing)
+    t = -(origin @ normal) / facing
+    return field(origin + t[:, None] * directions)
+
+
+def support_interval(
+    support: Support, origin: torch.Tensor, directions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A [start, stop) distance interval per ray that holds every sample in the support."""
+    low, high = support.bounds()
+    start, stop = ray_box(origin, directions, low, high)
+    hit = start < stop
+    if not hit.any():
+        return start, start
+    # A coarse march finds the first and last support block on each ray. Support blocks carry
+    # a margin one block thick, so steps just shorter than a block cannot jump over it.
+    step = 0.95 * support.block_size
+    count = int(torch.ceil(((stop - start)[hit]).max() / step).item()) + 1
+    offsets = (torch.arange(count, device=directions.device) + 0.5) * step
+    t = start[hit, None] + offsets
+    points = origin + t[..., None] * directions[hit, None, :]
+    inside = support.contains(points.reshape(-1, 3)).view(-1, count) & (t < stop[hit, None])
+    any_inside = inside.any(dim=1)
+    first = inside.float().argmax(dim=1)
+    last = count - 1 - inside.flip(1).float().argmax(dim=1)
+    refined_start = start.clone()
+    refined_stop = start.clone()  # empty unless a block is hit
+    refined_start[hit] = torch.where(any_inside, start[hit] + offsets[first] - step, start[hit])
+    refined_stop[hit] = torch.where(any_inside, start[hit] + offsets[last] + step, start[hit])
+    return refined_start.clamp_min(0.0), refined_stop
+
+
+def render_view(
+    field: ScalarField,
+    cameras: PinholeCameras,
+    index: int,
+    model: ImageModel,
+    support: Support | None = None,
+    device: torch.device | str = "cpu",
+) -> torch.Tensor:
+    """Image ``index`` of ``cameras`` as an (H, W) float tensor in [0, 1]."""
+    device = torch.device(device)
+    origin, directions = camera_rays(cameras, index, device)
+    if model.kind == "slice":
+        normal = torch.as_tensor(cameras.rotations[index][2], dtype=torch.float32, device=device)
+        values = torch.cat([
+            slice_plane_values(field, origin, directions[s : s + RAYS_PER_CHUNK], normal)
+            for s in range(0, directions.shape[0], RAYS_PER_CHUNK)
+        ])
+        return values.view(cameras.height, cameras.width)
+
+    cube_low = torch.full((3,), -1.0, device=device)
+    entry, exit_ = ray_box(origin, directions, cube_low, -cube_low)
+    if support is None:
+        support = field.support(model.support_threshold)
+    accumulator = ACCUMULATORS[model.kind](model, directions.shape[0], device)
+    for begin in range(0, directions.shape[0], RAYS_PER_CHUNK):
+        rays = torch.arange(begin, min(begin + RAYS_PER_CHUNK, directions.shape[0]), device=device)
+        start, stop = support_interval(support, origin, directions[rays])
+        stop = torch.minimum(stop, exit_[rays])
+        first = torch.floor((start - entry[rays]) / model.step - 0.5).clamp_min(0).long()
+        last = torch.ceil((stop - entry[rays]) / model.step - 0.5).long()  # exclusive
+        _march(field, model, accumulator, rays, origin, directions, entry, first, last)
+    return accumulator.result().clamp(0.0, 1.0).view(cameras.height, cameras.width)
+
+
+def _march(field, model, accumulator, rays, origin, directions, entry, first, last) -> None:
+    """Sample rays in blocks of STEPS_PER_BLOCK, dropping rays that are done."""
+    live = first < last
+    rays, first, last = rays[live], first[live], last[live]
+    steps = torch.arange(STEPS_PER_BLOCK, device=rays.device)
+    while rays.numel():
+        k = first[:, None] + steps
+        t = entry[rays, None] + (k.float() + 0.5) * model.step
+        points = origin + t[..., None] * directions[rays, None, :]
+        values = field(points.reshape(-1, 3)).view(-1, STEPS_PER_BLOCK)
+        values = torch.where(k < last[:, None], values, torch.zeros_like(values))
+        accumulator.add(rays, values)
+        first = first + STEPS_PER_BLOCK
+        keep = (first < last) & ~accumulator.finished(rays)
+        rays, first, last = rays[keep], first[keep], last[keep]
+
+
+def render_views(
+    field: ScalarField,
+    cameras: PinholeCameras,
+    model: ImageModel,
+    device: torch.device | str = "cpu",
+    on_progress: Callable[[int, int], None] = lambda done, total: None,
+) -> np.ndarray:
+    """All views as a (N, H, W) float32 array."""
+    model.validate()
+    support = None if model.kind == "slice" else field.support(model.support_threshold)
+    images = np.empty((len(cameras), cameras.height, cameras.width), dtype=np.float32)
+    with torch.no_grad():
+        for index in range(len(cameras)):
+            images[index] = render_view(field, cameras, index, model, support, device).cpu().numpy()
+            on_progress(index + 1, len(cameras))
+    return images

@@ -1,0 +1,130 @@
+"""Orbit cameras (DESIGN §2): geometry, the fitted field of view, projection and its guards."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
+from cubecloud_cli.errors import CubecloudError
+
+CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+AXES = {"si": np.array([0, 0, 1.0]), "ap": np.array([0, 1.0, 0]), "lr": np.array([1.0, 0, 0])}
+
+
+@pytest.mark.parametrize("axis", ["si", "ap", "lr"])
+@pytest.mark.parametrize("elevation", [0.0, 30.0, -60.0])
+def test_orbit_geometry(axis, elevation):
+    cameras = orbit_cameras(OrbitSpec(views=12, axis=axis, radius=3.5, resolution=64, elevation=elevation))
+    centres = cameras.centres()
+    np.testing.assert_allclose(np.linalg.norm(centres, axis=1), 3.5, rtol=1e-12)
+    # Rotations are proper, and the optical axis goes through the origin (the image centre).
+    for k in range(len(cameras)):
+        rotation = cameras.rotations[k]
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rotation) == pytest.approx(1.0)
+        pixel, depth = cameras.project(k, np.zeros((1, 3)))
+        np.testing.assert_allclose(pixel[0], [32.0, 32.0], atol=1e-9)
+        # Image "up" is along the orbit axis: a point up the axis appears above the centre.
+        up_pixel, _ = cameras.project(k, 0.5 * AXES[axis][None])
+        assert up_pixel[0, 1] < 32.0 - 1.0
+        assert abs(up_pixel[0, 0] - 32.0) < 1e-6
+    # Evenly spread over 360°, all at the same elevation above the orbit plane.
+    heights = centres @ AXES[axis]
+    np.testing.assert_allclose(heights, 3.5 * math.sin(math.radians(elevation)), atol=1e-12)
+    planar = centres - heights[:, None] * AXES[axis]
+    cosines = np.sum(planar * np.roll(planar, -1, axis=0), axis=1) / np.sum(planar * planar, axis=1)
+    np.testing.assert_allclose(cosines, math.cos(2 * math.pi / 12), atol=1e-9)
+
+
+def test_first_view_looks_like_a_radiologists():
+    cameras = orbit_cameras(OrbitSpec(views=4, axis="si", resolution=64))
+    np.testing.assert_allclose(cameras.centres()[0], [0, 4, 0], atol=1e-12)  # from the front
+    pixels, _ = cameras.project(0, np.array([[0.5, 0, 0], [0, 0, 0.5]]))
+    assert pixels[0, 0] < 32  # the patient's right (+x) on the image left
+    assert pixels[1, 1] < 32  # superior up
+    axial = orbit_cameras(OrbitSpec(views=4, axis="ap", resolution=64))
+    np.testing.assert_allclose(axial.centres()[0], [0, 0, -4], atol=1e-12)  # from the feet
+    pixels, _ = axial.project(0, np.array([[0.5, 0, 0], [0, 0.5, 0]]))
+    assert pixels[0, 0] < 32 and pixels[1, 1] < 32  # right on the left, anterior up
+
+
+@pytest.mark.parametrize("radius", [1.8, 4.0, 50.0])
+@pytest.mark.parametrize("elevation", [0.0, 45.0, 85.0])
+def test_fitted_field_of_view_holds_the_whole_cube_tightly(radius, elevation):
+    cameras = orbit_cameras(OrbitSpec(views=7, axis="si", radius=radius, resolution=100, elevation=elevation))
+    extremes = []
+    for k in range(len(cameras)):
+        pixels, depth = cameras.project(k, CORNERS)
+        assert (depth > 0).all()
+        assert (pixels >= 0).all() and (pixels <= 100).all()
+        extremes.append(np.abs(pixels - 50).max())
+    assert max(extremes) == pytest.approx(50 / 1.02, rel=1e-9)  # touches the 2% margin
+
+
+def test_given_fov_sets_the_focal_length():
+    cameras = orbit_cameras(OrbitSpec(views=3, resolution=200, fov=60.0))
+    assert cameras.focal == pytest.approx(100 / math.tan(math.radians(30)))
+    assert math.degrees(cameras.fov_x) == pytest.approx(60.0)
+
+
+@pytest.mark.parametrize(
+    "spec, words",
+    [
+        (OrbitSpec(views=1), "at least 2 views"),
+        (OrbitSpec(radius=1.5), "inside the volume"),
+        (OrbitSpec(radius=float("nan")), "inside the volume"),
+        (OrbitSpec(resolution=0), "positive number of pixels"),
+        (OrbitSpec(elevation=90.0), "elevation"),
+        (OrbitSpec(fov=0.0), "--fov"),
+        (OrbitSpec(fov=180.0), "--fov"),
+        (OrbitSpec(axis="xy"), "--axis"),
+    ],
+)
+def test_bad_orbits_name_the_fix(spec, words):
+    with pytest.raises(CubecloudError, match=words):
+        orbit_cameras(spec)
+
+
+def test_points_behind_the_camera_do_not_project():
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=32))
+    behind = cameras.centres()[0] * 1.5  # further out along the camera's own position
+    on_plane = cameras.centres()[0] + np.cross(cameras.centres()[0], [0, 0, 1.0])
+    pixels, depth = cameras.project(0, np.stack([behind, on_plane]))
+    assert depth[0] < 0 and abs(depth[1]) < 1e-9
+    assert np.isnan(pixels).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    u=st.floats(0.0, 63.999),
+    v=st.floats(0.0, 63.999),
+    distance=st.floats(1e-3, 1e3),
+    view=st.integers(0, 4),
+)
+def test_projection_inverts_pixel_rays(u, v, distance, view):
+    cameras = orbit_cameras(OrbitSpec(views=5, resolution=64, elevation=20.0))
+    camera_point = np.array([(u - 32) / cameras.focal, (v - 32) / cameras.focal, 1.0]) * distance
+    world = cameras.rotations[view].T @ (camera_point - cameras.translations[view])
+    pixel, depth = cameras.project(view, world[None])
+    np.testing.assert_allclose(pixel[0], [u, v], atol=1e-6 * max(1.0, distance))
+    assert depth[0] == pytest.approx(distance)
+
+
+def test_pixel_directions_go_through_pixel_centres():
+    cameras = orbit_cameras(OrbitSpec(views=3, resolution=8, elevation=10.0))
+    directions = cameras.pixel_directions(1).reshape(8, 8, 3)
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=-1), 1.0, atol=1e-12)
+    point = cameras.centres()[1] + 3.0 * directions[2, 5]  # row v = 2, column u = 5
+    pixel, _ = cameras.project(1, point[None])
+    np.testing.assert_allclose(pixel[0], [5.5, 2.5], atol=1e-9)
+
+
+def test_camera_matrices_are_consistent():
+    cameras = orbit_cameras(OrbitSpec(views=4, resolution=16))
+    product = cameras.world_to_camera() @ cameras.camera_to_world()
+    np.testing.assert_allclose(product, np.tile(np.eye(4), (4, 1, 1)), atol=1e-12)
+    with pytest.raises(ValueError):
+        PinholeCameras(cameras.rotations, cameras.translations, 16, 16, 0.0)

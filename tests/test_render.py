@@ -1,0 +1,139 @@
+"""The renderer: image models against closed forms, skipping that changes no pixel, extremes."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, TransferFunction, render_views
+from cubecloud_cli.render.rays import ray_box
+
+S = 32
+
+
+def blob_volume(centre_voxel=(20, 9, 23), size=S) -> np.ndarray:
+    volume = np.zeros((size,) * 3, dtype=np.float32)
+    i, j, k = centre_voxel
+    volume[i - 1 : i + 2, j - 1 : j + 2, k - 1 : k + 2] = 0.6
+    volume[i, j, k] = 1.0
+    return volume
+
+
+def world_of(voxel, size=S) -> np.ndarray:
+    return (2.0 * np.asarray(voxel, dtype=float) + 1.0) / size - 1.0
+
+
+@pytest.mark.parametrize("kind", ["dvr", "mip"])
+@pytest.mark.parametrize("axis", ["si", "ap", "lr"])
+def test_a_known_point_is_drawn_where_it_projects(kind, axis):
+    volume = blob_volume()
+    cameras = orbit_cameras(OrbitSpec(views=8, axis=axis, resolution=48, elevation=15.0))
+    model = ImageModel(kind=kind, transfer=TransferFunction(0.1, 1.0, 30.0), step=1.0 / S)
+    images = render_views(GridField(volume), cameras, model)
+    for view in range(len(cameras)):
+        pixel, _ = cameras.project(view, world_of((20, 9, 23))[None])
+        row, column = np.unravel_index(np.argmax(images[view]), images[view].shape)
+        assert abs(column - math.floor(pixel[0, 0])) <= 1 and abs(row - math.floor(pixel[0, 1])) <= 1
+
+
+def test_slice_samples_the_plane_through_the_origin():
+    # Intensity rises along x only; the first si view looks along −y, so its slice plane is y = 0.
+    ramp = np.broadcast_to(np.linspace(0.05, 0.95, S, dtype=np.float32)[:, None, None], (S, S, S)).copy()
+    cameras = orbit_cameras(OrbitSpec(views=4, axis="si", resolution=33))
+    image = render_views(GridField(ramp), cameras, ImageModel(kind="slice"))[0]
+    centre_row = image[16]
+    inside = centre_row > 0
+    # +x (patient's right) is on the image left; the outermost pixels fade into the air outside.
+    assert np.all(np.diff(centre_row[inside][1:-1]) < 0)
+    # The pixel through the origin reads the volume at the origin.
+    assert image[16, 16] == pytest.approx(float(GridField(ramp)(torch.zeros(1, 3))[0]), abs=1e-6)
+
+
+def test_dvr_of_a_constant_volume_matches_the_closed_form():
+    value, density = 0.8, 1.3
+    volume = np.full((S, S, S), value, dtype=np.float32)
+    cameras = orbit_cameras(OrbitSpec(views=4, axis="si", resolution=33))  # odd: a pixel on the axis
+    model = ImageModel(kind="dvr", transfer=TransferFunction(0.0, 1.0, density), step=2.0 / S)
+    images = render_views(GridField(volume), cameras, model)
+    # The central ray crosses 2 world units, its samples all on voxel centres along the axis.
+    expected = value * (1.0 - math.exp(-density * value * 2.0))
+    np.testing.assert_allclose(images[:, 16, 16], expected, rtol=1e-5)
+    mip = render_views(GridField(volume), cameras, ImageModel(kind="mip", step=2.0 / S))
+    np.testing.assert_allclose(mip[:, 16, 16], value, rtol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["dvr", "mip"])
+def test_skipping_empty_space_changes_no_pixel(kind):
+    rng = np.random.default_rng(3)
+    volume = np.zeros((S, S, S), dtype=np.float32)
+    volume[6:20, 10:28, 4:14] = rng.random((14, 18, 10))
+    volume[25, 3, 28] = 1.0  # an isolated voxel far from the rest
+    cameras = orbit_cameras(OrbitSpec(views=6, axis="lr", resolution=40, elevation=-25.0))
+    model = ImageModel(kind=kind, transfer=TransferFunction(0.2, 0.8, 6.0), step=1.0 / S)
+    field = GridField(volume)
+    skipped = render_views(field, cameras, model)
+    everything = FunctionField(field, S, Support(torch.ones(4, 4, 4, dtype=torch.bool)))
+    full = render_views(everything, cameras, model)
+    np.testing.assert_allclose(skipped, full, atol=2e-6)
+    assert skipped.max() > 0.1
+
+
+def test_empty_and_float16_volumes():
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=16))
+    for kind in ("dvr", "mip", "slice"):
+        empty = render_views(GridField(np.zeros((S, S, S), np.float32)), cameras, ImageModel(kind=kind))
+        assert empty.shape == (2, 16, 16) and not empty.any()
+    volume = blob_volume()
+    half = render_views(GridField(volume.astype(np.float16)), cameras, ImageModel(kind="mip"))
+    single = render_views(GridField(volume), cameras, ImageModel(kind="mip"))
+    np.testing.assert_allclose(half, single, atol=1e-3)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    low=st.floats(0.0, 1.0),
+    width=st.floats(0.0, 1.0),
+    density=st.sampled_from([0.0, 1e-8, 1e-3, 1.0, 50.0, 1e4, 999_999.0]),
+    seed=st.integers(0, 2**16),
+)
+def test_dvr_stays_in_range_for_any_transfer_function(low, width, density, seed):
+    volume = np.random.default_rng(seed).random((8, 8, 8)).astype(np.float32)
+    transfer = TransferFunction(low, min(1.0, low + width), density)
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=12))
+    images = render_views(GridField(volume), cameras, ImageModel("dvr", transfer, step=0.25))
+    assert np.isfinite(images).all() and images.min() >= 0.0 and images.max() <= 1.0
+    if density == 0.0:
+        assert not images.any()
+
+
+def test_opaque_dvr_shows_the_first_surface():
+    # Two slabs along the first si view's ray (camera at +y): the near one hides the far one.
+    volume = np.zeros((S, S, S), dtype=np.float32)
+    volume[:, 24:28, :] = 0.5  # nearer the camera (larger y)
+    volume[:, 4:8, :] = 1.0
+    cameras = orbit_cameras(OrbitSpec(views=2, axis="si", resolution=33))
+    opaque = TransferFunction(0.4, 0.45, 1e5)  # fully opaque from 0.45 on
+    image = render_views(GridField(volume), cameras, ImageModel("dvr", opaque, step=1.0 / S))[0]
+    assert 0.45 <= image[16, 16] <= 0.5
+
+
+def test_rays_parallel_to_box_faces():
+    origin = torch.tensor([0.5, -5.0, 0.5])
+    directions = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    origins = torch.stack([origin, torch.tensor([2.0, -5.0, 0.0]), origin])
+    near, far = ray_box(origins, directions, torch.full((3,), -1.0), torch.ones(3))
+    assert torch.isfinite(near).all() and torch.isfinite(far).all()
+    assert near[0] == pytest.approx(4.0) and far[0] == pytest.approx(6.0)
+    assert near[1] >= far[1]  # passes beside the box
+    assert near[2] >= far[2]  # points away from it, never backwards
+
+
+@pytest.mark.parametrize("bad", [ImageModel(kind="xray"), ImageModel(step=0.0), ImageModel(transfer=TransferFunction(0.8, 0.2))])
+def test_invalid_image_models_are_refused(bad):
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=4))
+    with pytest.raises(ValueError):
+        render_views(GridField(np.zeros((4, 4, 4), np.float32)), cameras, bad)
