@@ -130,3 +130,29 @@ def volume_metrics(reference: np.ndarray, estimate: np.ndarray, mask: np.ndarray
         body = torch.cat(body_scores)
         result["ssim_body"] = float(body.mean()) if body.numel() else float("nan")
     return result
+
+
+def image_metrics(reference: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
+    """DESIGN §5 2D metrics of a stack of views (N, H, W): PSNR, SSIM and MSE per view, then
+    averaged over views; the ``*_foreground`` variants count only pixels where the reference is
+    non-zero (black background inflates PSNR). Views smaller than the SSIM window get no SSIM."""
+    reference = np.asarray(reference, dtype=np.float32)
+    estimate = np.asarray(estimate, dtype=np.float32)
+    if reference.shape != estimate.shape or reference.ndim != 3:
+        raise ValueError(f"need two (N, H, W) stacks of one shape, got {reference.shape} and {estimate.shape}")
+    foreground = reference > 0
+    per_view = [
+        (mse(r, e), mse(r, e, m) if m.any() else float("nan"))
+        for r, e, m in zip(reference, estimate, foreground)
+    ]
+    result = {
+        "psnr": float(np.mean([psnr_from_mse(m) for m, _ in per_view])),
+        "mse": float(np.mean([m for m, _ in per_view])),
+    }
+    with_foreground = [f for _, f in per_view if np.isfinite(f)]
+    result["psnr_foreground"] = float(np.mean([psnr_from_mse(f) for f in with_foreground])) if with_foreground else float("nan")
+    result["mse_foreground"] = float(np.mean(with_foreground)) if with_foreground else float("nan")
+    if min(reference.shape[1:]) >= 2 * SSIM_RADIUS + 1:
+        result["ssim"] = ssim(reference, estimate)
+        result["ssim_foreground"] = ssim(reference, estimate, foreground)
+    return result

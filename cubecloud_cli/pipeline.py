@@ -15,6 +15,7 @@ from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, 
 from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
 from cubecloud_cli.cunerf.stage import CHECKPOINT_FILE
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 
 
@@ -61,16 +62,22 @@ def _cunerf_quietly(work: Path, settings: CunerfSettings, force: bool, resume: b
     return train_cunerf(work, settings, force=force, resume=resume, runtime=runtime)
 
 
+def _export_quietly(work: Path, settings: ExportSettings, force: bool, runtime: Runtime) -> dict:
+    return export_scene(work, settings, force=force, runtime=runtime)
+
+
 def run_pipeline(
     scan: Path,
     work: Path,
     preprocess_settings: PreprocessSettings,
     cunerf_settings: CunerfSettings,
+    export_settings: ExportSettings = ExportSettings(),
     *,
     force: bool = False,
     runtime: Runtime = Runtime(),
     run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
     run_cunerf: Callable[[Path, CunerfSettings, bool, bool, Runtime], dict] | None = None,
+    run_export: Callable[[Path, ExportSettings, bool, Runtime], dict] | None = None,
 ) -> list[StageOutcome]:
     """Run the stages in order. ``run_*`` let the caller wrap a stage (progress display).
 
@@ -79,6 +86,7 @@ def run_pipeline(
     """
     run_preprocess = run_preprocess or _preprocess_quietly
     run_cunerf = run_cunerf or _cunerf_quietly
+    run_export = run_export or _export_quietly
     outcomes = []
     work = Path(work)
 
@@ -99,4 +107,14 @@ def run_pipeline(
         resume = checkpoint.is_file() and not upstream_changed
         run_cunerf(work, cunerf_settings, upstream_changed or (work / "cunerf").exists(), resume, runtime)
         outcomes.append(StageOutcome("cunerf", "resumed" if resume else "ran", time.perf_counter() - start))
+    upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
+
+    start = time.perf_counter()
+    export_params = {**export_settings.as_dict(), "cunerf": "cunerf"}
+    export_inputs = [volume, work / "cunerf" / "model.pt"]
+    if not upstream_changed and stage_is_current(work / "export", export_params, export_inputs):
+        outcomes.append(StageOutcome("export", "skipped", 0.0))
+    else:
+        run_export(work, export_settings, upstream_changed or (work / "export").exists(), runtime)
+        outcomes.append(StageOutcome("export", "ran", time.perf_counter() - start))
     return outcomes

@@ -67,16 +67,17 @@ def test_dvr_of_a_constant_volume_matches_the_closed_form():
 
 
 @pytest.mark.parametrize("kind", ["dvr", "mip"])
-def test_skipping_empty_space_changes_no_pixel(kind):
+@pytest.mark.parametrize("size", [S, 29])  # 29: support blocks overhang the volume
+def test_skipping_empty_space_changes_no_pixel(kind, size):
     rng = np.random.default_rng(3)
-    volume = np.zeros((S, S, S), dtype=np.float32)
+    volume = np.zeros((size, size, size), dtype=np.float32)
     volume[6:20, 10:28, 4:14] = rng.random((14, 18, 10))
     volume[25, 3, 28] = 1.0  # an isolated voxel far from the rest
     cameras = orbit_cameras(OrbitSpec(views=6, axis="lr", resolution=40, elevation=-25.0))
-    model = ImageModel(kind=kind, transfer=TransferFunction(0.2, 0.8, 6.0), step=1.0 / S)
+    model = ImageModel(kind=kind, transfer=TransferFunction(0.2, 0.8, 6.0), step=1.0 / size)
     field = GridField(volume)
     skipped = render_views(field, cameras, model)
-    everything = FunctionField(field, S, Support(torch.ones(4, 4, 4, dtype=torch.bool)))
+    everything = FunctionField(field, size, Support(torch.ones(4, 4, 4, dtype=torch.bool)))
     full = render_views(everything, cameras, model)
     np.testing.assert_allclose(skipped, full, atol=2e-6)
     assert skipped.max() > 0.1
@@ -137,3 +138,23 @@ def test_invalid_image_models_are_refused(bad):
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=4))
     with pytest.raises(ValueError):
         render_views(GridField(np.zeros((4, 4, 4), np.float32)), cameras, bad)
+
+
+def test_pycolmap_projects_a_point_to_the_pixel_where_we_draw_it(tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    from cubecloud_cli.scene import write_colmap_model
+
+    cameras = orbit_cameras(OrbitSpec(views=6, axis="ap", resolution=40, elevation=-20.0))
+    names = [f"view_{k:03d}.png" for k in range(len(cameras))]
+    write_colmap_model(tmp_path, cameras, names, np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+    reconstruction = pycolmap.Reconstruction(str(tmp_path))
+    model = ImageModel(kind="mip", step=1.0 / S)
+    images = render_views(GridField(blob_volume()), cameras, model)
+    point = world_of((20, 9, 23))
+    for image in reconstruction.images.values():
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        camera = reconstruction.cameras[image.camera_id]
+        pixel = np.asarray(camera.img_from_cam(pose * point)).reshape(-1)[:2]  # COLMAP: centres at +0.5
+        drawn = images[names.index(image.name)]
+        row, column = np.unravel_index(np.argmax(drawn), drawn.shape)
+        assert (column, row) == (math.floor(pixel[0]), math.floor(pixel[1]))

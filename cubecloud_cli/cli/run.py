@@ -11,6 +11,7 @@ import typer
 
 from cubecloud_cli.artifacts import read_manifest
 from cubecloud_cli.cli.cunerf import Device, describe_metrics, train_cunerf_with_progress
+from cubecloud_cli.cli.export import View, describe_export, export_settings, export_with_progress
 from cubecloud_cli.cli.preprocess import run_preprocess_with_progress, scan_command
 from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
@@ -26,6 +27,9 @@ def _option(name: str, annotation, default) -> inspect.Parameter:
 
 RUN_OPTIONS = [
     _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help="Training iterations of the cunerf stage. (preset: fast 4000, balanced 6000, paper 200000)", show_default=False)], None),
+    _option("views", Annotated[Optional[int], typer.Option("--views", help="Orbit views of the export stage (the paper: 60). (preset: 60)", show_default=False)], None),
+    _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help="Width and height of the exported images. (preset: fast 128, balanced 256, paper 512)", show_default=False)], None),
+    _option("view", Annotated[View, typer.Option("--view", help="Image model of the exported views: dvr, slice (the paper's) or mip.")], View.dvr),
     _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for the training stages.")], Device.auto),
     _option("threads", Annotated[Optional[int], typer.Option("--threads", help="CPU threads for torch (default: torch's choice).", show_default=False)], None),
 ]
@@ -33,15 +37,18 @@ RUN_OPTIONS = [
 
 def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, preset: str, extras: dict) -> None:
     cunerf_settings = CunerfSettings(**resolve_cunerf(preset, None, {"iterations": extras["cunerf_iterations"]}))
+    export = export_settings(preset, views=extras["views"], resolution=extras["resolution"], view=extras["view"].value)
     outcomes = run_pipeline(
         scan,
         output,
         settings,
         cunerf_settings,
+        export,
         force=force,
         runtime=Runtime(extras["device"].value, extras["threads"]),
         run_preprocess=run_preprocess_with_progress,
         run_cunerf=lambda work, s, f, resume, runtime: train_cunerf_with_progress(work, s, f, resume, runtime),
+        run_export=lambda work, s, f, runtime: export_with_progress(work, s, f, runtime),
     )
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status != "skipped" else "skipped (already complete)"
@@ -49,13 +56,14 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
         log.info(f"  {outcome.stage:<12} {when}{note}")
     log.info(f"  {'total':<12} {sum(o.seconds for o in outcomes):7.1f} s   results in {output}")
     log.info(f"cunerf: {describe_metrics(read_manifest(Path(output) / 'cunerf'))}")
+    log.info(f"export: {describe_export(read_manifest(Path(output) / 'export'))}")
 
 
 run_command = scan_command(
     _run,
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf stage. An interrupted cunerf stage is resumed from its checkpoint. Stages run today: preprocess, cunerf (export, splat and eval join as they land).
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf and export stages. An interrupted cunerf stage is resumed from its checkpoint. Stages run today: preprocess, cunerf, export (splat and eval join as they land).
 
     Examples:
 

@@ -133,10 +133,19 @@ class CunerfField:
 
     def render_cubes(self, centres, chunk: int | None = None, skip_air: bool = True) -> np.ndarray:
         """CuNeRF's test render of cubes centred at world points (deterministic)."""
-        centres = self._as_points(centres)
+        return self.cube_values(self._as_points(centres), chunk, skip_air).cpu().numpy()
+
+    @torch.no_grad()
+    def cube_values(self, centres: torch.Tensor, chunk: int | None = None, skip_air: bool = True) -> torch.Tensor:
+        """:meth:`render_cubes` for a (P, 3) tensor on the field's device, as a tensor in [0, 1]."""
         generator = torch.Generator(device=self.device).manual_seed(0)
-        values = render_many(self.model, centres, chunk, self._keep(skip_air), generator)
-        return values.clamp(0.0, 1.0).cpu().numpy()
+        values = render_many(self.model, centres.to(self.device, torch.float32), chunk, self._keep(skip_air), generator)
+        return values.clamp(0.0, 1.0)
+
+    @torch.no_grad()
+    def point_density(self, points: torch.Tensor) -> torch.Tensor:
+        """The final field's density σ ≥ 0 at a (P, 3) tensor of world points."""
+        return self.model.final_field(points.to(self.device, torch.float32))[1]
 
     def bake(
         self,

@@ -35,22 +35,27 @@ def _sample_grid(volume_zyx: torch.Tensor, points: torch.Tensor, mode: str) -> t
 
 @dataclass(frozen=True)
 class Support:
-    """Blocks of a regular grid over [−1, 1]³ where a field may exceed a threshold.
+    """Blocks of a regular grid starting at the cube's corner (−1, −1, −1) where a field may
+    exceed a threshold; the grid spans ``extent`` world units per axis (2 unless the blocks
+    overhang a volume whose size they do not divide).
 
-    ``blocks`` is already dilated by one block, so a march at steps shorter than one block
-    cannot step over a sliver of the true support without landing in its margin first.
+    ``blocks`` must already be dilated by one block, so a march at steps shorter than one
+    block cannot step over a sliver of the true support without landing in its margin first.
     """
 
     blocks: torch.Tensor  # (B, B, B) bool
+    extent: float = 2.0
 
     @property
     def block_size(self) -> float:
         """Side of a block in world units."""
-        return 2.0 / self.blocks.shape[0]
+        return self.extent / self.blocks.shape[0]
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
-        """Whether each world point (P, 3) lies in a support block (False outside the cube)."""
-        return _sample_grid(self._zyx_float, points, "nearest") > 0.5
+        """Whether each world point (P, 3) lies in a support block (False outside the grid)."""
+        # grid_sample's [−1, 1] spans the blocks' extent.
+        scaled = (points + 1.0) * (2.0 / self.extent) - 1.0
+        return _sample_grid(self._zyx_float, scaled, "nearest") > 0.5
 
     @property
     def _zyx_float(self) -> torch.Tensor:
@@ -70,6 +75,11 @@ class Support:
         return occupied.amin(0).float() * size - 1.0, (occupied.amax(0).float() + 1.0) * size - 1.0
 
 
+def dilate_blocks(blocks: torch.Tensor) -> torch.Tensor:
+    """Each block together with its 26 neighbours."""
+    return F.max_pool3d(blocks.float()[None, None], 3, stride=1, padding=1)[0, 0] > 0
+
+
 def support_of_volume(volume: torch.Tensor, threshold: float, block: int = SUPPORT_BLOCK) -> Support:
     """Blocks of ``volume`` (S³) where some voxel, or a neighbour a trilinear sample can reach,
     exceeds ``threshold``; dilated by one block."""
@@ -78,7 +88,7 @@ def support_of_volume(volume: torch.Tensor, threshold: float, block: int = SUPPO
     padded = F.pad((volume > threshold).float()[None, None], (1, count * block - size + 1) * 3)
     # Each block with a one-voxel halo: a sample inside the block interpolates its neighbours.
     blocks = F.max_pool3d(padded, kernel_size=block + 2, stride=block)[0, 0, :count, :count, :count]
-    return Support(F.max_pool3d(blocks[None, None], 3, stride=1, padding=1)[0, 0] > 0)
+    return Support(dilate_blocks(blocks > 0), extent=2.0 * count * block / size)
 
 
 class ScalarField(Protocol):

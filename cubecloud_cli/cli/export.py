@@ -1,0 +1,158 @@
+"""`cubecloud export`: options and the call into cubecloud_cli.export."""
+
+from __future__ import annotations
+
+import logging
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cubecloud_cli.artifacts import stage_dir_name
+from cubecloud_cli.cli.common import DEFAULT_PRESET_VALUE, ForceOption, PresetOption, QuietOption, configure_logging, reports_errors
+from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
+from cubecloud_cli.cunerf import Runtime
+from cubecloud_cli.export import ExportSettings, export_scene
+from cubecloud_cli.export.transfer import TRANSFER_PRESETS
+from cubecloud_cli.presets import resolve
+from cubecloud_cli.progress import ProgressBar
+
+log = logging.getLogger("cubecloud")
+
+
+class Axis(str, Enum):
+    si = "si"
+    ap = "ap"
+    lr = "lr"
+
+
+class View(str, Enum):
+    dvr = "dvr"
+    slice = "slice"
+    mip = "mip"
+
+
+class RenderFrom(str, Enum):
+    grid = "grid"
+    field = "field"
+
+
+Transfer = Enum("Transfer", {name: name for name in TRANSFER_PRESETS}, type=str)  # type: ignore[misc]
+_PRESET_HELP = "; ".join(f"{name}: {preset.description}" for name, preset in TRANSFER_PRESETS.items())
+
+
+def _opt(flag: str, help_text: str):
+    return typer.Option(flag, help=help_text, show_default=False)
+
+
+WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ and cunerf/.")]
+CubeOption = Annotated[int, typer.Option("--cube", help="Cube side in voxels for point sampling (the paper: 16).")]
+PointsPerCubeOption = Annotated[Optional[int], _opt("--points-per-cube", "Points drawn uniformly in each cube. (preset fast/balanced 512, paper 64)")]
+MaxPointsOption = Annotated[Optional[int], _opt("--max-points", "Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. (fast 100000, balanced 200000, paper 0)")]
+AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
+ViewsOption = Annotated[Optional[int], _opt("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
+AxisOption = Annotated[Optional[Axis], _opt("--axis", "Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. (fast/balanced si, paper ap)")]
+RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
+FovOption = Annotated[Optional[float], _opt("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
+ResolutionOption = Annotated[Optional[int], _opt("--resolution", "Image width and height in pixels. (fast 128, balanced 256, paper 512)")]
+ElevationOption = Annotated[float, typer.Option("--elevation", help="Degrees the orbit is raised out of its plane (all views alike).")]
+ViewOption = Annotated[View, typer.Option("--view", help="Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity).")]
+TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
+TfLowOption = Annotated[Optional[float], _opt("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
+TfHighOption = Annotated[Optional[float], _opt("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]
+TfDensityOption = Annotated[Optional[float], _opt("--tf-density", "dvr: extinction per world unit at full absorption; higher is more opaque.")]
+StepOption = Annotated[float, typer.Option("--step", help="Ray-march step in voxels of the preprocessed volume.")]
+RenderFromOption = Annotated[RenderFrom, typer.Option("--render-from", help="grid: bake CuNeRF to a grid once, then render (fast). field: query CuNeRF's cube renders at every ray sample (slow; exact).")]
+BakeSizeOption = Annotated[Optional[int], _opt("--bake-size", "Grid side for --render-from grid (default: the volume's size).")]
+SeedOption = Annotated[int, typer.Option("--seed", help="Seed of the point sampling.")]
+CunerfNameOption = Annotated[Optional[str], _opt("--cunerf-name", "Export WORK/cunerf-NAME/ instead of WORK/cunerf/.")]
+NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/export-NAME/ instead of WORK/export/.")]
+
+
+def export_settings(preset: str, **options) -> ExportSettings:
+    """Preset values with every option that was given applied on top."""
+    values = resolve("export", preset, {k: v for k, v in options.items() if k in ("resolution", "views", "axis", "points_per_cube", "max_points")})
+    rest = {k: v for k, v in options.items() if k not in values}
+    return ExportSettings(**values, **rest)
+
+
+@reports_errors
+def export_command(
+    work: WorkArgument = Path("work"),
+    preset: PresetOption = DEFAULT_PRESET_VALUE,
+    cube: CubeOption = 16,
+    points_per_cube: PointsPerCubeOption = None,
+    max_points: MaxPointsOption = None,
+    air_threshold: AirOption = 0.02,
+    views: ViewsOption = None,
+    axis: AxisOption = None,
+    radius: RadiusOption = 4.0,
+    fov: FovOption = None,
+    resolution: ResolutionOption = None,
+    elevation: ElevationOption = 0.0,
+    view: ViewOption = View.dvr,
+    transfer: TransferOption = Transfer("tissue"),  # type: ignore[valid-type]
+    tf_low: TfLowOption = None,
+    tf_high: TfHighOption = None,
+    tf_density: TfDensityOption = None,
+    step: StepOption = 1.0,
+    render_from: RenderFromOption = RenderFrom.grid,
+    bake_size: BakeSizeOption = None,
+    seed: SeedOption = 0,
+    device: DeviceOption = Device.auto,
+    threads: ThreadsOption = None,
+    cunerf_name: CunerfNameOption = None,
+    name: NameOption = None,
+    force: ForceOption = False,
+    quiet: QuietOption = False,
+) -> None:
+    """Write the CuNeRF scene as a COLMAP scene: cube-sampled points, orbit cameras, rendered views.
+
+    Samples --points-per-cube points in every --cube³ block (the paper's Eq. 1-2) with CuNeRF's intensity and density, drops air, and keeps --max-points where the field has structure. Renders --views images around --axis from CuNeRF (WORK/export/images/, the training images) and from the preprocessed volume (WORK/export/reference/, the ground truth for eval), with the same cameras and image model. Writes sparse/0/ (COLMAP .bin and .txt), points3D.ply, transforms.json, split.json, contact sheets and manifest.json. 3DGS, gsplat, nerfstudio and pycolmap open the folder as it is.
+
+    Examples:
+
+      cubecloud export work                                  # dvr, 60 views, 128 px (fast preset)
+
+      cubecloud export work --view slice --axis ap --name paper-slices   # the paper's images
+
+      cubecloud export work --transfer bone --elevation 20 --resolution 256
+    """
+    configure_logging(quiet)
+    settings = export_settings(
+        preset.value,
+        cube=cube, points_per_cube=points_per_cube, max_points=max_points, air_threshold=air_threshold,
+        views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
+        elevation=elevation, view=view.value, transfer=transfer.value, tf_low=tf_low, tf_high=tf_high,
+        tf_density=tf_density, step=step, render_from=render_from.value, bake_size=bake_size, seed=seed,
+    )
+    manifest = export_with_progress(work, settings, force, Runtime(device.value, threads), name, cunerf_name)
+    log.info(f"wrote {Path(work) / stage_dir_name('export', name)}: {describe_export(manifest)}")
+
+
+def describe_export(manifest: dict) -> str:
+    metrics = manifest["metrics"]
+    psnr = metrics.get("cunerf_vs_reference_psnr")
+    psnr_text = f"{psnr:.2f} dB" if isinstance(psnr, (int, float)) else str(psnr)
+    return (
+        f"{metrics['views']} views ({metrics['test_views']} held out), {metrics['points']} points, "
+        f"CuNeRF vs reference on test views {psnr_text}, {manifest['timings_s']['total']:.0f} s"
+    )
+
+
+def export_with_progress(work: Path, settings: ExportSettings, force: bool, runtime: Runtime,
+                         name: str | None = None, cunerf_name: str | None = None) -> dict:
+    """The stage with a bar over the rendered views (CuNeRF, then reference), with rate and ETA."""
+    labels = {"bake": "export: baking CuNeRF", "images": "export: CuNeRF views", "reference": "export: reference views",
+              "points": "export: point cloud", "write": "export: writing"}
+    with ProgressBar(2 * settings.views, "export", unit="view") as bar:
+        def on_progress(phase: str, done: int, total: int) -> None:
+            offset = settings.views if phase == "reference" else 0
+            if phase in ("images", "reference"):
+                bar.set_completed(offset + done, description=labels[phase])
+            else:
+                bar.advance(0, description=labels[phase])
+
+        return export_scene(work, settings, force=force, runtime=runtime, name=name, cunerf_name=cunerf_name,
+                            on_progress=on_progress)

@@ -1,0 +1,73 @@
+"""Everything that decides what `export` writes (recorded in its manifest)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from cubecloud_cli.cameras import OrbitSpec
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
+from cubecloud_cli.render import IMAGE_MODELS
+
+RENDER_SOURCES = ("grid", "field")
+MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
+
+
+@dataclass(frozen=True)
+class ExportSettings:
+    # The point cloud (paper Eq. 1–2).
+    cube: int = 16
+    points_per_cube: int = 512
+    max_points: int = 100_000  # 0: keep every non-air point
+    air_threshold: float = 0.02
+    # The orbit (DESIGN §2).
+    views: int = 60
+    axis: str = "si"
+    radius: float = 4.0
+    fov: float | None = None
+    resolution: int = 128
+    elevation: float = 0.0
+    # The images (DESIGN §3).
+    view: str = "dvr"
+    transfer: str = DEFAULT_TRANSFER
+    tf_low: float | None = None
+    tf_high: float | None = None
+    tf_density: float | None = None
+    step: float = 1.0  # voxels of the preprocessed volume between ray samples
+    render_from: str = "grid"
+    bake_size: int | None = None  # None: the preprocessed volume's size
+    seed: int = 0
+
+    def orbit(self) -> OrbitSpec:
+        return OrbitSpec(self.views, self.axis, self.radius, self.resolution, self.elevation, self.fov)
+
+    def validate(self, volume_size: int | None = None) -> None:
+        self.orbit().validate()
+        if self.resolution > MAX_RESOLUTION:
+            raise CubecloudError(f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512")
+        if self.cube < 1:
+            raise CubecloudError(f"--cube {self.cube} must be at least 1 voxel (the paper uses 16)")
+        if volume_size is not None and self.cube > volume_size:
+            raise CubecloudError(f"--cube {self.cube} is larger than the {volume_size}³ volume: choose at most {volume_size}")
+        if self.points_per_cube < 1:
+            raise CubecloudError(f"--points-per-cube {self.points_per_cube} must be at least 1")
+        if self.max_points < 0:
+            raise CubecloudError(f"--max-points {self.max_points} must be 0 (no budget) or more")
+        if not 0.0 <= self.air_threshold < 1.0:
+            raise CubecloudError(f"--air-threshold {self.air_threshold:g} must be within [0, 1)")
+        if self.view not in IMAGE_MODELS:
+            raise CubecloudError(f"--view {self.view!r} must be one of {', '.join(IMAGE_MODELS)}")
+        if self.transfer not in TRANSFER_PRESETS:
+            raise CubecloudError(f"--transfer {self.transfer!r} must be one of {', '.join(TRANSFER_PRESETS)}")
+        if not (0.05 <= self.step <= 8.0):
+            raise CubecloudError(f"--step {self.step:g} must be within 0.05..8 voxels (1 is the usual choice)")
+        if self.render_from not in RENDER_SOURCES:
+            raise CubecloudError(f"--render-from {self.render_from!r} must be grid or field")
+        if self.bake_size is not None and not 2 <= self.bake_size <= 1024:
+            raise CubecloudError(f"--bake-size {self.bake_size} must be within 2..1024 voxels")
+
+    def bake_resolution(self, volume_size: int) -> int:
+        return self.bake_size or volume_size
+
+    def as_dict(self) -> dict:
+        return asdict(self)

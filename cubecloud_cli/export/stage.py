@@ -1,0 +1,212 @@
+"""The export stage: the CuNeRF scene as a COLMAP scene that 3DGS tools open as it is.
+
+WORK/export/ holds
+  images/view_000.png …     training images rendered from CuNeRF (8-bit grey)
+  images.npy                the same as float32 (N, H, W): what `splat` trains on
+  reference/view_000.png …  the same views rendered from the preprocessed volume (ground truth)
+  reference.npy             float32 (N, H, W): what `eval` scores against
+  sparse/0/                 cameras, images, points3D (.bin and .txt), points3D.ply, test.txt
+  points3D.ply              the cube-sampled cloud: x y z nx ny nz red green blue intensity density
+  transforms.json           the cameras for nerfstudio / instant-ngp readers
+  split.json                train and test view names (every 8th view is held out)
+  contact_sheet.png, contact_sheet_reference.png
+  manifest.json             parameters, cameras, image model, timings, point and image metrics
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, stage_dir_name
+from cubecloud_cli.cameras import PinholeCameras, orbit_cameras
+from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField, resolve_device
+from cubecloud_cli.cunerf.stage import Runtime
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
+from cubecloud_cli.export.memory import check_export_memory
+from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
+from cubecloud_cli.export.settings import ExportSettings
+from cubecloud_cli.export.transfer import resolve_transfer
+from cubecloud_cli.metrics import image_metrics
+from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_views
+from cubecloud_cli.render.samplers import dilate_blocks
+from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
+
+log = logging.getLogger("cubecloud")
+
+HOLDOUT_EVERY = 8  # DESIGN §2 and the reference 3DGS evaluation: views with index % 8 == 0
+ProgressCallback = Callable[[str, int, int], None]
+
+
+def held_out_views(count: int) -> list[int]:
+    return [index for index in range(count) if index % HOLDOUT_EVERY == 0]
+
+
+def export_scene(
+    work: Path,
+    settings: ExportSettings,
+    *,
+    force: bool = False,
+    runtime: Runtime = Runtime(),
+    name: str | None = None,
+    cunerf_name: str | None = None,
+    on_progress: ProgressCallback = lambda phase, done, total: None,
+) -> dict:
+    """Run the stage; returns the manifest written to WORK/export/manifest.json.
+
+    ``on_progress(phase, done, total)`` reports the phases "bake", "images", "reference",
+    "points" and "write"; the two render phases count views.
+    """
+    work = Path(work)
+    settings.validate()
+    preprocess = require_stage(work, "preprocess")
+    size = int(preprocess["volume"]["shape"][0])
+    settings.validate(size)
+    require_stage(work, "cunerf", cunerf_name)
+    cameras = orbit_cameras(settings.orbit())
+    device = resolve_device(runtime.device)
+    if runtime.threads is not None:
+        if runtime.threads < 1:
+            raise CubecloudError(f"--threads {runtime.threads} must be at least 1")
+        torch.set_num_threads(runtime.threads)
+    check_export_memory(settings, size)
+    transfer = resolve_transfer(settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density)
+    image_model = ImageModel(settings.view, transfer, step=settings.step * 2.0 / size)
+
+    params = {**settings.as_dict(), "cunerf": stage_dir_name("cunerf", cunerf_name)}
+    writer = StageWriter(work, "export", params, force=force, name=name)
+    writer.check_can_start()
+    with writer:
+        with writer.phase("load"):
+            volume_path = work / "preprocess" / "volume.npy"
+            model_path = work / stage_dir_name("cunerf", cunerf_name) / MODEL_FILE
+            writer.add_input(volume_path, "preprocess/volume.npy")
+            writer.add_input(model_path, f"{stage_dir_name('cunerf', cunerf_name)}/{MODEL_FILE}")
+            volume = np.load(volume_path)
+            if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
+                raise CubecloudError(f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`")
+            field = CunerfField.from_file(model_path, runtime.device)
+            if field.volume_size != size:
+                raise CubecloudError(
+                    f"{model_path} was trained on a {field.volume_size}³ volume but preprocess/ holds {size}³: "
+                    f"rerun `cubecloud cunerf {work} --force`"
+                )
+        with writer.phase("bake"):
+            on_progress("bake", 0, 1)
+            cunerf_images_field = _cunerf_scalar_field(field, settings, size, device, on_progress)
+        with writer.phase("render_images"):
+            images = render_views(cunerf_images_field, cameras, image_model, device,
+                                  lambda done, total: on_progress("images", done, total))
+        with writer.phase("render_reference"):
+            reference = render_views(GridField(volume, device), cameras, image_model, device,
+                                     lambda done, total: on_progress("reference", done, total))
+        with writer.phase("point_cloud"):
+            on_progress("points", 0, 1)
+            cloud = build_point_cloud(
+                field.cube_values, field.point_density, cunerf_images_field, size, settings.cube,
+                settings.points_per_cube, settings.max_points or None, settings.air_threshold, settings.seed, device,
+            )
+        if cloud.stats["points"] == 0:
+            log.warning("the field is air everywhere: points3D holds no point (lower --air-threshold?)")
+        with writer.phase("write"):
+            on_progress("write", 0, 1)
+            names = view_names(len(cameras))
+            _write_scene(writer.directory, cameras, names, images, reference, cloud)
+        _record(writer, settings, cameras, names, image_model, cloud, images, reference, preprocess, device, size)
+    return read_manifest(writer.final_dir)
+
+
+def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int, device: torch.device, on_progress):
+    """The field the training images are rendered from: CuNeRF baked to a grid (fast), or its
+    cube renders queried at every ray sample (``--render-from field``)."""
+    if settings.render_from == "grid":
+        bake_size = settings.bake_resolution(size)
+        baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", int(f * 100), 100))
+        return GridField(baked, device)
+    occupancy = field.occupancy
+    if occupancy is not None and occupancy.blocks.shape[0] * occupancy.block == size:
+        # The field reads exactly 0 in air blocks (their renders are skipped), so they need no marching.
+        support = Support(dilate_blocks(occupancy.blocks.to(device)))
+    else:
+        support = Support(torch.ones((1, 1, 1), dtype=torch.bool, device=device))
+    return FunctionField(field.cube_values, size, support)
+
+
+def _write_scene(directory: Path, cameras: PinholeCameras, names: list[str], images: np.ndarray,
+                 reference: np.ndarray, cloud: PointCloud) -> None:
+    held_out = set(held_out_views(len(names)))
+    test_names = [names[i] for i in sorted(held_out)]
+    train_names = [n for i, n in enumerate(names) if i not in held_out]
+    write_views(images, directory / "images", names)
+    write_views(reference, directory / "reference", names)
+    np.save(directory / "images.npy", images)
+    np.save(directory / "reference.npy", reference)
+
+    sparse = directory / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    write_colmap_model(sparse, cameras, names, cloud.xyz, cloud.rgb)
+    write_test_list(sparse, test_names)
+    extras = {"intensity": cloud.intensity, "density": cloud.density}
+    write_point_cloud_ply(directory / "points3D.ply", cloud.xyz, cloud.rgb, extras)
+    # The reference 3DGS loader reads sparse/0/points3D.ply when it exists (and otherwise writes
+    # one there); a hard link gives it ours without a second copy on disk.
+    try:
+        os.link(directory / "points3D.ply", sparse / "points3D.ply")
+    except OSError:
+        shutil.copyfile(directory / "points3D.ply", sparse / "points3D.ply")
+
+    paths = [f"images/{n}" for n in names]
+    write_json(directory / "transforms.json", transforms_json(
+        cameras, paths, train_file_paths=[f"images/{n}" for n in train_names],
+        test_file_paths=[f"images/{n}" for n in test_names], ply_file_path="points3D.ply"))
+    write_json(directory / "split.json", {
+        "rule": f"views with index % {HOLDOUT_EVERY} == 0 are held out for testing (reference 3DGS llffhold)",
+        "train": train_names,
+        "test": test_names,
+    })
+    write_contact_sheet(images, directory / "contact_sheet.png", held_out, "CuNeRF renders (training images)")
+    write_contact_sheet(reference, directory / "contact_sheet_reference.png", held_out, "reference renders (preprocessed volume)")
+
+
+def _record(writer: StageWriter, settings: ExportSettings, cameras: PinholeCameras, names: list[str],
+            image_model: ImageModel, cloud: PointCloud, images: np.ndarray, reference: np.ndarray,
+            preprocess: dict, device: torch.device, size: int) -> None:
+    held_out = held_out_views(len(names))
+    test_metrics = image_metrics(reference[held_out], images[held_out])
+    writer.metrics.update({f"cunerf_vs_reference_{k}": v for k, v in test_metrics.items()})
+    writer.metrics.update({"points": cloud.stats["points"], "views": len(names), "test_views": len(held_out)})
+    writer.extra.update({
+        "cameras": {
+            "model": "PINHOLE",
+            "width": cameras.width,
+            "height": cameras.height,
+            "fx": float(cameras.focal),
+            "fy": float(cameras.focal),
+            "cx": cameras.cx,
+            "cy": cameras.cy,
+            "fov_deg": float(np.degrees(cameras.fov_x)),
+            "convention": "OpenCV/COLMAP: x right, y down, z forward; world-to-camera poses; pixel centres at +0.5",
+            "centres": cameras.centres().round(9).tolist(),
+        },
+        "image_model": {**image_model.as_dict(), "step_voxels": settings.step},
+        "render_source": {
+            "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
+            "bake_size": settings.bake_resolution(size) if settings.render_from == "grid" else None,
+            "reference_images": "preprocess/volume.npy, trilinear",
+        },
+        "split": {"train": [n for i, n in enumerate(names) if i not in held_out], "test": [names[i] for i in held_out]},
+        "point_cloud": cloud.stats,
+        "world": {
+            "cube": "[-1, 1]^3, RAS axes (DESIGN §2)",
+            "mm_per_world_unit": preprocess.get("geometry", {}).get("mm_per_world_unit"),
+            "world_to_scanner": preprocess.get("geometry", {}).get("world_to_scanner"),
+        },
+        "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
+    })

@@ -1,0 +1,153 @@
+"""`cubecloud export` end to end on the bundled CT at 32³: files, interop, refusals."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+from plyfile import PlyData
+
+from cli_helpers import assert_one_line_error, invoke
+from cubecloud_cli.export.images import to_uint8
+from cubecloud_cli.metrics import psnr
+
+SMALL = ["--resolution", "32", "--views", "9", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500"]
+NAMES = [f"view_{i:03d}.png" for i in range(9)]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    work = tmp_path_factory.mktemp("export") / "work"
+    for args in (["preprocess", "-o", work, "--size", "32"], ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"]):
+        result = invoke(*args, "-q")
+        assert result.exit_code == 0, result.output
+    return work
+
+
+@pytest.fixture(scope="module")
+def exported(trained):
+    result = invoke("export", trained, *SMALL, "-q")
+    assert result.exit_code == 0, result.output
+    return trained / "export"
+
+
+def _copy_upstream(trained, tmp_path):
+    work = tmp_path / "work"
+    for stage in ("preprocess", "cunerf"):
+        shutil.copytree(trained / stage, work / stage)
+    return work
+
+
+def test_stage_writes_the_scene(exported):
+    manifest = json.loads((exported / "manifest.json").read_text())
+    for folder in ("images", "reference"):
+        assert sorted(p.name for p in (exported / folder).iterdir()) == NAMES
+        stack = np.load(exported / f"{folder}.npy")
+        assert stack.shape == (9, 32, 32) and stack.dtype == np.float32
+        assert stack.min() >= 0 and stack.max() <= 1 and stack.max() > 0.05
+        png = np.asarray(Image.open(exported / folder / NAMES[3]))
+        np.testing.assert_array_equal(png, to_uint8(stack[3]))  # the PNG is the float render, rounded
+    sparse = exported / "sparse" / "0"
+    for name in ("cameras", "images", "points3D"):
+        assert (sparse / f"{name}.bin").is_file() and (sparse / f"{name}.txt").is_file()
+    assert (sparse / "test.txt").read_text().split() == ["view_000.png", "view_008.png"]
+    assert (sparse / "points3D.ply").read_bytes() == (exported / "points3D.ply").read_bytes()
+    split = json.loads((exported / "split.json").read_text())
+    assert split["test"] == ["view_000.png", "view_008.png"] and len(split["train"]) == 7
+    assert manifest["split"] == {"train": split["train"], "test": split["test"]}
+    transforms = json.loads((exported / "transforms.json").read_text())
+    assert [f["file_path"] for f in transforms["frames"]] == [f"images/{n}" for n in NAMES]
+    assert transforms["ply_file_path"] == "points3D.ply"
+    for name in ("contact_sheet.png", "contact_sheet_reference.png"):
+        assert Image.open(exported / name).size[0] > 32
+    assert set(manifest["timings_s"]) >= {"load", "bake", "render_images", "render_reference", "point_cloud", "write"}
+    assert manifest["params"]["resolution"] == 32 and manifest["params"]["cunerf"] == "cunerf"
+    assert set(manifest["inputs"]) == {"preprocess/volume.npy", "cunerf/model.pt"}
+    assert manifest["render_source"]["bake_size"] == 32
+    assert manifest["image_model"]["kind"] == "dvr" and 0 <= manifest["image_model"]["transfer"]["low"] <= 1
+    assert manifest["metrics"]["points"] == manifest["point_cloud"]["points"] == 1500
+    assert manifest["metrics"]["cunerf_vs_reference_psnr"] > 15
+
+
+def test_pycolmap_reads_the_exported_scene(exported):
+    pycolmap = pytest.importorskip("pycolmap")
+    manifest = json.loads((exported / "manifest.json").read_text())
+    reconstruction = pycolmap.Reconstruction(str(exported / "sparse" / "0"))
+    assert len(reconstruction.images) == 9 and len(reconstruction.points3D) == manifest["metrics"]["points"]
+    camera = next(iter(reconstruction.cameras.values()))
+    assert camera.model.name == "PINHOLE" and (camera.width, camera.height) == (32, 32)
+    np.testing.assert_allclose(camera.params, [manifest["cameras"][k] for k in ("fx", "fy", "cx", "cy")])
+    centres = {image.name: image.projection_center() for image in reconstruction.images.values()}
+    np.testing.assert_allclose([centres[n] for n in NAMES], manifest["cameras"]["centres"], atol=1e-9)
+
+
+def test_point_cloud_ply_has_what_3dgs_reads(exported):
+    vertex = PlyData.read(str(exported / "points3D.ply"))["vertex"]
+    types = {p.name: p.val_dtype for p in vertex.properties}
+    assert [p.name for p in vertex.properties][:9] == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    assert all(types[n] in ("f4", "float32") for n in ("x", "y", "z", "nx", "ny", "nz", "intensity", "density"))
+    assert all(types[n] in ("u1", "uint8") for n in ("red", "green", "blue"))
+    xyz = np.stack([vertex[a] for a in "xyz"], axis=1)
+    assert np.abs(xyz).max() <= 1.0 and len(xyz) == 1500
+    np.testing.assert_array_equal(vertex["red"], np.rint(vertex["intensity"] * 255).astype(np.uint8))
+    assert (vertex["intensity"] > 0.02).all() and (vertex["density"] >= 0).all()
+
+
+@pytest.mark.parametrize("view", ["slice", "mip"])
+def test_other_image_models(trained, tmp_path, view):
+    work = _copy_upstream(trained, tmp_path)
+    result = invoke("export", work, *SMALL, "--view", view, "--axis", "ap", "-q")
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "export" / "manifest.json").read_text())
+    assert manifest["image_model"]["kind"] == view and manifest["params"]["axis"] == "ap"
+    assert np.load(work / "export" / "reference.npy").max() > 0.1
+
+
+def test_rendering_from_the_field_agrees_with_the_baked_grid(trained, exported, tmp_path):
+    work = _copy_upstream(trained, tmp_path)
+    result = invoke("export", work, *SMALL, "--render-from", "field", "-q")
+    assert result.exit_code == 0, result.output
+    direct = np.load(work / "export" / "images.npy")
+    baked = np.load(exported / "images.npy")
+    assert psnr(baked, direct) > 30
+    assert json.loads((work / "export" / "manifest.json").read_text())["render_source"]["bake_size"] is None
+
+
+def test_refuses_to_overwrite_and_force_replaces(trained, exported, tmp_path):
+    work = _copy_upstream(trained, tmp_path)
+    shutil.copytree(exported, work / "export")
+    assert_one_line_error(invoke("export", work, *SMALL), r"already complete: pass --force")
+    result = invoke("export", work, *SMALL, "--views", "4", "--force", "-q")
+    assert result.exit_code == 0, result.output
+    assert len(list((work / "export" / "images").iterdir())) == 4
+
+
+@pytest.mark.parametrize(
+    "args, pattern",
+    [
+        (["--resolution", "0"], r"--resolution 0 must be a positive number of pixels"),
+        (["--resolution", "16000", "--views", "60"], r"export needs about .* GiB .* lower --resolution"),
+        (["--resolution", "20000"], r"beyond 16384"),
+        (["--views", "1"], r"at least 2 views"),
+        (["--radius", "1.2"], r"inside the volume"),
+        (["--tf-low", "0.9", "--tf-high", "0.1"], r"low <= high"),
+        (["--cube", "64"], r"larger than the 32³ volume"),
+    ],
+)
+def test_bad_options_are_one_line_errors(trained, tmp_path, args, pattern):
+    work = _copy_upstream(trained, tmp_path)
+    assert_one_line_error(invoke("export", work, *SMALL[:2], *args), pattern)
+    assert not (work / "export").exists() and not list(work.glob(".export*"))
+
+
+def test_missing_or_incomplete_cunerf(trained, tmp_path):
+    work = tmp_path / "work"
+    shutil.copytree(trained / "preprocess", work / "preprocess")
+    assert_one_line_error(invoke("export", work), r"cunerf does not exist: run `cubecloud cunerf")
+    shutil.copytree(trained / "cunerf", work / "cunerf")
+    (work / "cunerf" / "manifest.json").unlink()
+    assert_one_line_error(invoke("export", work), r"cunerf is incomplete")
+    assert_one_line_error(invoke("export", tmp_path / "nowhere"), r"preprocess does not exist")
