@@ -44,8 +44,10 @@ def stage_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> 
     manifest = read_manifest(stage_dir)
     changes = _differences(manifest.get("params", {}), params)
     recorded_hashes = set(manifest.get("inputs", {}).values())
-    if any(sha256_of_path(p) not in recorded_hashes for p in input_paths):
-        changes.append("the input scan differs")
+    for path in input_paths:
+        if sha256_of_path(path) not in recorded_hashes:
+            # The first stage reads the scan; later ones read files of the stages before them.
+            changes.append("the input scan differs" if stage_dir.name == "preprocess" else f"its input {path.parent.name}/{path.name} changed")
     if changes:
         raise CubecloudError(
             f"{stage_dir} was made with other settings ({'; '.join(changes)}): pass --force to "

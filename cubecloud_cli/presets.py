@@ -20,13 +20,14 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (research/cunerf.md §3.4-3.5).
         "paper": {"size": 512, "fit": "stretch", "window": "full", "interpolation": "nearest"},
     },
-    # export: images as large as the volume is wide, 60 views as in the paper. The paper orbits
-    # the sagittal (ap) axis; the CPU presets orbit the long (si) axis, the spin a radiologist's
-    # viewer shows. The paper states no point budget nor points per cube.
+    # export: images as large as the volume is wide, 60 views as in the paper. The paper renders
+    # CuNeRF slices on an orbit about the sagittal (ap) axis; the CPU presets render volume
+    # images (dvr) on an orbit about the long (si) axis, the spin a radiologist's viewer shows.
+    # The paper states no point budget nor points per cube.
     "export": {
-        "fast": {"resolution": 128, "views": 60, "axis": "si", "points_per_cube": 512, "max_points": 100_000},
-        "balanced": {"resolution": 256, "views": 60, "axis": "si", "points_per_cube": 512, "max_points": 200_000},
-        "paper": {"resolution": 512, "views": 60, "axis": "ap", "points_per_cube": 64, "max_points": 0},
+        "fast": {"resolution": 128, "views": 60, "axis": "si", "view": "dvr", "points_per_cube": 512, "max_points": 100_000},
+        "balanced": {"resolution": 256, "views": 60, "axis": "si", "view": "dvr", "points_per_cube": 512, "max_points": 200_000},
+        "paper": {"resolution": 512, "views": 60, "axis": "ap", "view": "slice", "points_per_cube": 64, "max_points": 0},
     },
 }
 

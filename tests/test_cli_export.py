@@ -49,7 +49,11 @@ def test_stage_writes_the_scene(exported):
         assert stack.shape == (9, 32, 32) and stack.dtype == np.float32
         assert stack.min() >= 0 and stack.max() <= 1 and stack.max() > 0.05
         png = np.asarray(Image.open(exported / folder / NAMES[3]))
-        np.testing.assert_array_equal(png, to_uint8(stack[3]))  # the PNG is the float render, rounded
+        # RGB, as the reference 3DGS loader and gsplat's imread(...)[..., :3] expect: the float
+        # render, rounded, in three equal channels.
+        assert png.shape == (32, 32, 3)
+        for channel in range(3):
+            np.testing.assert_array_equal(png[..., channel], to_uint8(stack[3]))
     sparse = exported / "sparse" / "0"
     for name in ("cameras", "images", "points3D"):
         assert (sparse / f"{name}.bin").is_file() and (sparse / f"{name}.txt").is_file()
@@ -135,12 +139,20 @@ def test_refuses_to_overwrite_and_force_replaces(trained, exported, tmp_path):
         (["--radius", "1.2"], r"inside the volume"),
         (["--tf-low", "0.9", "--tf-high", "0.1"], r"low <= high"),
         (["--cube", "64"], r"larger than the 32³ volume"),
+        (["--radius", "1e308"], r"beyond 10000 world units"),
+        (["--resolution", "8", "--cube", "1", "--points-per-cube", "100000"], r"raise --cube"),
     ],
 )
 def test_bad_options_are_one_line_errors(trained, tmp_path, args, pattern):
     work = _copy_upstream(trained, tmp_path)
     assert_one_line_error(invoke("export", work, *SMALL[:2], *args), pattern)
     assert not (work / "export").exists() and not list(work.glob(".export*"))
+
+
+def test_refuses_a_cunerf_trained_on_another_volume(trained, tmp_path):
+    work = _copy_upstream(trained, tmp_path)
+    assert invoke("preprocess", "-o", work, "--size", "32", "--window", "bone", "--force", "-q").exit_code == 0
+    assert_one_line_error(invoke("export", work, *SMALL), r"trained on an earlier preprocess/ volume: rerun `cubecloud cunerf")
 
 
 def test_missing_or_incomplete_cunerf(trained, tmp_path):
@@ -151,3 +163,21 @@ def test_missing_or_incomplete_cunerf(trained, tmp_path):
     (work / "cunerf" / "manifest.json").unlink()
     assert_one_line_error(invoke("export", work), r"cunerf is incomplete")
     assert_one_line_error(invoke("export", tmp_path / "nowhere"), r"preprocess does not exist")
+
+
+def test_presets_and_overrides():
+    from cubecloud_cli.cli.export import export_settings
+
+    paper = export_settings("paper")
+    assert (paper.view, paper.axis, paper.resolution, paper.views, paper.max_points) == ("slice", "ap", 512, 60, 0)
+    fast = export_settings("fast", resolution=64, view=None, radius=5.0)
+    assert (fast.view, fast.axis, fast.resolution, fast.radius) == ("dvr", "si", 64, 5.0)
+
+
+def test_a_step_as_long_as_the_volume_is_refused():
+    from cubecloud_cli.errors import CubecloudError
+    from cubecloud_cli.export import ExportSettings
+
+    ExportSettings(step=7.5, cube=4).validate(8)
+    with pytest.raises(CubecloudError, match="spans the whole 8³ volume"):
+        ExportSettings(step=8, cube=4).validate(8)

@@ -27,6 +27,8 @@ ORBIT_AXES: dict[str, tuple[tuple[float, float, float], tuple[float, float, floa
 CUBE_RADIUS = math.sqrt(3.0)
 MAX_ELEVATION_DEG = 85.0  # at 90° the orbit collapses onto the axis and "up" is undefined
 FOV_MARGIN = 1.02  # the cube's silhouette plus 2%, so its corners are not cut at the border
+# Far beyond this the volume shrinks below float32 resolution in the rays (they are float32).
+MAX_RADIUS = 1e4
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,8 @@ class OrbitSpec:
             raise CubecloudError(f"--views {self.views}: an orbit needs at least 2 views (the paper uses 60)")
         if self.axis not in ORBIT_AXES:
             raise CubecloudError(f"--axis {self.axis!r} must be one of {', '.join(ORBIT_AXES)}")
+        if math.isfinite(self.radius) and self.radius > MAX_RADIUS:
+            raise CubecloudError(f"--radius {self.radius:g} is beyond {MAX_RADIUS:g} world units: use e.g. 4 (a narrow --fov zooms)")
         if not math.isfinite(self.radius) or self.radius <= CUBE_RADIUS * 1.01:
             raise CubecloudError(
                 f"--radius {self.radius:g} puts the cameras inside the volume (it fills [-1, 1]^3, "

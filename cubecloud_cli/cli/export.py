@@ -15,7 +15,7 @@ from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
 from cubecloud_cli.cunerf import Runtime
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.export.transfer import TRANSFER_PRESETS
-from cubecloud_cli.presets import resolve
+from cubecloud_cli.presets import PRESETS, resolve
 from cubecloud_cli.progress import ProgressBar
 
 log = logging.getLogger("cubecloud")
@@ -57,7 +57,7 @@ RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance f
 FovOption = Annotated[Optional[float], _opt("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
 ResolutionOption = Annotated[Optional[int], _opt("--resolution", "Image width and height in pixels. (fast 128, balanced 256, paper 512)")]
 ElevationOption = Annotated[float, typer.Option("--elevation", help="Degrees the orbit is raised out of its plane (all views alike).")]
-ViewOption = Annotated[View, typer.Option("--view", help="Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity).")]
+ViewOption = Annotated[Optional[View], _opt("--view", "Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). (fast/balanced dvr, paper slice)")]
 TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
 TfLowOption = Annotated[Optional[float], _opt("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
 TfHighOption = Annotated[Optional[float], _opt("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]
@@ -72,9 +72,9 @@ NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/export-NAME/ in
 
 def export_settings(preset: str, **options) -> ExportSettings:
     """Preset values with every option that was given applied on top."""
-    values = resolve("export", preset, {k: v for k, v in options.items() if k in ("resolution", "views", "axis", "points_per_cube", "max_points")})
-    rest = {k: v for k, v in options.items() if k not in values}
-    return ExportSettings(**values, **rest)
+    preset_keys = PRESETS["export"][preset]
+    values = resolve("export", preset, {k: v for k, v in options.items() if k in preset_keys})
+    return ExportSettings(**values, **{k: v for k, v in options.items() if k not in preset_keys})
 
 
 @reports_errors
@@ -91,7 +91,7 @@ def export_command(
     fov: FovOption = None,
     resolution: ResolutionOption = None,
     elevation: ElevationOption = 0.0,
-    view: ViewOption = View.dvr,
+    view: ViewOption = None,
     transfer: TransferOption = Transfer("tissue"),  # type: ignore[valid-type]
     tf_low: TfLowOption = None,
     tf_high: TfHighOption = None,
@@ -124,7 +124,7 @@ def export_command(
         preset.value,
         cube=cube, points_per_cube=points_per_cube, max_points=max_points, air_threshold=air_threshold,
         views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
-        elevation=elevation, view=view.value, transfer=transfer.value, tf_low=tf_low, tf_high=tf_high,
+        elevation=elevation, view=view.value if view else None, transfer=transfer.value, tf_low=tf_low, tf_high=tf_high,
         tf_density=tf_density, step=step, render_from=render_from.value, bake_size=bake_size, seed=seed,
     )
     manifest = export_with_progress(work, settings, force, Runtime(device.value, threads), name, cunerf_name)

@@ -29,7 +29,7 @@ RUN_OPTIONS = [
     _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help="Training iterations of the cunerf stage. (preset: fast 4000, balanced 6000, paper 200000)", show_default=False)], None),
     _option("views", Annotated[Optional[int], typer.Option("--views", help="Orbit views of the export stage (the paper: 60). (preset: 60)", show_default=False)], None),
     _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help="Width and height of the exported images. (preset: fast 128, balanced 256, paper 512)", show_default=False)], None),
-    _option("view", Annotated[View, typer.Option("--view", help="Image model of the exported views: dvr, slice (the paper's) or mip.")], View.dvr),
+    _option("view", Annotated[Optional[View], typer.Option("--view", help="Image model of the exported views: dvr, slice (the paper's) or mip. (preset: fast/balanced dvr, paper slice)", show_default=False)], None),
     _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for the training stages.")], Device.auto),
     _option("threads", Annotated[Optional[int], typer.Option("--threads", help="CPU threads for torch (default: torch's choice).", show_default=False)], None),
 ]
@@ -37,7 +37,7 @@ RUN_OPTIONS = [
 
 def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, preset: str, extras: dict) -> None:
     cunerf_settings = CunerfSettings(**resolve_cunerf(preset, None, {"iterations": extras["cunerf_iterations"]}))
-    export = export_settings(preset, views=extras["views"], resolution=extras["resolution"], view=extras["view"].value)
+    export = export_settings(preset, views=extras["views"], resolution=extras["resolution"], view=extras["view"].value if extras["view"] else None)
     outcomes = run_pipeline(
         scan,
         output,

@@ -22,12 +22,14 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def write_views(images: np.ndarray, folder: Path, names: list[str]) -> None:
-    """One 8-bit grey PNG per view."""
+    """One 8-bit PNG per view, grey in three equal channels: the reference 3DGS code and gsplat
+    assume RGB and fail on single-channel images."""
     from PIL import Image
 
     folder.mkdir(parents=True, exist_ok=True)
     for image, name in zip(images, names):
-        Image.fromarray(to_uint8(image)).save(folder / name)
+        grey = to_uint8(image)
+        Image.fromarray(np.repeat(grey[..., None], 3, axis=2), mode="RGB").save(folder / name)
 
 
 def write_contact_sheet(images: np.ndarray, path: Path, held_out: set[int], title: str) -> None:

@@ -38,5 +38,5 @@ def check_export_memory(settings: ExportSettings, volume_size: int) -> None:
         raise CubecloudError(
             f"export needs about {needed / 2**30:.1f} GiB and this machine has {available / 2**30:.1f} GiB: "
             f"lower --resolution (now {settings.resolution}), --views (now {settings.views}) "
-            f"or --points-per-cube (now {settings.points_per_cube})"
+            f"or --points-per-cube (now {settings.points_per_cube}), or raise --cube (now {settings.cube})"
         )

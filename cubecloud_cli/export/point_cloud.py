@@ -124,7 +124,8 @@ def build_point_cloud(
         if max_points is not None and 0 < max_points < kept_points.shape[0]:
             spacing = 2.0 / volume_size
             gradient = _chunked(lambda p: gradient_magnitude(structure, p, spacing), kept_points, chunk)
-            # Drawn on the CPU generator, so a seed picks the same points on every device.
+            # Drawn on the CPU generator: a seed repeats its points exactly on one device (on
+            # another, values may differ by rounding and flip near-ties).
             chosen = weighted_choice(structure_weights(gradient).cpu(), max_points, generator).to(device)
             budget_dropped = kept_points.shape[0] - chosen.numel()
             kept_points, kept_values = kept_points[chosen], kept_values[chosen]

@@ -47,6 +47,8 @@ class ExportSettings:
             raise CubecloudError(f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512")
         if self.cube < 1:
             raise CubecloudError(f"--cube {self.cube} must be at least 1 voxel (the paper uses 16)")
+        if volume_size is not None and self.step >= volume_size:
+            raise CubecloudError(f"--step {self.step:g} spans the whole {volume_size}³ volume: choose a smaller step, e.g. 1")
         if volume_size is not None and self.cube > volume_size:
             raise CubecloudError(f"--cube {self.cube} is larger than the {volume_size}³ volume: choose at most {volume_size}")
         if self.points_per_cube < 1:

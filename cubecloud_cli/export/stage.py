@@ -36,7 +36,6 @@ from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.export.transfer import resolve_transfer
 from cubecloud_cli.metrics import image_metrics
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_views
-from cubecloud_cli.render.samplers import dilate_blocks
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
 
 log = logging.getLogger("cubecloud")
@@ -69,7 +68,13 @@ def export_scene(
     preprocess = require_stage(work, "preprocess")
     size = int(preprocess["volume"]["shape"][0])
     settings.validate(size)
-    require_stage(work, "cunerf", cunerf_name)
+    cunerf = require_stage(work, "cunerf", cunerf_name)
+    trained_on = cunerf.get("inputs", {}).get("preprocess/volume.npy")
+    if trained_on is not None and trained_on != preprocess["files"]["volume.npy"]["sha256"]:
+        raise CubecloudError(
+            f"{work / stage_dir_name('cunerf', cunerf_name)} was trained on an earlier preprocess/ volume: "
+            f"rerun `cubecloud cunerf {work} --force`"
+        )
     cameras = orbit_cameras(settings.orbit())
     device = resolve_device(runtime.device)
     if runtime.threads is not None:
@@ -79,6 +84,10 @@ def export_scene(
     check_export_memory(settings, size)
     transfer = resolve_transfer(settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density)
     image_model = ImageModel(settings.view, transfer, step=settings.step * 2.0 / size)
+    try:
+        image_model.validate()
+    except ValueError as exc:
+        raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
 
     params = {**settings.as_dict(), "cunerf": stage_dir_name("cunerf", cunerf_name)}
     writer = StageWriter(work, "export", params, force=force, name=name)
@@ -133,9 +142,9 @@ def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int
     occupancy = field.occupancy
     if occupancy is not None and occupancy.blocks.shape[0] * occupancy.block == size:
         # The field reads exactly 0 in air blocks (their renders are skipped), so they need no marching.
-        support = Support(dilate_blocks(occupancy.blocks.to(device)))
+        support = Support.from_blocks(occupancy.blocks.to(device))
     else:
-        support = Support(torch.ones((1, 1, 1), dtype=torch.bool, device=device))
+        support = Support.everywhere(device)
     return FunctionField(field.cube_values, size, support)
 
 

@@ -35,16 +35,32 @@ def _sample_grid(volume_zyx: torch.Tensor, points: torch.Tensor, mode: str) -> t
 
 @dataclass(frozen=True)
 class Support:
-    """Blocks of a regular grid starting at the cube's corner (−1, −1, −1) where a field may
-    exceed a threshold; the grid spans ``extent`` world units per axis (2 unless the blocks
-    overhang a volume whose size they do not divide).
+    """Blocks of a regular grid where a field may exceed a threshold, with a margin.
 
-    ``blocks`` must already be dilated by one block, so a march at steps shorter than one
-    block cannot step over a sliver of the true support without landing in its margin first.
+    The grid's low corner is at ``origin`` (the same on every axis) and it spans ``extent``
+    world units per axis. Build it with :meth:`from_blocks`, which adds the margin: every block
+    next to a support block (across a face, edge or corner) is marked too, and the grid gets one
+    extra layer of blocks on every side so that support touching the cube's faces has a margin
+    outside it as well. Then any ray that meets the true support first crosses one block length
+    of marked blocks, and a march at steps shorter than a block cannot miss it.
     """
 
-    blocks: torch.Tensor  # (B, B, B) bool
-    extent: float = 2.0
+    blocks: torch.Tensor  # (B, B, B) bool, margin included
+    origin: float
+    extent: float
+
+    @classmethod
+    def from_blocks(cls, blocks: torch.Tensor, extent: float = 2.0) -> "Support":
+        """``blocks`` tile the cube from (−1, −1, −1) over ``extent`` world units per axis."""
+        size = extent / blocks.shape[0]
+        padded = F.pad(blocks.float()[None, None], (1, 1) * 3)
+        dilated = F.max_pool3d(padded, 3, stride=1, padding=1)[0, 0] > 0
+        return cls(dilated, -1.0 - size, extent + 2.0 * size)
+
+    @classmethod
+    def everywhere(cls, device: torch.device | str = "cpu") -> "Support":
+        """Support that rules nothing out (for fields whose air is unknown)."""
+        return cls.from_blocks(torch.ones((1, 1, 1), dtype=torch.bool, device=device))
 
     @property
     def block_size(self) -> float:
@@ -52,9 +68,9 @@ class Support:
         return self.extent / self.blocks.shape[0]
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
-        """Whether each world point (P, 3) lies in a support block (False outside the grid)."""
-        # grid_sample's [−1, 1] spans the blocks' extent.
-        scaled = (points + 1.0) * (2.0 / self.extent) - 1.0
+        """Whether each world point (P, 3) lies in a marked block (False outside the grid)."""
+        # grid_sample's [−1, 1] spans the grid's extent.
+        scaled = (points - self.origin) * (2.0 / self.extent) - 1.0
         return _sample_grid(self._zyx_float, scaled, "nearest") > 0.5
 
     @property
@@ -66,29 +82,24 @@ class Support:
         return cached
 
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """World-space box around all support blocks (an empty support gives an empty box)."""
+        """World-space box around all marked blocks (an empty support gives an empty box)."""
         occupied = self.blocks.nonzero()
         if occupied.numel() == 0:
             zero = torch.zeros(3, device=self.blocks.device)
             return zero, zero
         size = self.block_size
-        return occupied.amin(0).float() * size - 1.0, (occupied.amax(0).float() + 1.0) * size - 1.0
-
-
-def dilate_blocks(blocks: torch.Tensor) -> torch.Tensor:
-    """Each block together with its 26 neighbours."""
-    return F.max_pool3d(blocks.float()[None, None], 3, stride=1, padding=1)[0, 0] > 0
+        return occupied.amin(0).float() * size + self.origin, (occupied.amax(0).float() + 1.0) * size + self.origin
 
 
 def support_of_volume(volume: torch.Tensor, threshold: float, block: int = SUPPORT_BLOCK) -> Support:
     """Blocks of ``volume`` (S³) where some voxel, or a neighbour a trilinear sample can reach,
-    exceeds ``threshold``; dilated by one block."""
+    exceeds ``threshold``, with the margin of :meth:`Support.from_blocks`."""
     size = volume.shape[0]
     count = max(1, -(-size // block))
     padded = F.pad((volume > threshold).float()[None, None], (1, count * block - size + 1) * 3)
     # Each block with a one-voxel halo: a sample inside the block interpolates its neighbours.
     blocks = F.max_pool3d(padded, kernel_size=block + 2, stride=block)[0, 0, :count, :count, :count]
-    return Support(dilate_blocks(blocks > 0), extent=2.0 * count * block / size)
+    return Support.from_blocks(blocks > 0, extent=2.0 * count * block / size)
 
 
 class ScalarField(Protocol):
