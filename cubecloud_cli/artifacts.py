@@ -146,8 +146,9 @@ class StageWriter:
     force: bool = False
     name: str | None = None
     keep_partial: bool = False
-    # Files that only serve an unfinished run (checkpoints): never listed in the manifest, and
-    # deleted only once the stage is in place, so a failure up to then can still resume.
+    # Files or folders that only serve an unfinished run (checkpoints, finished views): never
+    # listed in the manifest, and deleted only once the stage is in place, so a failure up to
+    # then can still resume.
     transient: tuple[str, ...] = ()
     inputs: dict[str, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
@@ -217,7 +218,7 @@ class StageWriter:
         files = {}
         for path in sorted(p for p in self.directory.rglob("*") if p.is_file()):
             relative = str(path.relative_to(self.directory))
-            if relative == MANIFEST_NAME or relative in self.transient:
+            if relative == MANIFEST_NAME or any(relative == t or relative.startswith(f"{t}/") for t in self.transient):
                 continue
             files[relative] = {"bytes": path.stat().st_size, "sha256": sha256_of_file(path)}
         return files
@@ -251,7 +252,11 @@ class StageWriter:
             os.replace(self.final_dir, backup)
         os.replace(self.directory, self.final_dir)
         for name in self.transient:
-            (self.final_dir / name).unlink(missing_ok=True)
+            path = self.final_dir / name
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
         if backup is not None:
             shutil.rmtree(backup, ignore_errors=True)
 

@@ -181,3 +181,53 @@ def test_a_step_as_long_as_the_volume_is_refused():
     ExportSettings(step=7.5, cube=4).validate(8)
     with pytest.raises(CubecloudError, match="spans the whole 8³ volume"):
         ExportSettings(step=8, cube=4).validate(8)
+
+
+def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exported, tmp_path, monkeypatch):
+    import os
+    import signal
+
+    import cubecloud_cli.export.stage as stage
+
+    work = _copy_upstream(trained, tmp_path)
+    original, calls = stage.render_view, []
+
+    def interrupted_render(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 12:  # a real Ctrl-C in the middle of the 3rd reference view
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(stage, "render_view", interrupted_render)
+    result = invoke("export", work, *SMALL)
+    assert result.exit_code == 130
+    assert "11 of 18 views are saved" in result.stderr and "run the same command to continue" in result.stderr
+    assert not (work / "export").exists() and (work / ".export.partial" / "progress" / "bake.npy").is_file()
+
+    calls.clear()
+    resumed = invoke("export", work, *SMALL)
+    assert resumed.exit_code == 0, resumed.output
+    assert "11 of 18 views are already rendered" in resumed.stderr and len(calls) == 7
+    for name in ("images.npy", "reference.npy"):
+        np.testing.assert_array_equal(np.load(work / "export" / name), np.load(exported / name))
+    assert not (work / "export" / "progress").exists() and not (work / ".export.partial").exists()
+    assert "progress" not in json.dumps(json.loads((work / "export" / "manifest.json").read_text())["files"])
+
+
+def test_a_changed_option_discards_saved_views(trained, tmp_path, monkeypatch):
+    import cubecloud_cli.export.stage as stage
+
+    work = _copy_upstream(trained, tmp_path)
+    original, calls = stage.render_view, []
+
+    def interrupted_render(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(stage, "render_view", interrupted_render)
+    assert invoke("export", work, *SMALL).exit_code == 130
+    monkeypatch.undo()
+    result = invoke("export", work, *SMALL, "--view", "mip")
+    assert result.exit_code == 0 and "already rendered" not in result.stderr

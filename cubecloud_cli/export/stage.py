@@ -24,6 +24,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from cubecloud_cli import __version__
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, stage_dir_name
 from cubecloud_cli.cameras import PinholeCameras, orbit_cameras
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField, resolve_device
@@ -32,10 +33,11 @@ from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
+from cubecloud_cli.export.progress import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.export.transfer import resolve_transfer
 from cubecloud_cli.metrics import image_metrics
-from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_views
+from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
 
 log = logging.getLogger("cubecloud")
@@ -90,8 +92,28 @@ def export_scene(
         raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
 
     params = {**settings.as_dict(), "cunerf": stage_dir_name("cunerf", cunerf_name)}
-    writer = StageWriter(work, "export", params, force=force, name=name)
+    writer = StageWriter(work, "export", params, force=force, name=name, keep_partial=True, transient=(PROGRESS_DIR,))
     writer.check_can_start()
+    fingerprint = {
+        "params": params,
+        "volume": preprocess["files"]["volume.npy"]["sha256"],
+        "model": cunerf["files"].get(MODEL_FILE, {}).get("sha256"),
+        "version": __version__,
+    }
+    progress = ExportProgress(writer.directory, fingerprint)
+    saved = progress.prepare()
+    if saved:
+        log.info(f"continuing the interrupted export: {saved} of {2 * settings.views} views are already rendered")
+    try:
+        return _export(work, writer, progress, settings, cameras, image_model, preprocess, size, device, cunerf_name, on_progress)
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(
+            f"interrupted: {progress.saved_views()} of {2 * settings.views} views are saved in {progress.directory}; "
+            f"run the same command to continue"
+        ) from None
+
+
+def _export(work, writer, progress, settings, cameras, image_model, preprocess, size, device, cunerf_name, on_progress) -> dict:
     with writer:
         with writer.phase("load"):
             volume_path = work / "preprocess" / "volume.npy"
@@ -101,7 +123,7 @@ def export_scene(
             volume = np.load(volume_path)
             if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
                 raise CubecloudError(f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`")
-            field = CunerfField.from_file(model_path, runtime.device)
+            field = CunerfField.from_file(model_path, device.type)
             if field.volume_size != size:
                 raise CubecloudError(
                     f"{model_path} was trained on a {field.volume_size}³ volume but preprocess/ holds {size}³: "
@@ -109,13 +131,13 @@ def export_scene(
                 )
         with writer.phase("bake"):
             on_progress("bake", 0, 1)
-            cunerf_images_field = _cunerf_scalar_field(field, settings, size, device, on_progress)
+            cunerf_images_field = _cunerf_scalar_field(field, settings, size, device, progress, on_progress)
         with writer.phase("render_images"):
-            images = render_views(cunerf_images_field, cameras, image_model, device,
-                                  lambda done, total: on_progress("images", done, total))
+            images = _render_saving_views(cunerf_images_field, cameras, image_model, device, progress, "images",
+                                          lambda done, total: on_progress("images", done, total))
         with writer.phase("render_reference"):
-            reference = render_views(GridField(volume, device), cameras, image_model, device,
-                                     lambda done, total: on_progress("reference", done, total))
+            reference = _render_saving_views(GridField(volume, device), cameras, image_model, device, progress, "reference",
+                                             lambda done, total: on_progress("reference", done, total))
         with writer.phase("point_cloud"):
             on_progress("points", 0, 1)
             cloud = build_point_cloud(
@@ -132,12 +154,35 @@ def export_scene(
     return read_manifest(writer.final_dir)
 
 
-def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int, device: torch.device, on_progress):
+def _render_saving_views(field, cameras: PinholeCameras, model: ImageModel, device: torch.device,
+                         progress: ExportProgress, prefix: str, on_progress) -> np.ndarray:
+    """render_views, saving each view as it is done and reusing views an interrupted run saved."""
+    images = np.empty((len(cameras), cameras.height, cameras.width), dtype=np.float32)
+    support = None
+    with torch.no_grad():
+        for index in range(len(cameras)):
+            saved = progress.load(f"{prefix}_view_{index:05d}")
+            if saved is not None and saved.shape == images.shape[1:]:
+                images[index] = saved
+            else:
+                if support is None and model.kind != "slice":
+                    support = field.support(model.support_threshold)
+                images[index] = render_view(field, cameras, index, model, support, device).cpu().numpy()
+                progress.save(f"{prefix}_view_{index:05d}", images[index])
+            on_progress(index + 1, len(cameras))
+    return images
+
+
+def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int, device: torch.device,
+                         progress: ExportProgress, on_progress):
     """The field the training images are rendered from: CuNeRF baked to a grid (fast), or its
     cube renders queried at every ray sample (``--render-from field``)."""
     if settings.render_from == "grid":
         bake_size = settings.bake_resolution(size)
-        baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", int(f * 100), 100))
+        baked = progress.load("bake")
+        if baked is None or baked.shape != (bake_size,) * 3:
+            baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", int(f * 100), 100))
+            progress.save("bake", baked)
         return GridField(baked, device)
     occupancy = field.occupancy
     if occupancy is not None and occupancy.blocks.shape[0] * occupancy.block == size:
