@@ -231,3 +231,16 @@ def test_a_changed_option_discards_saved_views(trained, tmp_path, monkeypatch):
     monkeypatch.undo()
     result = invoke("export", work, *SMALL, "--view", "mip")
     assert result.exit_code == 0 and "already rendered" not in result.stderr
+
+
+def test_the_overlay_example_reads_the_scene(exported, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "scene_overlay.py"
+    out = tmp_path / "overlay.png"
+    result = subprocess.run([sys.executable, str(script), str(exported), "--view", "2", "--out", str(out)],
+                            capture_output=True, text=True, check=True)
+    assert "9 PINHOLE views of 32x32" in result.stdout and "1500 drawn points land inside the image" in result.stdout
+    assert Image.open(out).size == (32, 32)
