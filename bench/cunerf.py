@@ -28,7 +28,8 @@ from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices, voxel_cent
 from cubecloud_cli.cunerf.model import CubeModel, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
-from cubecloud_cli.cunerf.api import CunerfField, resolve_device
+from cubecloud_cli.cunerf.api import CunerfField
+from cubecloud_cli.runtime import resolve_device
 from cubecloud_cli.metrics import psnr, volume_metrics
 from cubecloud_cli.presets import resolve_cunerf
 

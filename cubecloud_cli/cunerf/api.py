@@ -24,19 +24,10 @@ from cubecloud_cli.cunerf.data import Occupancy, voxel_centres
 from cubecloud_cli.cunerf.fields import FieldConfig
 from cubecloud_cli.cunerf.model import CubeModel, RenderConfig, render_many
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.runtime import resolve_device
 
 MODEL_FILE = "model.pt"
 MODEL_FORMAT = 1
-
-
-def resolve_device(device: str) -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise CubecloudError("--device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto")
-    if device not in ("cpu", "cuda"):
-        raise CubecloudError(f"--device {device!r} must be auto, cpu or cuda")
-    return torch.device(device)
 
 
 def grid_centres(size: int, device: torch.device, x_range: tuple[int, int] | None = None) -> torch.Tensor:

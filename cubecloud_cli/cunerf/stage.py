@@ -17,10 +17,7 @@ from __future__ import annotations
 import csv
 import logging
 import os
-import resource
 import shutil
-import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -28,7 +25,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage
-from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField, resolve_device
+from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
 from cubecloud_cli.cunerf.interrupts import (
     CubecloudInterrupted,
@@ -43,6 +40,7 @@ from cubecloud_cli.cunerf.training import Trainer
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.metrics import volume_metrics
 from cubecloud_cli.preprocess.preview import write_preview_rows
+from cubecloud_cli.runtime import Runtime, peak_memory_mb
 from cubecloud_cli.volume.nifti import write_nifti
 
 log = logging.getLogger("cubecloud")
@@ -54,23 +52,7 @@ LOG_FILE = "log.csv"
 LOG_COLUMNS = ("iteration", "seconds", "loss", "lr", "val_psnr", "val_ssim", "val_psnr_body", "val_ssim_body")
 
 
-@dataclass(frozen=True)
-class Runtime:
-    """How to run, not what to compute: kept out of the parameters that identify the result."""
-
-    device: str = "auto"
-    threads: int | None = None
-
-
 ProgressCallback = Callable[[str, int, int, dict], None]
-
-
-def _peak_memory_mb(device: torch.device) -> dict[str, float]:
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    peak = {"peak_rss_mb": round(rss / (1024 if sys.platform != "darwin" else 1024 * 1024), 1)}
-    if device.type == "cuda":
-        peak["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
-    return peak
 
 
 def _check_memory(settings: CunerfSettings, size: int, device: torch.device) -> None:
@@ -167,11 +149,7 @@ def train_cunerf(
     preprocess = require_stage(work, "preprocess")
     size = int(preprocess["volume"]["shape"][0])
     settings.validate(size)
-    device = resolve_device(runtime.device)
-    if runtime.threads is not None:
-        if runtime.threads < 1:
-            raise CubecloudError(f"--threads {runtime.threads} must be at least 1")
-        torch.set_num_threads(runtime.threads)
+    device = runtime.apply()
 
     _check_memory(settings, size, device)
 
@@ -236,7 +214,7 @@ def _record_results(
             "train_seconds": round(trainer.elapsed_s, 2),
             "seconds_per_1000_iterations": round(1000 * trainer.elapsed_s / max(trainer.iteration, 1), 2),
             "parameters": sum(p.numel() for p in model.parameters()),
-            **_peak_memory_mb(device),
+            **peak_memory_mb(device),
         }
     )
     writer.extra.update(

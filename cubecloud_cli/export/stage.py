@@ -27,8 +27,7 @@ import torch
 from cubecloud_cli import __version__
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, stage_dir_name
 from cubecloud_cli.cameras import PinholeCameras, orbit_cameras
-from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField, resolve_device
-from cubecloud_cli.cunerf.stage import Runtime
+from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
@@ -38,6 +37,7 @@ from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.export.transfer import resolve_transfer
 from cubecloud_cli.metrics import image_metrics
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
+from cubecloud_cli.runtime import Runtime, peak_memory_mb
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
 
 log = logging.getLogger("cubecloud")
@@ -78,11 +78,7 @@ def export_scene(
             f"rerun `cubecloud cunerf {work} --force`"
         )
     cameras = orbit_cameras(settings.orbit())
-    device = resolve_device(runtime.device)
-    if runtime.threads is not None:
-        if runtime.threads < 1:
-            raise CubecloudError(f"--threads {runtime.threads} must be at least 1")
-        torch.set_num_threads(runtime.threads)
+    device = runtime.apply()
     check_export_memory(settings, size)
     transfer = resolve_transfer(settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density)
     image_model = ImageModel(settings.view, transfer, step=settings.step * 2.0 / size)
@@ -235,7 +231,8 @@ def _record(writer: StageWriter, settings: ExportSettings, cameras: PinholeCamer
     held_out = held_out_views(len(names))
     test_metrics = image_metrics(reference[held_out], images[held_out])
     writer.metrics.update({f"cunerf_vs_reference_{k}": v for k, v in test_metrics.items()})
-    writer.metrics.update({"points": cloud.stats["points"], "views": len(names), "test_views": len(held_out)})
+    writer.metrics.update({"points": cloud.stats["points"], "views": len(names), "test_views": len(held_out),
+                           **peak_memory_mb(device)})
     writer.extra.update({
         "cameras": {
             "model": "PINHOLE",

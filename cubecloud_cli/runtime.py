@@ -1,0 +1,48 @@
+"""How a stage runs, as opposed to what it computes: device, threads, and the memory it took.
+
+Kept out of the parameters that identify a stage's result, so the same settings on another
+device count as the same stage.
+"""
+
+from __future__ import annotations
+
+import resource
+import sys
+from dataclasses import dataclass
+
+import torch
+
+from cubecloud_cli.errors import CubecloudError
+
+
+@dataclass(frozen=True)
+class Runtime:
+    device: str = "auto"
+    threads: int | None = None
+
+    def apply(self) -> torch.device:
+        """Set torch's thread count and return the device to run on."""
+        if self.threads is not None:
+            if self.threads < 1:
+                raise CubecloudError(f"--threads {self.threads} must be at least 1")
+            torch.set_num_threads(self.threads)
+        return resolve_device(self.device)
+
+
+def resolve_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise CubecloudError("--device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto")
+    if device not in ("cpu", "cuda"):
+        raise CubecloudError(f"--device {device!r} must be auto, cpu or cuda")
+    return torch.device(device)
+
+
+def peak_memory_mb(device: torch.device) -> dict[str, float]:
+    """Peak resident memory of this process (and peak GPU memory on CUDA), in MB."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    peak = {"peak_rss_mb": round(rss / (1024 if sys.platform != "darwin" else 1024 * 1024), 1)}
+    if device.type == "cuda":
+        peak["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+    return peak
