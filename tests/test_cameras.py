@@ -128,3 +128,29 @@ def test_camera_matrices_are_consistent():
     np.testing.assert_allclose(product, np.tile(np.eye(4), (4, 1, 1)), atol=1e-12)
     with pytest.raises(ValueError):
         PinholeCameras(cameras.rotations, cameras.translations, 16, 16, 0.0)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    radius=st.floats(1.76, 1e4),
+    elevation=st.floats(-85.0, 85.0),
+    views=st.integers(2, 90),
+    resolution=st.integers(1, 2048),
+    axis=st.sampled_from(["si", "ap", "lr"]),
+)
+def test_orbits_stay_finite_and_hold_the_cube_at_the_extremes(radius, elevation, views, resolution, axis):
+    cameras = orbit_cameras(OrbitSpec(views, axis, radius, resolution, elevation))
+    assert np.isfinite(cameras.rotations).all() and np.isfinite(cameras.translations).all()
+    assert np.isfinite(cameras.focal) and cameras.focal > 0
+    np.testing.assert_allclose(np.einsum("nij,nkj->nik", cameras.rotations, cameras.rotations), np.tile(np.eye(3), (views, 1, 1)), atol=1e-9)
+    for view in (0, views - 1):
+        pixels, depth = cameras.project(view, CORNERS)
+        assert (depth > 0).all()
+        assert (pixels >= -1e-6 * resolution).all() and (pixels <= resolution * (1 + 1e-6)).all()
+
+
+@pytest.mark.parametrize("fov", [1.0, 170.0])
+def test_extreme_fields_of_view(fov):
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=16, fov=fov))
+    assert math.degrees(cameras.fov_x) == pytest.approx(fov)
+    assert np.isfinite(cameras.pixel_directions(1)).all()
