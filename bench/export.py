@@ -85,6 +85,8 @@ def time_stage(work: Path, args) -> None:
     manifest = export_scene(work, settings, force=True)
     total = time.perf_counter() - start
     timings = manifest["timings_s"]
+    if manifest.get("resumed", {}).get("views") or manifest.get("resumed", {}).get("bake"):
+        print("warning: this run reused work of an interrupted export; delete WORK/.export.partial for clean timings")
     print(f"export stage on {work} ({args.views} views at {args.resolution}², {manifest['metrics']['points']} points): {total:.1f} s")
     for phase in ("load", "bake", "render_images", "render_reference", "point_cloud", "write", "hash_outputs"):
         print(f"  {phase:<17} {timings.get(phase, 0.0):7.2f} s")

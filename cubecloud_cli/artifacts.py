@@ -165,6 +165,7 @@ class StageWriter:
         """Refuse early, before any expensive work, when the result could not be kept."""
         if self.work.exists() and not self.work.is_dir():
             raise CubecloudError(f"{self.work} is a file, not a work directory: pick another -o")
+        self._sweep_interrupted_cleanup()
         if self.final_dir.exists() and not self.force:
             if is_complete(self.final_dir):
                 raise CubecloudError(
@@ -174,6 +175,20 @@ class StageWriter:
             raise CubecloudError(
                 f"{self.final_dir} exists but has no {MANIFEST_NAME}: pass --force to replace it"
             )
+
+    def _sweep_interrupted_cleanup(self) -> None:
+        """Finish the cleanup of a commit that was interrupted after its rename: transient files
+        left in the complete stage, and the previous stage moved aside."""
+        if is_complete(self.final_dir):
+            for name in self.transient:
+                path = self.final_dir / name
+                if path.is_dir():
+                    shutil.rmtree(path, ignore_errors=True)
+                elif path.exists():
+                    path.unlink()
+        if self.work.is_dir():
+            for old in self.work.glob(f".{self.final_dir.name}.old-*"):
+                shutil.rmtree(old, ignore_errors=True)
 
     def __enter__(self) -> "StageWriter":
         self.check_can_start()

@@ -117,6 +117,7 @@ def run_pipeline(
     if not upstream_changed and stage_is_current(work / "export", export_params, export_inputs):
         outcomes.append(StageOutcome("export", "skipped", 0.0))
     else:
-        run_export(work, export_settings, upstream_changed or (work / "export").exists(), runtime)
-        outcomes.append(StageOutcome("export", "ran", time.perf_counter() - start))
+        manifest = run_export(work, export_settings, upstream_changed or (work / "export").exists(), runtime)
+        resumed = bool(manifest.get("resumed", {}).get("views"))
+        outcomes.append(StageOutcome("export", "resumed" if resumed else "ran", time.perf_counter() - start))
     return outcomes

@@ -39,10 +39,38 @@ def resolve_device(device: str) -> torch.device:
     return torch.device(device)
 
 
+def reset_peak_memory(device: torch.device) -> None:
+    """Start measuring peak memory afresh, so a stage run after another (in `cubecloud run`)
+    reports its own peak. Linux resets the resident-set high-water mark on request; elsewhere
+    the peak stays the process's."""
+    try:
+        with open("/proc/self/clear_refs", "w") as handle:
+            handle.write("5")
+    except OSError:
+        pass
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+def _resident_high_water_kb() -> float | None:
+    try:
+        with open("/proc/self/status") as handle:
+            for line in handle:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def peak_memory_mb(device: torch.device) -> dict[str, float]:
-    """Peak resident memory of this process (and peak GPU memory on CUDA), in MB."""
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    peak = {"peak_rss_mb": round(rss / (1024 if sys.platform != "darwin" else 1024 * 1024), 1)}
+    """Peak resident memory since the last :func:`reset_peak_memory` where the system can tell
+    (Linux), else of the whole process; and peak GPU memory on CUDA; in MB."""
+    high_water = _resident_high_water_kb()
+    if high_water is None:
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        high_water = rss / (1 if sys.platform != "darwin" else 1024)
+    peak = {"peak_rss_mb": round(high_water / 1024, 1)}
     if device.type == "cuda":
         peak["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
     return peak

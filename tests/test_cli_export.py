@@ -214,23 +214,76 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
     assert "progress" not in json.dumps(json.loads((work / "export" / "manifest.json").read_text())["files"])
 
 
-def test_a_changed_option_discards_saved_views(trained, tmp_path, monkeypatch):
+def _interrupt_after(monkeypatch, renders: int) -> None:
     import cubecloud_cli.export.stage as stage
 
-    work = _copy_upstream(trained, tmp_path)
     original, calls = stage.render_view, []
 
     def interrupted_render(*args, **kwargs):
         calls.append(1)
-        if len(calls) == 3:
+        if len(calls) > renders:
             raise KeyboardInterrupt
         return original(*args, **kwargs)
 
     monkeypatch.setattr(stage, "render_view", interrupted_render)
+
+
+def test_a_changed_option_discards_saved_views(trained, tmp_path, monkeypatch):
+    work = _copy_upstream(trained, tmp_path)
+    _interrupt_after(monkeypatch, 4)
     assert invoke("export", work, *SMALL).exit_code == 130
     monkeypatch.undo()
     result = invoke("export", work, *SMALL, "--view", "mip")
     assert result.exit_code == 0 and "already rendered" not in result.stderr
+    fresh = _copy_upstream(trained, tmp_path / "fresh")
+    assert invoke("export", fresh, *SMALL, "--view", "mip", "-q").exit_code == 0
+    for name in ("images.npy", "reference.npy"):
+        np.testing.assert_array_equal(np.load(work / "export" / name), np.load(fresh / "export" / name))
+    assert json.loads((work / "export" / "manifest.json").read_text())["resumed"] == {"views": 0, "bake": False}
+
+
+def test_a_retrained_cunerf_discards_saved_views(trained, tmp_path, monkeypatch):
+    work = _copy_upstream(trained, tmp_path)
+    _interrupt_after(monkeypatch, 4)
+    assert invoke("export", work, *SMALL).exit_code == 130
+    monkeypatch.undo()
+    assert invoke("cunerf", work, "--iterations", "30", "--batch-size", "1024", "--holdout", "2", "--force", "-q").exit_code == 0
+    result = invoke("export", work, *SMALL)
+    assert result.exit_code == 0 and "already rendered" not in result.stderr
+    assert json.loads((work / "export" / "manifest.json").read_text())["resumed"]["views"] == 0
+
+
+def test_a_damaged_saved_view_is_rendered_again(trained, exported, tmp_path, monkeypatch):
+    work = _copy_upstream(trained, tmp_path)
+    _interrupt_after(monkeypatch, 5)
+    assert invoke("export", work, *SMALL).exit_code == 130
+    monkeypatch.undo()
+    progress = work / ".export.partial" / "progress"
+    (progress / "images_view_00002.npy").write_bytes(b"")  # what a power cut may leave
+    (progress / "images_view_00003.npy").write_bytes(b"\x93NUMPY garbage")
+    result = invoke("export", work, *SMALL)
+    assert result.exit_code == 0, result.output
+    np.testing.assert_array_equal(np.load(work / "export" / "images.npy"), np.load(exported / "images.npy"))
+
+
+def test_a_failure_leaves_no_partial_without_saved_work(trained, tmp_path):
+    work = _copy_upstream(trained, tmp_path)
+    (work / "preprocess" / "volume.npy").write_bytes(b"x" * (work / "preprocess" / "volume.npy").stat().st_size)
+    assert_one_line_error(invoke("export", work, *SMALL), r"volume.npy changed since its stage was written: run `cubecloud preprocess")
+    assert not (work / ".export.partial").exists() and not (work / "export").exists()
+
+
+def test_leftovers_of_an_interrupted_cleanup_are_swept(exported, tmp_path):
+    work = tmp_path / "work"
+    shutil.copytree(exported.parent / "preprocess", work / "preprocess")
+    shutil.copytree(exported.parent / "cunerf", work / "cunerf")
+    shutil.copytree(exported, work / "export")
+    (work / "export" / "progress").mkdir()
+    (work / "export" / "progress" / "bake.npy").write_bytes(b"stale")
+    (work / ".export.old-123").mkdir()
+    assert_one_line_error(invoke("export", work, *SMALL), r"already complete")
+    assert not (work / "export" / "progress").exists() and not (work / ".export.old-123").exists()
+    assert invoke("export", work, *SMALL, "--force", "-q").exit_code == 0
 
 
 def test_the_overlay_example_reads_the_scene(exported, tmp_path):

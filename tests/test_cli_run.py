@@ -64,3 +64,25 @@ def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nift
     assert (work / "cunerf" / "manifest.json").is_file()
     again = invoke(*options)
     assert again.exit_code == 0 and again.stderr.count("skipped") == 3
+
+
+def test_run_continues_an_interrupted_export(tmp_path, phantom_nifti, monkeypatch):
+    import cubecloud_cli.export.stage as stage
+
+    work = tmp_path / "w"
+    original, calls = stage.render_view, []
+
+    def interrupted_render(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(stage, "render_view", interrupted_render)
+    options = ("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
+    interrupted = invoke(*options)
+    assert interrupted.exit_code == 130 and "5 of 8 views are saved" in interrupted.stderr
+    calls.clear()
+    resumed = invoke(*options)
+    assert resumed.exit_code == 0, resumed.output
+    assert len(calls) == 3 and "resumed from its saved work" in resumed.stderr

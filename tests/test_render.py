@@ -185,3 +185,19 @@ def test_pycolmap_projects_a_point_to_the_pixel_where_we_draw_it(tmp_path):
         drawn = images[names.index(image.name)]
         row, column = np.unravel_index(np.argmax(drawn), drawn.shape)
         assert (column, row) == (math.floor(pixel[0]), math.floor(pixel[1]))
+
+
+def test_support_margin_reaches_outside_the_cube():
+    from cubecloud_cli.render import Support
+
+    blocks = torch.zeros(4, 4, 4, dtype=torch.bool)
+    blocks[3, 1, 1] = True  # touches the x = +1 face
+    support = Support.from_blocks(blocks)
+    points = torch.tensor([[1.2, -0.25, -0.25], [0.1, -0.25, -0.25], [-0.1, -0.25, -0.25], [1.2, 0.9, 0.9]])
+    assert support.contains(points).tolist() == [True, True, False, False]
+    low, high = support.bounds()
+    assert torch.allclose(low, torch.tensor([0.0, -1.0, -1.0])) and torch.allclose(high, torch.tensor([1.5, 0.5, 0.5]))
+    everywhere = Support.everywhere()
+    assert everywhere.contains(torch.tensor([[-1.9, 0.0, 1.9], [0.0, 0.0, 0.0]])).all()
+    empty = Support.from_blocks(torch.zeros(2, 2, 2, dtype=torch.bool))
+    assert not empty.contains(torch.zeros(1, 3)).any()

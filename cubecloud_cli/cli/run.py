@@ -30,7 +30,7 @@ RUN_OPTIONS = [
     _option("views", Annotated[Optional[int], typer.Option("--views", help="Orbit views of the export stage (the paper: 60). (preset: 60)", show_default=False)], None),
     _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help="Width and height of the exported images. (preset: fast 128, balanced 256, paper 512)", show_default=False)], None),
     _option("view", Annotated[Optional[View], typer.Option("--view", help="Image model of the exported views: dvr, slice (the paper's) or mip. (preset: fast/balanced dvr, paper slice)", show_default=False)], None),
-    _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for the training stages.")], Device.auto),
+    _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for cunerf and export.")], Device.auto),
     _option("threads", Annotated[Optional[int], typer.Option("--threads", help="CPU threads for torch (default: torch's choice).", show_default=False)], None),
 ]
 
@@ -52,7 +52,7 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
     )
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status != "skipped" else "skipped (already complete)"
-        note = "  (resumed from its checkpoint)" if outcome.status == "resumed" else ""
+        note = "  (resumed from its saved work)" if outcome.status == "resumed" else ""
         log.info(f"  {outcome.stage:<12} {when}{note}")
     log.info(f"  {'total':<12} {sum(o.seconds for o in outcomes):7.1f} s   results in {output}")
     log.info(f"cunerf: {describe_metrics(read_manifest(Path(output) / 'cunerf'))}")
@@ -63,7 +63,7 @@ run_command = scan_command(
     _run,
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf and export stages. An interrupted cunerf stage is resumed from its checkpoint. Stages run today: preprocess, cunerf, export (splat and eval join as they land).
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf and export stages. An interrupted cunerf or export stage continues from its saved work. Stages run today: preprocess, cunerf, export (splat and eval join as they land).
 
     Examples:
 

@@ -40,7 +40,7 @@ from cubecloud_cli.cunerf.training import Trainer
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.metrics import volume_metrics
 from cubecloud_cli.preprocess.preview import write_preview_rows
-from cubecloud_cli.runtime import Runtime, peak_memory_mb
+from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.volume.nifti import write_nifti
 
 log = logging.getLogger("cubecloud")
@@ -150,6 +150,7 @@ def train_cunerf(
     size = int(preprocess["volume"]["shape"][0])
     settings.validate(size)
     device = runtime.apply()
+    reset_peak_memory(device)
 
     _check_memory(settings, size, device)
 

@@ -50,13 +50,20 @@ class ExportProgress:
     def _path(self, name: str) -> Path:
         return self.directory / f"{name}.npy"
 
+    def has_work(self) -> bool:
+        """Whether anything here would save time on the next run."""
+        return self.saved_views() > 0 or self._path("bake").is_file()
+
     def load(self, name: str) -> np.ndarray | None:
         try:
             return np.load(self._path(name))
-        except (OSError, ValueError):
-            return None  # missing, or cut short by the interrupt: compute it again
+        except Exception:  # missing, empty or damaged (np.load raises several types): redo it
+            return None
 
     def save(self, name: str, array: np.ndarray) -> None:
         temporary = self.directory / f".{name}.tmp.npy"
-        np.save(temporary, array)
+        with open(temporary, "wb") as handle:
+            np.save(handle, array)
+            handle.flush()
+            os.fsync(handle.fileno())  # so a power cut cannot leave an empty file under the final name
         os.replace(temporary, self._path(name))

@@ -1,7 +1,7 @@
 """The export stage: the CuNeRF scene as a COLMAP scene that 3DGS tools open as it is.
 
 WORK/export/ holds
-  images/view_000.png …     training images rendered from CuNeRF (8-bit grey)
+  images/view_000.png …     training images rendered from CuNeRF (8-bit grey, stored as RGB)
   images.npy                the same as float32 (N, H, W): what `splat` trains on
   reference/view_000.png …  the same views rendered from the preprocessed volume (ground truth)
   reference.npy             float32 (N, H, W): what `eval` scores against
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli import __version__
-from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, stage_dir_name
+from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, require_stage, stage_dir_name
 from cubecloud_cli.cameras import PinholeCameras, orbit_cameras
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.errors import CubecloudError
@@ -37,7 +37,7 @@ from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.export.transfer import resolve_transfer
 from cubecloud_cli.metrics import image_metrics
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
-from cubecloud_cli.runtime import Runtime, peak_memory_mb
+from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
 
 log = logging.getLogger("cubecloud")
@@ -95,18 +95,28 @@ def export_scene(
         "volume": preprocess["files"]["volume.npy"]["sha256"],
         "model": cunerf["files"].get(MODEL_FILE, {}).get("sha256"),
         "version": __version__,
+        # Renders on another device may differ by rounding: views are not mixed across devices.
+        "device": device.type,
     }
     progress = ExportProgress(writer.directory, fingerprint)
     saved = progress.prepare()
     if saved:
         log.info(f"continuing the interrupted export: {saved} of {2 * settings.views} views are already rendered")
+    writer.extra["resumed"] = {"views": saved, "bake": progress.load("bake") is not None}
+    reset_peak_memory(device)
     try:
         return _export(work, writer, progress, settings, cameras, image_model, preprocess, size, device, cunerf_name, on_progress)
     except KeyboardInterrupt:
+        if not writer.directory.exists() and is_complete(writer.final_dir):
+            raise KeyboardInterrupt(f"interrupted while tidying up: {writer.final_dir} is complete") from None
         raise KeyboardInterrupt(
             f"interrupted: {progress.saved_views()} of {2 * settings.views} views are saved in {progress.directory}; "
             f"run the same command to continue"
         ) from None
+    except BaseException:
+        if writer.directory.exists() and not progress.has_work():
+            shutil.rmtree(writer.directory, ignore_errors=True)  # nothing there would save time
+        raise
 
 
 def _export(work, writer, progress, settings, cameras, image_model, preprocess, size, device, cunerf_name, on_progress) -> dict:
@@ -114,8 +124,14 @@ def _export(work, writer, progress, settings, cameras, image_model, preprocess, 
         with writer.phase("load"):
             volume_path = work / "preprocess" / "volume.npy"
             model_path = work / stage_dir_name("cunerf", cunerf_name) / MODEL_FILE
-            writer.add_input(volume_path, "preprocess/volume.npy")
-            writer.add_input(model_path, f"{stage_dir_name('cunerf', cunerf_name)}/{MODEL_FILE}")
+            # The hashes are taken anyway for the manifest; they also catch files changed in place.
+            for path, label, fix in (
+                (volume_path, "preprocess/volume.npy", f"cubecloud preprocess SCAN -o {work} --force"),
+                (model_path, f"{stage_dir_name('cunerf', cunerf_name)}/{MODEL_FILE}", f"cubecloud cunerf {work} --force"),
+            ):
+                recorded = read_manifest(path.parent)["files"].get(path.name, {}).get("sha256")
+                if writer.add_input(path, label) != recorded:
+                    raise CubecloudError(f"{path} changed since its stage was written: run `{fix}`")
             volume = np.load(volume_path)
             if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
                 raise CubecloudError(f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`")
