@@ -1,0 +1,99 @@
+"""Alpha compositing of projected Gaussians, in plain PyTorch, differentiated by autograd.
+
+This is the test oracle of the fast kernels, and the fallback on any device. It enumerates the
+(Gaussian, pixel) pairs inside each splat's 3σ square, sorts them by pixel and then depth, and
+composites front to back with segmented scans, so memory grows with the pairs, not with pixels
+× Gaussians. The rules are those of the reference 3DGS rasterizer (research/3dgs.md §1.9):
+
+* α = min(0.99, o·exp(−power)), and a pair with α < 1/255 is skipped;
+* a pixel stops at the first Gaussian that would bring its transmittance below 1e-4, and that
+  Gaussian is not blended;
+* C = Σ T_i α_i c_i + T_final · background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from cubecloud_cli.raster.projection import Projected
+
+MAX_ALPHA = 0.99
+MIN_ALPHA = 1.0 / 255.0
+TRANSMITTANCE_STOP = 1e-4
+
+
+@dataclass
+class Pairs:
+    gaussian: torch.Tensor  # (P,) int64, sorted by pixel, then front to back
+    pixel: torch.Tensor  # (P,) int64, row-major v * W + u
+
+
+def splat_pairs(projected: Projected, width: int, height: int) -> Pairs:
+    """Every (Gaussian, pixel) pair whose pixel centre lies in the Gaussian's 3σ square."""
+    with torch.no_grad():
+        device = projected.depths.device
+        visible = (projected.radii > 0).nonzero().squeeze(1)
+        u, v = projected.means2d[visible, 0].detach(), projected.means2d[visible, 1].detach()
+        r = projected.radii[visible].to(u.dtype)
+        # Pixel i has its centre at i + 0.5: centres within [u − r, u + r].
+        x0 = torch.ceil(u - r - 0.5).clamp(0, width).long()
+        x1 = torch.floor(u + r - 0.5).clamp(-1, width - 1).long()
+        y0 = torch.ceil(v - r - 0.5).clamp(0, height).long()
+        y1 = torch.floor(v + r - 0.5).clamp(-1, height - 1).long()
+        columns = (x1 - x0 + 1).clamp_min(0)
+        counts = columns * (y1 - y0 + 1).clamp_min(0)
+        total = int(counts.sum())
+        owner = torch.repeat_interleave(torch.arange(visible.numel(), device=device), counts)
+        first = torch.cumsum(counts, 0) - counts
+        local = torch.arange(total, device=device) - first[owner]
+        pixel = (y0[owner] + local // columns[owner]) * width + x0[owner] + local % columns[owner]
+        # Front to back within a pixel: sort by (pixel, depth rank).
+        rank = torch.empty_like(visible)
+        rank[torch.argsort(projected.depths[visible].detach(), stable=True)] = torch.arange(visible.numel(), device=device)
+        order = torch.argsort(pixel * max(visible.numel(), 1) + rank[owner])
+        return Pairs(visible[owner[order]], pixel[order])
+
+
+def composite(
+    projected: Projected,
+    colours: torch.Tensor,
+    opacities: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor | None = None,
+    pairs: Pairs | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render (H, W, C) colours and (H, W) accumulated alpha from projected Gaussians with
+    (N, C) colours and (N,) opacities in [0, 1]."""
+    pairs = pairs or splat_pairs(projected, width, height)
+    channels = colours.shape[1]
+    g, pixel = pairs.gaussian, pairs.pixel
+    centre_u = (pixel % width).to(colours.dtype) + 0.5
+    centre_v = torch.div(pixel, width, rounding_mode="floor").to(colours.dtype) + 0.5
+    dx = centre_u - projected.means2d[g, 0]
+    dy = centre_v - projected.means2d[g, 1]
+    conic = projected.conics[g]
+    power = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
+    alpha = torch.clamp(opacities[g] * torch.exp(-power.clamp_min(0.0)), max=MAX_ALPHA)
+    alpha = torch.where(alpha >= MIN_ALPHA, alpha, torch.zeros_like(alpha))
+
+    # Segmented (per pixel) inclusive sums of log(1 − α), in float64: a global cumulative sum
+    # over millions of pairs would otherwise cancel catastrophically.
+    log_survive = torch.log1p(-alpha).double()
+    running = torch.cumsum(log_survive, 0)
+    starts = torch.ones_like(pixel, dtype=torch.bool)
+    starts[1:] = pixel[1:] != pixel[:-1]
+    segment = torch.cumsum(starts.long(), 0) - 1
+    before_segment = (running - log_survive)[starts]
+    inclusive = running - before_segment[segment]
+    blended = torch.exp(inclusive) >= TRANSMITTANCE_STOP  # a prefix of each pixel's list
+    weight = (torch.exp(inclusive - log_survive) * alpha.double() * blended).to(colours.dtype)
+
+    image = torch.zeros(height * width, channels, dtype=colours.dtype, device=colours.device)
+    image = image.index_add(0, pixel, weight[:, None] * colours[g])
+    coverage = torch.zeros(height * width, dtype=colours.dtype, device=colours.device).index_add(0, pixel, weight)
+    if background is not None:
+        image = image + (1.0 - coverage)[:, None] * background.to(colours.dtype)
+    return image.view(height, width, channels), coverage.view(height, width)

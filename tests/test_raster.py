@@ -1,0 +1,154 @@
+"""The plain PyTorch rasterizer (the oracle of the fast kernels): projection, compositing rules
+against a literal per-pixel loop, gradients by finite differences, and the extremes."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from cubecloud_cli.raster import composite, covariances, project
+from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA, TRANSMITTANCE_STOP
+
+W, H = 24, 20
+
+
+def camera(view=0, dtype=torch.float64):
+    cameras = orbit_cameras(OrbitSpec(views=4, resolution=W, elevation=10.0))
+    rotation = torch.tensor(cameras.rotations[view], dtype=dtype)
+    translation = torch.tensor(cameras.translations[view], dtype=dtype)
+    return cameras, rotation, translation
+
+
+def scene(count=30, seed=0, dtype=torch.float64):
+    """Random Gaussians with the extremes mixed in."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(count, 3, generator=g, dtype=dtype) * 1.6 - 0.8
+    log_scales = torch.log(torch.rand(count, 3, generator=g, dtype=dtype) * 0.08 + 0.01)
+    quaternions = torch.randn(count, 4, generator=g, dtype=dtype)
+    opacities = torch.rand(count, generator=g, dtype=dtype)
+    colours = torch.rand(count, 2, generator=g, dtype=dtype)
+    log_scales[0] = math.log(1e-6)  # tiny: a dilated point
+    log_scales[1] = math.log(3.0)  # huge: covers the image
+    opacities[2], opacities[3] = 1e-4, 0.9999  # near 0 and near 1
+    means[5] = means[4]  # identical, overlapping
+    log_scales[5], quaternions[5], opacities[5], colours[5] = log_scales[4], quaternions[4], opacities[4], colours[4]
+    means[6] = torch.tensor([9.0, 0.0, 0.0], dtype=dtype)  # off screen
+    return means, log_scales, quaternions, opacities, colours
+
+
+def render(means, log_scales, quaternions, opacities, colours, view=0, background=None):
+    cameras, rotation, translation = camera(view, means.dtype)
+    projected = project(means, covariances(torch.exp(log_scales), quaternions), rotation, translation, float(cameras.focal), W, H)
+    return composite(projected, colours, opacities, W, H, background), projected
+
+
+def literal_loop(projected, colours, opacities, background):
+    """The reference algorithm, pixel by pixel, Gaussian by Gaussian (research/3dgs.md §1.9)."""
+    image = np.zeros((H, W, colours.shape[1]))
+    order = torch.argsort(projected.depths, stable=True).tolist()
+    m, conic, radii = projected.means2d.detach().numpy(), projected.conics.detach().numpy(), projected.radii.numpy()
+    for v in range(H):
+        for u in range(W):
+            transmittance, colour = 1.0, np.zeros(colours.shape[1])
+            for i in order:
+                if radii[i] == 0 or abs(u + 0.5 - m[i, 0]) > radii[i] or abs(v + 0.5 - m[i, 1]) > radii[i]:
+                    continue
+                dx, dy = u + 0.5 - m[i, 0], v + 0.5 - m[i, 1]
+                power = 0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) + conic[i, 1] * dx * dy
+                alpha = min(MAX_ALPHA, float(opacities[i]) * math.exp(-power))
+                if alpha < MIN_ALPHA:
+                    continue
+                if transmittance * (1 - alpha) < TRANSMITTANCE_STOP:
+                    break
+                colour += transmittance * alpha * colours[i].detach().numpy()
+                transmittance *= 1 - alpha
+            image[v, u] = colour + transmittance * background
+    return image
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compositing_follows_the_reference_rules(seed):
+    means, log_scales, quaternions, opacities, colours = scene(seed=seed)
+    background = torch.tensor([0.2, 0.0], dtype=torch.float64)
+    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours, background=background)
+    expected = literal_loop(projected, colours, opacities, background.numpy())
+    np.testing.assert_allclose(image.detach().numpy(), expected, atol=1e-10)
+    assert coverage.min() >= 0 and coverage.max() <= 1
+
+
+def test_an_opaque_stack_stops_early():
+    # 20 identical, nearly opaque Gaussians: only the first few are blended at each pixel.
+    means = torch.zeros(20, 3, dtype=torch.float64)
+    log_scales = torch.full((20, 3), math.log(0.3), dtype=torch.float64)
+    quaternions = torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).repeat(20, 1)
+    opacities = torch.full((20,), 0.99, dtype=torch.float64)
+    colours = torch.rand(20, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours, background=torch.ones(1, dtype=torch.float64))
+    expected = literal_loop(projected, colours, opacities, np.ones(1))
+    np.testing.assert_allclose(image.detach().numpy(), expected, atol=1e-10)
+    assert 0.9998 < coverage[H // 2, W // 2] <= 1 - TRANSMITTANCE_STOP  # two blended; a third would pass T 1e-4
+
+
+def test_projection_matches_the_cameras():
+    cameras, rotation, translation = camera(2)
+    means = torch.tensor([[0.3, -0.2, 0.5], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    scale = 0.05
+    cov = covariances(torch.full((2, 3), scale, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64))
+    projected = project(means, cov, rotation, translation, float(cameras.focal), W, H)
+    pixels, depth = cameras.project(2, means.numpy())
+    # Width and height differ here only through cx, cy; the orbit's cameras are square.
+    pixels[:, 1] += (H - W) / 2
+    np.testing.assert_allclose(projected.means2d.numpy(), pixels, atol=1e-9)
+    np.testing.assert_allclose(projected.depths.numpy(), depth, atol=1e-12)
+    # An isotropic Gaussian at the origin (on the optical axis) projects to a circle of
+    # variance (f·s/z)², plus the 0.3 px² dilation.
+    variance = (cameras.focal * scale / depth[1]) ** 2 + 0.3
+    np.testing.assert_allclose(projected.covariances2d[1].numpy(), [variance, 0.0, variance], atol=1e-9)
+    assert projected.radii[1] == math.ceil(3 * math.sqrt(variance))
+
+
+def test_culling_near_plane_and_off_screen():
+    cameras, rotation, translation = camera(0)
+    centre = torch.tensor(cameras.centres()[0], dtype=torch.float64)
+    forward = rotation[2]
+    means = torch.stack([centre + 0.1 * forward, centre - forward, centre + 3 * forward, torch.tensor([0.0, 0.0, 50.0], dtype=torch.float64)])
+    cov = covariances(torch.full((4, 3), 0.01, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]] * 4, dtype=torch.float64))
+    projected = project(means, cov, rotation, translation, float(cameras.focal), W, H)
+    assert projected.radii.tolist()[:2] == [0, 0] and projected.radii[2] > 0 and projected.radii[3] == 0
+    assert torch.isfinite(projected.means2d).all() and torch.isfinite(projected.conics).all()
+    image, coverage = composite(projected, torch.ones(4, 1, dtype=torch.float64), torch.ones(4, dtype=torch.float64), W, H)
+    assert torch.isfinite(image).all()
+
+
+def test_a_gaussian_is_drawn_where_its_mean_projects():
+    cameras, rotation, translation = camera(1)
+    point = torch.tensor([[0.35, -0.4, 0.25]], dtype=torch.float64)
+    cov = covariances(torch.full((1, 3), 0.02, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64))
+    projected = project(point, cov, rotation, translation, float(cameras.focal), W, H)
+    image, _ = composite(projected, torch.ones(1, 1, dtype=torch.float64), torch.full((1,), 0.9, dtype=torch.float64), W, H)
+    row, column = np.unravel_index(int(torch.argmax(image[..., 0])), (H, W))
+    assert (column, row) == tuple(int(c) for c in torch.floor(projected.means2d[0]).tolist())
+
+
+def test_empty_views_render_the_background():
+    cameras, rotation, translation = camera(0)
+    empty = torch.zeros(0, 3, dtype=torch.float64)
+    projected = project(empty, torch.zeros(0, 3, 3, dtype=torch.float64), rotation, translation, float(cameras.focal), W, H)
+    image, coverage = composite(projected, torch.zeros(0, 1, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), W, H,
+                                torch.tensor([0.25], dtype=torch.float64))
+    assert torch.all(image == 0.25) and not coverage.any()
+
+
+def test_gradients_match_finite_differences():
+    means, log_scales, quaternions, opacities, colours = scene(count=8, seed=4)
+    opacity_logits = torch.logit(opacities.clamp(1e-3, 1 - 1e-3))
+    inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacity_logits, colours)]
+    weights = torch.rand(H, W, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(9))
+
+    def loss(m, s, q, o, c):
+        (image, _), _ = render(m, s, q, torch.sigmoid(o), c)
+        return (image * weights).sum()
+
+    assert torch.autograd.gradcheck(loss, inputs, eps=1e-7, atol=1e-5, rtol=1e-4)
