@@ -8,8 +8,15 @@ import pytest
 import torch
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+
 from cubecloud_cli.raster import composite, covariances, project
+from cubecloud_cli.raster.cpu import composite_cpu
+from cubecloud_cli.raster.cpu_kernels import stable_depth_order
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA, TRANSMITTANCE_STOP
+
+COMPOSITORS = {"torch": composite, "numba": composite_cpu}
 
 W, H = 24, 20
 
@@ -38,10 +45,10 @@ def scene(count=30, seed=0, dtype=torch.float64):
     return means, log_scales, quaternions, opacities, colours
 
 
-def render(means, log_scales, quaternions, opacities, colours, view=0, background=None):
+def render(means, log_scales, quaternions, opacities, colours, view=0, background=None, compositor=composite):
     cameras, rotation, translation = camera(view, means.dtype)
     projected = project(means, covariances(torch.exp(log_scales), quaternions), rotation, translation, float(cameras.focal), W, H)
-    return composite(projected, colours, opacities, W, H, background), projected
+    return compositor(projected, colours, opacities, W, H, background), projected
 
 
 def literal_loop(projected, colours, opacities, background):
@@ -68,24 +75,28 @@ def literal_loop(projected, colours, opacities, background):
     return image
 
 
+@pytest.mark.parametrize("backend", COMPOSITORS)
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_compositing_follows_the_reference_rules(seed):
+def test_compositing_follows_the_reference_rules(seed, backend):
     means, log_scales, quaternions, opacities, colours = scene(seed=seed)
     background = torch.tensor([0.2, 0.0], dtype=torch.float64)
-    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours, background=background)
+    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours, background=background,
+                                          compositor=COMPOSITORS[backend])
     expected = literal_loop(projected, colours, opacities, background.numpy())
     np.testing.assert_allclose(image.detach().numpy(), expected, atol=1e-10)
     assert coverage.min() >= 0 and coverage.max() <= 1
 
 
-def test_an_opaque_stack_stops_early():
+@pytest.mark.parametrize("backend", COMPOSITORS)
+def test_an_opaque_stack_stops_early(backend):
     # 20 identical, nearly opaque Gaussians: only the first few are blended at each pixel.
     means = torch.zeros(20, 3, dtype=torch.float64)
     log_scales = torch.full((20, 3), math.log(0.3), dtype=torch.float64)
     quaternions = torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).repeat(20, 1)
     opacities = torch.full((20,), 0.99, dtype=torch.float64)
     colours = torch.rand(20, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours, background=torch.ones(1, dtype=torch.float64))
+    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours,
+                                          background=torch.ones(1, dtype=torch.float64), compositor=COMPOSITORS[backend])
     expected = literal_loop(projected, colours, opacities, np.ones(1))
     np.testing.assert_allclose(image.detach().numpy(), expected, atol=1e-10)
     assert 0.9998 < coverage[H // 2, W // 2] <= 1 - TRANSMITTANCE_STOP  # two blended; a third would pass T 1e-4
@@ -152,3 +163,37 @@ def test_gradients_match_finite_differences():
         return (image * weights).sum()
 
     assert torch.autograd.gradcheck(loss, inputs, eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("seed", [0, 3, 7])
+def test_the_numba_kernel_matches_the_oracle_and_its_gradients(seed, dtype):
+    """Forward and every gradient within 1e-4 relative, on scenes with the extremes: tiny and huge
+    scales, opacity near 0 and 1, identical Gaussians, one off screen and one at the near plane."""
+    means, log_scales, quaternions, opacities, colours = (t.to(dtype) for t in scene(count=60, seed=seed))
+    cameras, _, _ = camera(0)
+    forward = torch.tensor(cameras.rotations[0][2], dtype=dtype)
+    means[7] = torch.tensor(cameras.centres()[0], dtype=dtype) + 0.21 * forward  # just past the near plane
+    weights = torch.rand(H, W, 2, dtype=dtype, generator=torch.Generator().manual_seed(seed))
+    results = {}
+    for name, compositor in COMPOSITORS.items():
+        inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
+        (image, coverage), _ = render(*inputs, background=torch.tensor([0.1, 0.3], dtype=dtype), compositor=compositor)
+        (image * weights).sum().backward()
+        results[name] = (image.detach(), coverage.detach(), [t.grad for t in inputs])
+    tolerance = 1e-4 if dtype == torch.float64 else 2e-3
+    (image_t, coverage_t, grads_t), (image_n, coverage_n, grads_n) = results["torch"], results["numba"]
+    torch.testing.assert_close(image_n, image_t, rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)
+    torch.testing.assert_close(coverage_n, coverage_t, rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)
+    for oracle, fast in zip(grads_t, grads_n):
+        scale = oracle.abs().max().clamp_min(1e-12)
+        assert float((fast - oracle).abs().max() / scale) < tolerance
+
+
+@settings(max_examples=40, deadline=None)
+@example([0.0, -0.0, 2.0, -0.0, 2.0])
+@given(st.lists(st.sampled_from([0.0, -0.0, 1e-300, -1.5, 2.0, 2.0, 3.25, 1e300, -1e300, 7.0]) | st.floats(-1e6, 1e6), min_size=0, max_size=300))
+def test_radix_depth_order_is_a_stable_sort(depths):
+    depths = np.asarray(depths, dtype=np.float64)
+    candidates = np.arange(depths.size, dtype=np.int64)
+    np.testing.assert_array_equal(stable_depth_order(candidates, depths), np.argsort(depths, kind="stable"))

@@ -30,30 +30,45 @@ class Pairs:
     pixel: torch.Tensor  # (P,) int64, row-major v * W + u
 
 
-def splat_pairs(projected: Projected, width: int, height: int) -> Pairs:
-    """Every (Gaussian, pixel) pair whose pixel centre lies in the Gaussian's 3σ square."""
+def pixel_bounds(projected: Projected, width: int, height: int) -> torch.Tensor:
+    """(N, 4) int64 inclusive pixel ranges x0, x1, y0, y1 of each splat's 3σ square: the pixels
+    whose centres (i + 0.5) lie within [u − r, u + r] × [v − r, v + r]. Culled or off-image
+    splats get an empty range (x1 < x0)."""
     with torch.no_grad():
-        device = projected.depths.device
-        visible = (projected.radii > 0).nonzero().squeeze(1)
-        u, v = projected.means2d[visible, 0].detach(), projected.means2d[visible, 1].detach()
-        r = projected.radii[visible].to(u.dtype)
-        # Pixel i has its centre at i + 0.5: centres within [u − r, u + r].
+        u, v = projected.means2d[:, 0].detach(), projected.means2d[:, 1].detach()
+        r = projected.radii.to(u.dtype)
         x0 = torch.ceil(u - r - 0.5).clamp(0, width).long()
         x1 = torch.floor(u + r - 0.5).clamp(-1, width - 1).long()
         y0 = torch.ceil(v - r - 0.5).clamp(0, height).long()
         y1 = torch.floor(v + r - 0.5).clamp(-1, height - 1).long()
+        culled = projected.radii <= 0
+        x1 = torch.where(culled, x0 - 1, x1)
+        return torch.stack((x0, x1, y0, y1), dim=1)
+
+
+def depth_order(projected: Projected) -> torch.Tensor:
+    """Indices of the visible Gaussians, front to back (ties keep index order)."""
+    visible = (projected.radii > 0).nonzero().squeeze(1)
+    return visible[torch.argsort(projected.depths[visible].detach(), stable=True)]
+
+
+def splat_pairs(projected: Projected, width: int, height: int) -> Pairs:
+    """Every (Gaussian, pixel) pair whose pixel centre lies in the Gaussian's 3σ square."""
+    with torch.no_grad():
+        device = projected.depths.device
+        order = depth_order(projected)
+        bounds = pixel_bounds(projected, width, height)[order]
+        x0, x1, y0, y1 = bounds.unbind(1)
         columns = (x1 - x0 + 1).clamp_min(0)
         counts = columns * (y1 - y0 + 1).clamp_min(0)
         total = int(counts.sum())
-        owner = torch.repeat_interleave(torch.arange(visible.numel(), device=device), counts)
+        owner = torch.repeat_interleave(torch.arange(order.numel(), device=device), counts)  # depth rank
         first = torch.cumsum(counts, 0) - counts
         local = torch.arange(total, device=device) - first[owner]
         pixel = (y0[owner] + local // columns[owner]) * width + x0[owner] + local % columns[owner]
         # Front to back within a pixel: sort by (pixel, depth rank).
-        rank = torch.empty_like(visible)
-        rank[torch.argsort(projected.depths[visible].detach(), stable=True)] = torch.arange(visible.numel(), device=device)
-        order = torch.argsort(pixel * max(visible.numel(), 1) + rank[owner])
-        return Pairs(visible[owner[order]], pixel[order])
+        sorted_pairs = torch.argsort(pixel * max(order.numel(), 1) + owner)
+        return Pairs(order[owner[sorted_pairs]], pixel[sorted_pairs])
 
 
 def composite(

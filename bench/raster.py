@@ -1,0 +1,95 @@
+"""Rasterizer speed: forward + backward of one view, the numba CPU kernel against the plain
+PyTorch path, on a random scene of Gaussians filling the volume's cube.
+
+    python bench/raster.py                       # 50k Gaussians, 128² (the issue's target scene)
+    python bench/raster.py --gaussians 200000 --resolution 256
+
+Prints milliseconds per forward + backward (median of --repeats, after a warm-up that also
+compiles the kernels), the split between projection, compositing forward and backward, and the
+useful (Gaussian, pixel) pairs per second: pairs with α ≥ 1/255 that were blended.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from cubecloud_cli.raster import composite, covariances, project, splat_pairs
+from cubecloud_cli.raster.cpu import composite_cpu
+from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA
+
+
+def random_scene(count: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    spacing = (8.0 / count) ** (1.0 / 3.0)  # mean distance between neighbours in the cube
+    means = torch.rand(count, 3, generator=g) * 1.8 - 0.9
+    log_scales = torch.log(spacing * (0.3 + 0.4 * torch.rand(count, 3, generator=g)))
+    quaternions = torch.randn(count, 4, generator=g)
+    opacities = 0.05 + 0.9 * torch.rand(count, generator=g)
+    colours = torch.rand(count, 1, generator=g)
+    return means, log_scales, quaternions, opacities, colours
+
+
+def useful_pairs(projected, opacities, width, height) -> int:
+    pairs = splat_pairs(projected, width, height)
+    dx = (pairs.pixel % width).float() + 0.5 - projected.means2d[pairs.gaussian, 0].detach()
+    dy = torch.div(pairs.pixel, width, rounding_mode="floor").float() + 0.5 - projected.means2d[pairs.gaussian, 1].detach()
+    conic = projected.conics[pairs.gaussian].detach()
+    power = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
+    alpha = torch.clamp(opacities[pairs.gaussian] * torch.exp(-power), max=MAX_ALPHA)
+    return int((alpha >= MIN_ALPHA).sum())
+
+
+def time_backend(compositor, scene, cameras, width, repeats):
+    means, log_scales, quaternions, opacities, colours = scene
+    rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
+    translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
+    splits = {"project": [], "forward": [], "backward": [], "total": []}
+    for _ in range(repeats + 1):
+        inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
+        start = time.perf_counter()
+        projected = project(inputs[0], covariances(torch.exp(inputs[1]), inputs[2]), rotation, translation,
+                            float(cameras.focal), width, width)
+        projected_at = time.perf_counter()
+        image, _ = compositor(projected, inputs[4], inputs[3], width, width)
+        forward_at = time.perf_counter()
+        image.sum().backward()
+        end = time.perf_counter()
+        for key, value in (("project", projected_at - start), ("forward", forward_at - projected_at),
+                           ("backward", end - forward_at), ("total", end - start)):
+            splits[key].append(value)
+    return {key: 1000 * statistics.median(values[1:]) for key, values in splits.items()}, projected
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--gaussians", type=int, default=50_000)
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--skip-torch", action="store_true", help="time only the numba kernel")
+    args = parser.parse_args()
+
+    scene = random_scene(args.gaussians)
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=args.resolution))
+    print(f"{args.gaussians} Gaussians, {args.resolution}² view, {torch.get_num_threads()} threads; "
+          f"median of {args.repeats} forward + backward passes")
+    results = {}
+    for name, compositor in (("numba", composite_cpu), ("torch", composite)):
+        if name == "torch" and args.skip_torch:
+            continue
+        times, projected = time_backend(compositor, scene, cameras, args.resolution, args.repeats if name == "numba" else max(3, args.repeats // 5))
+        results[name] = times
+        print(f"  {name:<6} total {times['total']:7.2f} ms  (project {times['project']:.2f}, "
+              f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f})")
+    pairs = useful_pairs(projected, scene[3], args.resolution, args.resolution)
+    print(f"  useful pairs (α ≥ 1/255): {pairs:,} -> {pairs / (results['numba']['total'] / 1000) / 1e6:.1f} M pairs/s (numba, fwd+bwd)")
+    if "torch" in results:
+        print(f"  speed-up of numba over the plain PyTorch path: {results['torch']['total'] / results['numba']['total']:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
