@@ -1,0 +1,102 @@
+"""The Gaussian model: raw (pre-activation) parameters, as the reference 3DGS stores them.
+
+means (N, 3) world units; log scales (N, 3); quaternions (N, 4), w first, normalised on use;
+opacity logits (N,); SH coefficients (N, (degree+1)², C) with C = 1 for CT (grey, DESIGN §4)
+or 3. Activations: exp, normalise, sigmoid, and :func:`sh_to_colour`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE, coefficient_count, rgb_to_sh, sh_to_colour
+
+INITIAL_OPACITY = 0.1  # the reference initialisation
+# exp(±LOG_SCALE_LIMIT) stays finite and non-zero in float32, whatever the optimizer does.
+LOG_SCALE_LIMIT = 30.0
+MIN_NEIGHBOUR_DISTANCE_SQUARED = 1e-7  # the reference clamp, for duplicated points
+
+
+@dataclass
+class Gaussians:
+    means: torch.Tensor
+    log_scales: torch.Tensor
+    quaternions: torch.Tensor
+    opacity_logits: torch.Tensor
+    sh: torch.Tensor  # (N, K, C)
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def channels(self) -> int:
+        return self.sh.shape[2]
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(self.sh.shape[1] ** 0.5)) - 1
+
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT))
+
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    def colours(self, camera_centre: torch.Tensor | None = None, degree: int | None = None) -> torch.Tensor:
+        """(N, C) colours seen from ``camera_centre`` (needed only above degree 0)."""
+        degree = self.sh_degree if degree is None else min(degree, self.sh_degree)
+        directions = None if degree == 0 else self.means - camera_centre
+        return sh_to_colour(self.sh, directions, degree)
+
+    def parameters(self) -> dict[str, torch.Tensor]:
+        return {"means": self.means, "log_scales": self.log_scales, "quaternions": self.quaternions,
+                "opacity_logits": self.opacity_logits, "sh": self.sh}
+
+
+def neighbour_log_scales(points: np.ndarray) -> np.ndarray:
+    """log √(mean squared distance to the 3 nearest neighbours), the reference initial scale."""
+    from scipy.spatial import cKDTree
+
+    count = len(points)
+    if count < 2:
+        return np.zeros(count)
+    neighbours = min(3, count - 1)
+    distances, _ = cKDTree(points).query(points, k=neighbours + 1)
+    squared = np.maximum(np.mean(distances[:, 1:] ** 2, axis=1), MIN_NEIGHBOUR_DISTANCE_SQUARED)
+    return 0.5 * np.log(squared)
+
+
+def gaussians_from_points(xyz: np.ndarray, colours: np.ndarray, channels: int = 1, sh_degree: int = 0) -> Gaussians:
+    """Isotropic Gaussians at points, sized by their neighbours, with opacity 0.1 and the
+    points' colours (``colours`` in [0, 1], (P, 1) or (P, 3))."""
+    if not 0 <= sh_degree <= MAX_DEGREE:
+        raise ValueError(f"SH degree must be within 0..{MAX_DEGREE}, got {sh_degree}")
+    xyz = np.asarray(xyz, dtype=np.float64)
+    colours = np.asarray(colours, dtype=np.float32).reshape(len(xyz), -1)
+    if channels == 1 and colours.shape[1] == 3:
+        colours = colours.mean(axis=1, keepdims=True)
+    elif channels == 3 and colours.shape[1] == 1:
+        colours = np.repeat(colours, 3, axis=1)
+    count = len(xyz)
+    log_scale = torch.from_numpy(neighbour_log_scales(xyz)).float()
+    sh = torch.zeros(count, coefficient_count(sh_degree), channels)
+    sh[:, 0] = rgb_to_sh(torch.from_numpy(colours))
+    quaternions = torch.zeros(count, 4)
+    quaternions[:, 0] = 1.0
+    return Gaussians(
+        torch.from_numpy(xyz).float(),
+        log_scale[:, None].repeat(1, 3),
+        quaternions,
+        torch.full((count,), float(np.log(INITIAL_OPACITY / (1 - INITIAL_OPACITY)))),
+        sh,
+    )
+
+
+def random_points(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's baseline initialisation: points uniform in the volume's cube [−1, 1]³ with
+    random grey levels."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-1.0, 1.0, (count, 3)), rng.uniform(0.0, 1.0, (count, 1))
