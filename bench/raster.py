@@ -18,7 +18,7 @@ import time
 import torch
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-from cubecloud_cli.raster import composite, covariances, project, splat_pairs
+from cubecloud_cli.raster import composite, project, splat_pairs
 from cubecloud_cli.raster.cpu import composite_cpu
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA
 
@@ -52,7 +52,7 @@ def time_backend(compositor, scene, cameras, width, repeats):
     for _ in range(repeats + 1):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
         start = time.perf_counter()
-        projected = project(inputs[0], covariances(torch.exp(inputs[1]), inputs[2]), rotation, translation,
+        projected = project(inputs[0], torch.exp(inputs[1]), inputs[2], rotation, translation,
                             float(cameras.focal), width, width)
         projected_at = time.perf_counter()
         image, _ = compositor(projected, inputs[4], inputs[3], width, width)

@@ -47,7 +47,7 @@ def scene(count=30, seed=0, dtype=torch.float64):
 
 def render(means, log_scales, quaternions, opacities, colours, view=0, background=None, compositor=composite):
     cameras, rotation, translation = camera(view, means.dtype)
-    projected = project(means, covariances(torch.exp(log_scales), quaternions), rotation, translation, float(cameras.focal), W, H)
+    projected = project(means, torch.exp(log_scales), quaternions, rotation, translation, float(cameras.focal), W, H)
     return compositor(projected, colours, opacities, W, H, background), projected
 
 
@@ -106,8 +106,8 @@ def test_projection_matches_the_cameras():
     cameras, rotation, translation = camera(2)
     means = torch.tensor([[0.3, -0.2, 0.5], [0.0, 0.0, 0.0]], dtype=torch.float64)
     scale = 0.05
-    cov = covariances(torch.full((2, 3), scale, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64))
-    projected = project(means, cov, rotation, translation, float(cameras.focal), W, H)
+    identity = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64)
+    projected = project(means, torch.full((2, 3), scale, dtype=torch.float64), identity, rotation, translation, float(cameras.focal), W, H)
     pixels, depth = cameras.project(2, means.numpy())
     # Width and height differ here only through cx, cy; the orbit's cameras are square.
     pixels[:, 1] += (H - W) / 2
@@ -120,13 +120,35 @@ def test_projection_matches_the_cameras():
     assert projected.radii[1] == math.ceil(3 * math.sqrt(variance))
 
 
+def test_projected_covariance_is_the_ewa_matrix_product():
+    """J W Σ Wᵀ Jᵀ + 0.3 I with matrices, against the element-wise form, clamps included."""
+    means, log_scales, quaternions, _, _ = scene(count=40, seed=5)
+    means[:5] *= 4.0  # some far off to the sides, where the Jacobian's x/z, y/z are clamped
+    cameras, rotation, translation = camera(3)
+    projected = project(means, torch.exp(log_scales), quaternions, rotation, translation, float(cameras.focal), W, H)
+    camera_points = means @ rotation.T + translation
+    z = camera_points[:, 2]
+    limit_x, limit_y = 1.3 * (W / 2) / cameras.focal, 1.3 * (H / 2) / cameras.focal
+    tx = (camera_points[:, 0] / z).clamp(-limit_x, limit_x) * z
+    ty = (camera_points[:, 1] / z).clamp(-limit_y, limit_y) * z
+    f = cameras.focal
+    jacobian = torch.zeros(40, 2, 3, dtype=torch.float64)
+    jacobian[:, 0, 0], jacobian[:, 0, 2] = f / z, -f * tx / z**2
+    jacobian[:, 1, 1], jacobian[:, 1, 2] = f / z, -f * ty / z**2
+    transform = jacobian @ rotation
+    cov2d = transform @ covariances(torch.exp(log_scales), quaternions) @ transform.transpose(1, 2)
+    expected = torch.stack((cov2d[:, 0, 0] + 0.3, cov2d[:, 0, 1], cov2d[:, 1, 1] + 0.3), dim=1)
+    visible = z > 0.2
+    torch.testing.assert_close(projected.covariances2d[visible], expected[visible], rtol=1e-10, atol=1e-12)
+
+
 def test_culling_near_plane_and_off_screen():
     cameras, rotation, translation = camera(0)
     centre = torch.tensor(cameras.centres()[0], dtype=torch.float64)
     forward = rotation[2]
     means = torch.stack([centre + 0.1 * forward, centre - forward, centre + 3 * forward, torch.tensor([0.0, 0.0, 50.0], dtype=torch.float64)])
-    cov = covariances(torch.full((4, 3), 0.01, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]] * 4, dtype=torch.float64))
-    projected = project(means, cov, rotation, translation, float(cameras.focal), W, H)
+    identity = torch.tensor([[1.0, 0, 0, 0]] * 4, dtype=torch.float64)
+    projected = project(means, torch.full((4, 3), 0.01, dtype=torch.float64), identity, rotation, translation, float(cameras.focal), W, H)
     assert projected.radii.tolist()[:2] == [0, 0] and projected.radii[2] > 0 and projected.radii[3] == 0
     assert torch.isfinite(projected.means2d).all() and torch.isfinite(projected.conics).all()
     image, coverage = composite(projected, torch.ones(4, 1, dtype=torch.float64), torch.ones(4, dtype=torch.float64), W, H)
@@ -136,8 +158,8 @@ def test_culling_near_plane_and_off_screen():
 def test_a_gaussian_is_drawn_where_its_mean_projects():
     cameras, rotation, translation = camera(1)
     point = torch.tensor([[0.35, -0.4, 0.25]], dtype=torch.float64)
-    cov = covariances(torch.full((1, 3), 0.02, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64))
-    projected = project(point, cov, rotation, translation, float(cameras.focal), W, H)
+    identity = torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64)
+    projected = project(point, torch.full((1, 3), 0.02, dtype=torch.float64), identity, rotation, translation, float(cameras.focal), W, H)
     image, _ = composite(projected, torch.ones(1, 1, dtype=torch.float64), torch.full((1,), 0.9, dtype=torch.float64), W, H)
     row, column = np.unravel_index(int(torch.argmax(image[..., 0])), (H, W))
     assert (column, row) == tuple(int(c) for c in torch.floor(projected.means2d[0]).tolist())
@@ -146,7 +168,7 @@ def test_a_gaussian_is_drawn_where_its_mean_projects():
 def test_empty_views_render_the_background():
     cameras, rotation, translation = camera(0)
     empty = torch.zeros(0, 3, dtype=torch.float64)
-    projected = project(empty, torch.zeros(0, 3, 3, dtype=torch.float64), rotation, translation, float(cameras.focal), W, H)
+    projected = project(empty, torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 4, dtype=torch.float64), rotation, translation, float(cameras.focal), W, H)
     image, coverage = composite(projected, torch.zeros(0, 1, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), W, H,
                                 torch.tensor([0.25], dtype=torch.float64))
     assert torch.all(image == 0.25) and not coverage.any()
