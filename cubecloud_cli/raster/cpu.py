@@ -53,6 +53,6 @@ def composite_cpu(
     """:func:`cubecloud_cli.raster.pairs.composite` computed by the numba kernels."""
     if background is None:
         background = torch.zeros(colours.shape[1], dtype=colours.dtype)
-    bounds = pixel_bounds(projected, width, height)
+    bounds = pixel_bounds(projected, width, height, opacities)
     return _Composite.apply(projected.means2d, projected.conics, colours, opacities, background, bounds,
                             projected.depths.detach(), width, height)

@@ -30,17 +30,25 @@ class Pairs:
     pixel: torch.Tensor  # (P,) int64, row-major v * W + u
 
 
-def pixel_bounds(projected: Projected, width: int, height: int) -> torch.Tensor:
-    """(N, 4) int64 inclusive pixel ranges x0, x1, y0, y1 of each splat's 3σ square: the pixels
-    whose centres (i + 0.5) lie within [u − r, u + r] × [v − r, v + r]. Culled or off-image
-    splats get an empty range (x1 < x0)."""
+def pixel_bounds(projected: Projected, width: int, height: int, opacities: torch.Tensor | None = None) -> torch.Tensor:
+    """(N, 4) int64 inclusive pixel ranges x0, x1, y0, y1 of each splat: the pixels whose centres
+    (i + 0.5) lie within its 3σ square, as in the reference. With ``opacities`` the ranges also
+    shrink to the box around the ellipse where α = o·exp(−power) ≥ 1/255, since pairs outside it
+    are skipped anyway: the image is the same, the work smaller. Culled or off-image splats get
+    an empty range (x1 < x0)."""
     with torch.no_grad():
         u, v = projected.means2d[:, 0].detach(), projected.means2d[:, 1].detach()
-        r = projected.radii.to(u.dtype)
-        x0 = torch.ceil(u - r - 0.5).clamp(0, width).long()
-        x1 = torch.floor(u + r - 0.5).clamp(-1, width - 1).long()
-        y0 = torch.ceil(v - r - 0.5).clamp(0, height).long()
-        y1 = torch.floor(v + r - 0.5).clamp(-1, height - 1).long()
+        half_x = half_y = projected.radii.to(u.dtype)
+        if opacities is not None:
+            # α ≥ 1/255 ⇔ power ≤ L = ln(255·o), an ellipse whose box has half-sides √(2L·σ²).
+            level = torch.log((255.0 * opacities.detach().to(u.dtype)).clamp_min(1e-30)).clamp_min(0.0)
+            covariance = projected.covariances2d.detach().to(u.dtype)
+            half_x = torch.minimum(half_x, torch.sqrt(2.0 * level * covariance[:, 0]))
+            half_y = torch.minimum(half_y, torch.sqrt(2.0 * level * covariance[:, 2]))
+        x0 = torch.ceil(u - half_x - 0.5).clamp(0, width).long()
+        x1 = torch.floor(u + half_x - 0.5).clamp(-1, width - 1).long()
+        y0 = torch.ceil(v - half_y - 0.5).clamp(0, height).long()
+        y1 = torch.floor(v + half_y - 0.5).clamp(-1, height - 1).long()
         culled = projected.radii <= 0
         x1 = torch.where(culled, x0 - 1, x1)
         return torch.stack((x0, x1, y0, y1), dim=1)
@@ -52,12 +60,12 @@ def depth_order(projected: Projected) -> torch.Tensor:
     return visible[torch.argsort(projected.depths[visible].detach(), stable=True)]
 
 
-def splat_pairs(projected: Projected, width: int, height: int) -> Pairs:
-    """Every (Gaussian, pixel) pair whose pixel centre lies in the Gaussian's 3σ square."""
+def splat_pairs(projected: Projected, width: int, height: int, opacities: torch.Tensor | None = None) -> Pairs:
+    """Every (Gaussian, pixel) pair within the Gaussian's :func:`pixel_bounds`."""
     with torch.no_grad():
         device = projected.depths.device
         order = depth_order(projected)
-        bounds = pixel_bounds(projected, width, height)[order]
+        bounds = pixel_bounds(projected, width, height, opacities)[order]
         x0, x1, y0, y1 = bounds.unbind(1)
         columns = (x1 - x0 + 1).clamp_min(0)
         counts = columns * (y1 - y0 + 1).clamp_min(0)
@@ -82,7 +90,7 @@ def composite(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Render (H, W, C) colours and (H, W) accumulated alpha from projected Gaussians with
     (N, C) colours and (N,) opacities in [0, 1]."""
-    pairs = pairs or splat_pairs(projected, width, height)
+    pairs = pairs or splat_pairs(projected, width, height, opacities)
     channels = colours.shape[1]
     g, pixel = pairs.gaussian, pairs.pixel
     centre_u = (pixel % width).to(colours.dtype) + 0.5
