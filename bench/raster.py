@@ -3,6 +3,7 @@ PyTorch path, on a random scene of Gaussians filling the volume's cube.
 
     python bench/raster.py                       # 50k Gaussians, 128² (the issue's target scene)
     python bench/raster.py --gaussians 200000 --resolution 256
+    python bench/raster.py --cloud work/export/points3D.ply   # the exported Cube-Cloud, as initialised
 
 Prints milliseconds per forward + backward (median of --repeats, after a warm-up that also
 compiles the kernels), the split between projection, compositing forward and backward, and the
@@ -32,6 +33,22 @@ def random_scene(count: int, seed: int = 0):
     opacities = 0.05 + 0.9 * torch.rand(count, generator=g)
     colours = torch.rand(count, 1, generator=g)
     return means, log_scales, quaternions, opacities, colours
+
+
+def cloud_scene(path, count: int, seed: int = 0):
+    """Gaussians initialised from an exported point cloud as `splat` does (neighbour scales,
+    opacity 0.1), ``count`` of its points drawn at random."""
+    import numpy as np
+
+    from cubecloud_cli.scene import read_point_cloud_ply
+    from cubecloud_cli.splat import gaussians_from_points
+
+    xyz, rgb, _ = read_point_cloud_ply(path)
+    if count < len(xyz):
+        keep = np.random.default_rng(seed).choice(len(xyz), count, replace=False)
+        xyz, rgb = xyz[keep], rgb[keep]
+    gaussians = gaussians_from_points(xyz, rgb[:, :1] / 255.0)
+    return gaussians.means, gaussians.log_scales, gaussians.quaternions, gaussians.opacities(), gaussians.colours()
 
 
 def useful_pairs(projected, opacities, width, height) -> int:
@@ -71,11 +88,12 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--skip-torch", action="store_true", help="time only the numba kernel")
+    parser.add_argument("--cloud", help="an exported points3D.ply to initialise the scene from (default: random)")
     args = parser.parse_args()
 
-    scene = random_scene(args.gaussians)
+    scene = cloud_scene(args.cloud, args.gaussians) if args.cloud else random_scene(args.gaussians)
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=args.resolution))
-    print(f"{args.gaussians} Gaussians, {args.resolution}² view, {torch.get_num_threads()} threads; "
+    print(f"{len(scene[0])} Gaussians ({'from ' + args.cloud if args.cloud else 'random'}), {args.resolution}² view, {torch.get_num_threads()} threads; "
           f"median of {args.repeats} forward + backward passes")
     results = {}
     for name, compositor in (("numba", composite_cpu), ("torch", composite)):
