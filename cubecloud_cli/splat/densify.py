@@ -1,0 +1,134 @@
+"""Adaptive density control of the reference 3DGS (research/3dgs.md §1.3–1.4), as pure functions.
+
+Every ``refine_every`` iterations the trainer asks :func:`plan_densification` what to change and
+applies the plan to every per-Gaussian tensor (parameters and optimizer moments alike) with
+:func:`apply_plan`:
+
+* clone Gaussians whose mean view-space gradient (in NDC units) reaches the threshold and whose
+  largest scale is at most ``percent_dense`` × the scene extent (copies, unchanged);
+* split the large ones among them into two, drawn from the Gaussian itself, scales ÷ 1.6;
+* prune those with opacity below ``min_opacity`` (and, after the first opacity reset, those
+  larger than ``max_world_size`` × extent; the reference's screen-size rule never fires, see
+  §1.3, and is not reproduced);
+* hold the count to ``max_gaussians``: growth goes to the largest gradients first, and a model
+  above the budget loses its least opaque Gaussians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from cubecloud_cli.raster.projection import quaternion_to_rotation
+
+RESET_OPACITY = 0.01
+SPLIT_SCALE_DIVISOR = 1.6  # 0.8 · 2 children, as in the reference
+
+
+@dataclass(frozen=True)
+class DensifySettings:
+    grad_threshold: float = 0.0002
+    percent_dense: float = 0.01
+    min_opacity: float = 0.005
+    max_world_size: float = 0.1
+    max_gaussians: int | None = None
+
+
+class GradientStats:
+    """Running mean of each Gaussian's view-space mean gradient, in NDC units."""
+
+    def __init__(self, count: int, device: torch.device | str = "cpu"):
+        self.total = torch.zeros(count, device=device)
+        self.views = torch.zeros(count, device=device)
+
+    def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
+        # Pixel-space gradients × (W/2, H/2) are the NDC gradients the reference thresholds.
+        ndc = means2d_grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
+        visible = radii > 0
+        self.total[visible] += ndc[visible].norm(dim=1)
+        self.views[visible] += 1.0
+
+    def mean(self) -> torch.Tensor:
+        return torch.where(self.views > 0, self.total / self.views.clamp_min(1.0), torch.zeros_like(self.total))
+
+
+@dataclass
+class DensifyPlan:
+    keep: torch.Tensor  # (N,) bool: originals that stay
+    clone: torch.Tensor  # (C,) indices of Gaussians copied unchanged
+    split: torch.Tensor  # (S,) indices of Gaussians replaced by two children each
+    child_means: torch.Tensor  # (2S, 3)
+    child_log_scales: torch.Tensor  # (2S, 3)
+
+    @property
+    def new_count(self) -> int:
+        return int(self.keep.sum()) + self.clone.numel() + 2 * self.split.numel()
+
+
+def plan_densification(
+    means: torch.Tensor,
+    log_scales: torch.Tensor,
+    quaternions: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    mean_gradients: torch.Tensor,
+    settings: DensifySettings,
+    extent: float,
+    prune_large: bool,
+    generator: torch.Generator | None = None,
+) -> DensifyPlan:
+    with torch.no_grad():
+        count = means.shape[0]
+        scales = torch.exp(log_scales)
+        largest = scales.max(dim=1).values
+        opacity = torch.sigmoid(opacity_logits)
+        prune = opacity < settings.min_opacity
+        if prune_large:
+            prune |= largest > settings.max_world_size * extent
+        grow = (mean_gradients >= settings.grad_threshold) & ~prune
+        if settings.max_gaussians is not None:
+            surviving = count - int(prune.sum())
+            if surviving > settings.max_gaussians:  # over budget already: drop the least opaque
+                excess = surviving - settings.max_gaussians
+                ranked = torch.where(prune, torch.full_like(opacity, float("inf")), opacity)
+                prune[torch.topk(ranked, excess, largest=False).indices] = True
+                grow &= ~prune
+                surviving = settings.max_gaussians
+            room = max(0, settings.max_gaussians - surviving)  # each clone or split adds one
+            candidates = grow.nonzero().squeeze(1)
+            if candidates.numel() > room:
+                best = torch.topk(mean_gradients[candidates], room).indices
+                grow = torch.zeros_like(grow)
+                grow[candidates[best]] = True
+        big = largest > settings.percent_dense * extent
+        clone = (grow & ~big).nonzero().squeeze(1)
+        split = (grow & big).nonzero().squeeze(1)
+
+        # Children: two samples of N(μ, R diag(s²) Rᵀ), scales ÷ 1.6.
+        parent_scales = scales[split].repeat_interleave(2, dim=0)
+        noise = torch.randn(parent_scales.shape, generator=generator, device=means.device if generator is None else "cpu")
+        noise = noise.to(means.device) * parent_scales
+        rotations = quaternion_to_rotation(quaternions[split]).repeat_interleave(2, dim=0)
+        child_means = means[split].repeat_interleave(2, dim=0) + (rotations @ noise[:, :, None])[:, :, 0]
+        child_log_scales = torch.log(parent_scales / SPLIT_SCALE_DIVISOR)
+        keep = ~prune
+        keep[split] = False
+        return DensifyPlan(keep, clone, split, child_means, child_log_scales)
+
+
+def apply_plan(plan: DensifyPlan, values: torch.Tensor, children: torch.Tensor | None = None, new_rows_zero: bool = False) -> torch.Tensor:
+    """The per-Gaussian tensor after the plan: kept originals, then clones, then split children
+    (``children`` when given, else copies of their parents). ``new_rows_zero`` gives new rows
+    zeros instead (optimizer moments start afresh for new Gaussians)."""
+    kept = values[plan.keep]
+    if new_rows_zero:
+        added = values.new_zeros((plan.clone.numel() + 2 * plan.split.numel(), *values.shape[1:]))
+        return torch.cat((kept, added))
+    split_rows = children if children is not None else values[plan.split].repeat_interleave(2, dim=0)
+    return torch.cat((kept, values[plan.clone], split_rows))
+
+
+def reset_opacity(opacity_logits: torch.Tensor) -> torch.Tensor:
+    """Opacities capped at 0.01 (the reference's periodic reset), as logits."""
+    capped = torch.sigmoid(opacity_logits).clamp(max=RESET_OPACITY)
+    return torch.logit(capped.clamp_min(1e-7))

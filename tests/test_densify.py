@@ -1,0 +1,92 @@
+"""Adaptive density control on constructed cases: clone, split, prune, budget, reset."""
+
+import math
+
+import pytest
+import torch
+
+from cubecloud_cli.splat.densify import (
+    DensifySettings,
+    GradientStats,
+    apply_plan,
+    plan_densification,
+    reset_opacity,
+)
+
+EXTENT = 2.0  # percent_dense 0.01 → clone below a largest scale of 0.02, split above
+
+
+def model(scales, opacities):
+    count = len(scales)
+    means = torch.arange(count, dtype=torch.float32)[:, None].repeat(1, 3)
+    log_scales = torch.log(torch.tensor(scales, dtype=torch.float32))[:, None].repeat(1, 3)
+    quaternions = torch.tensor([[1.0, 0, 0, 0]]).repeat(count, 1)
+    logits = torch.logit(torch.tensor(opacities, dtype=torch.float32))
+    return means, log_scales, quaternions, logits
+
+
+def test_gradients_are_averaged_in_ndc_units():
+    stats = GradientStats(3)
+    grad = torch.tensor([[1.0, 1.0], [0.0, 2.0], [5.0, 5.0]])
+    stats.add(grad, torch.tensor([3, 3, 0]), width=100, height=60)
+    stats.add(grad * 0, torch.tensor([3, 0, 0]), width=100, height=60)
+    mean = stats.mean()
+    assert mean[0] == pytest.approx(math.hypot(50, 30) / 2)  # two views, one with zero gradient
+    assert mean[1] == pytest.approx(60.0) and mean[2] == 0.0  # never visible: no statistics
+
+
+def test_clone_split_prune_and_keep():
+    means, log_scales, quaternions, logits = model([0.01, 0.05, 0.01, 0.05, 0.01], [0.5, 0.5, 0.5, 0.5, 0.001])
+    gradients = torch.tensor([1e-3, 1e-3, 1e-5, 1e-5, 1e-3])
+    plan = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(), EXTENT, False,
+                              torch.Generator().manual_seed(0))
+    assert plan.clone.tolist() == [0] and plan.split.tolist() == [1]
+    assert plan.keep.tolist() == [True, False, True, True, False]  # split parent and transparent one go
+    assert plan.new_count == 3 + 1 + 2
+    assert torch.allclose(torch.exp(plan.child_log_scales), torch.full((2, 3), 0.05 / 1.6))
+    new_means = apply_plan(plan, means, plan.child_means)
+    assert new_means.shape == (6, 3) and torch.equal(new_means[3], means[0])  # the clone, unchanged
+    moments = apply_plan(plan, torch.ones(5, 3), new_rows_zero=True)
+    assert moments[:3].eq(1).all() and moments[3:].eq(0).all()
+    assert apply_plan(plan, logits)[4:].eq(logits[1]).all()  # children inherit the opacity
+
+
+def test_large_gaussians_are_pruned_only_after_the_first_reset():
+    means, log_scales, quaternions, logits = model([0.5, 0.01], [0.5, 0.5])
+    gradients = torch.zeros(2)
+    early = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(), EXTENT, False)
+    late = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(), EXTENT, True)
+    assert early.keep.tolist() == [True, True] and late.keep.tolist() == [False, True]
+
+
+def test_split_children_are_drawn_from_the_parent():
+    count = 4000
+    means = torch.zeros(count, 3)
+    log_scales = torch.log(torch.tensor([[0.3, 0.1, 0.05]])).repeat(count, 1)
+    angle = math.pi / 6  # a rotation about z
+    quaternions = torch.tensor([[math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]]).repeat(count, 1)
+    logits = torch.zeros(count)
+    plan = plan_densification(means, log_scales, quaternions, logits, torch.ones(count), DensifySettings(), EXTENT, False,
+                              torch.Generator().manual_seed(1))
+    assert plan.split.numel() == count and plan.child_means.shape == (2 * count, 3)
+    covariance = torch.cov(plan.child_means.T)
+    rotation = torch.tensor([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1.0]])
+    expected = rotation @ torch.diag(torch.tensor([0.09, 0.01, 0.0025])) @ rotation.T
+    assert torch.allclose(covariance, expected, atol=4e-3)
+
+
+def test_the_budget_takes_the_largest_gradients_and_prunes_down():
+    means, log_scales, quaternions, logits = model([0.01] * 6, [0.5, 0.6, 0.7, 0.4, 0.2, 0.9])
+    gradients = torch.tensor([1e-3, 5e-3, 2e-3, 0.0, 0.0, 0.0])
+    plan = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=7), EXTENT, False)
+    assert plan.clone.tolist() == [1] and plan.new_count == 7  # room for one: the largest gradient
+    over = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=4), EXTENT, False)
+    assert over.keep.tolist() == [True, True, True, False, False, True]  # the two least opaque go
+    assert over.clone.numel() == 0 and over.new_count == 4
+
+
+def test_opacity_reset_caps_at_one_percent():
+    logits = torch.logit(torch.tensor([0.9, 0.005, 1e-9]).clamp_min(1e-7))
+    reset = torch.sigmoid(reset_opacity(logits))
+    assert torch.allclose(reset, torch.tensor([0.01, 0.005, 1e-7]), rtol=1e-4)
+    assert torch.isfinite(reset_opacity(torch.tensor([100.0, -100.0]))).all()
