@@ -51,7 +51,8 @@ def psnr(reference, estimate, mask=None, data_range: float = 1.0) -> float:
     return psnr_from_mse(mse(reference, estimate, mask), data_range)
 
 
-def _gaussian_window() -> torch.Tensor:
+def gaussian_window() -> torch.Tensor:
+    """The normalised 11-tap Gaussian (σ = 1.5) of SSIM, float64."""
     x = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=torch.float64)
     window = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
     return window / window.sum()
@@ -64,7 +65,7 @@ def ssim_maps(reference, estimate, data_range: float = 1.0) -> torch.Tensor:
         x, y = x[None], y[None]
     if min(x.shape[-2:]) < 2 * SSIM_RADIUS + 1:
         raise ValueError(f"SSIM needs images of at least {2 * SSIM_RADIUS + 1}×{2 * SSIM_RADIUS + 1} pixels")
-    window = _gaussian_window()
+    window = gaussian_window()
     rows, cols = window.view(1, 1, -1, 1), window.view(1, 1, 1, -1)
 
     def blur(image: torch.Tensor) -> torch.Tensor:

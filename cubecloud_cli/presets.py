@@ -29,6 +29,13 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "balanced": {"resolution": 256, "views": 60, "axis": "si", "view": "dvr", "points_per_cube": 512, "max_points": 200_000},
         "paper": {"resolution": 512, "views": 60, "axis": "ap", "view": "slice", "points_per_cube": 64, "max_points": 0},
     },
+    # splat: the paper trains 30 000 iterations (the reference's length) on a GPU; the CPU
+    # presets train shorter, with the reference schedule scaled to their length.
+    "splat": {
+        "fast": {"iterations": 2000, "max_gaussians": 200_000},
+        "balanced": {"iterations": 7000, "max_gaussians": 500_000},
+        "paper": {"iterations": 30_000, "max_gaussians": None},
+    },
 }
 
 # cunerf presets hold one column per model, so `--model cunerf --preset fast` gets settings

@@ -77,7 +77,8 @@ def test_ply_round_trip_in_the_reference_layout(tmp_path, channels, degree):
     xyz, grey = random_points(64, seed=2)
     gaussians = gaussians_from_points(xyz, grey, channels=channels, sh_degree=degree)
     generator = torch.Generator().manual_seed(0)
-    gaussians.sh = torch.randn(gaussians.sh.shape, generator=generator)
+    gaussians.sh_dc = torch.randn(gaussians.sh_dc.shape, generator=generator)
+    gaussians.sh_rest = torch.randn(gaussians.sh_rest.shape, generator=generator)
     gaussians.quaternions = torch.randn(64, 4, generator=generator)
     path = tmp_path / "point_cloud.ply"
     write_gaussians_ply(path, gaussians)

@@ -11,6 +11,7 @@ from cubecloud_cli.cli.cunerf import cunerf_command
 from cubecloud_cli.cli.export import export_command
 from cubecloud_cli.cli.preprocess import preprocess_command
 from cubecloud_cli.cli.run import run_command
+from cubecloud_cli.cli.splat import splat_command
 
 app = typer.Typer(
     name="cubecloud",
@@ -46,6 +47,7 @@ def _root(
 app.command("preprocess")(preprocess_command)
 app.command("cunerf")(cunerf_command)
 app.command("export")(export_command)
+app.command("splat")(splat_command)
 app.command("run")(run_command)
 
 

@@ -1,8 +1,9 @@
 """The Gaussian model: raw (pre-activation) parameters, as the reference 3DGS stores them.
 
 means (N, 3) world units; log scales (N, 3); quaternions (N, 4), w first, normalised on use;
-opacity logits (N,); SH coefficients (N, (degree+1)², C) with C = 1 for CT (grey, DESIGN §4)
-or 3. Activations: exp, normalise, sigmoid, and :func:`sh_to_colour`.
+opacity logits (N,); SH coefficients split as the reference does, the constant term sh_dc
+(N, 1, C) and the rest (N, (degree+1)² − 1, C), with C = 1 for CT (grey, DESIGN §4) or 3 (they
+train at different rates). Activations: exp, normalise, sigmoid, and :func:`sh_to_colour`.
 """
 
 from __future__ import annotations
@@ -26,18 +27,24 @@ class Gaussians:
     log_scales: torch.Tensor
     quaternions: torch.Tensor
     opacity_logits: torch.Tensor
-    sh: torch.Tensor  # (N, K, C)
+    sh_dc: torch.Tensor  # (N, 1, C)
+    sh_rest: torch.Tensor  # (N, K − 1, C)
 
     def __len__(self) -> int:
         return self.means.shape[0]
 
     @property
+    def sh(self) -> torch.Tensor:
+        """All SH coefficients, (N, K, C)."""
+        return torch.cat((self.sh_dc, self.sh_rest), dim=1)
+
+    @property
     def channels(self) -> int:
-        return self.sh.shape[2]
+        return self.sh_dc.shape[2]
 
     @property
     def sh_degree(self) -> int:
-        return int(round(self.sh.shape[1] ** 0.5)) - 1
+        return int(round((self.sh_rest.shape[1] + 1) ** 0.5)) - 1
 
     def scales(self) -> torch.Tensor:
         return torch.exp(self.log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT))
@@ -53,7 +60,7 @@ class Gaussians:
 
     def parameters(self) -> dict[str, torch.Tensor]:
         return {"means": self.means, "log_scales": self.log_scales, "quaternions": self.quaternions,
-                "opacity_logits": self.opacity_logits, "sh": self.sh}
+                "opacity_logits": self.opacity_logits, "sh_dc": self.sh_dc, "sh_rest": self.sh_rest}
 
 
 def neighbour_log_scales(points: np.ndarray) -> np.ndarray:
@@ -91,7 +98,8 @@ def gaussians_from_points(xyz: np.ndarray, colours: np.ndarray, channels: int = 
         log_scale[:, None].repeat(1, 3),
         quaternions,
         torch.full((count,), float(np.log(INITIAL_OPACITY / (1 - INITIAL_OPACITY)))),
-        sh,
+        sh[:, :1].contiguous(),
+        sh[:, 1:].contiguous(),
     )
 
 

@@ -79,4 +79,5 @@ def read_gaussians_ply(path: Path) -> Gaussians:
     if GREY_COMMENT in data.comments:
         sh = sh[:, :, :1]
     return Gaussians(column("x", "y", "z"), column("scale_0", "scale_1", "scale_2"),
-                     column("rot_0", "rot_1", "rot_2", "rot_3"), column("opacity")[:, 0], sh.contiguous())
+                     column("rot_0", "rot_1", "rot_2", "rot_3"), column("opacity")[:, 0],
+                     sh[:, :1].contiguous(), sh[:, 1:].contiguous())

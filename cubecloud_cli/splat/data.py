@@ -1,0 +1,99 @@
+"""What `splat` trains on: a COLMAP scene (ours from `export`, or any other) as tensors.
+
+Images come from ``images.npy`` when the scene has it (our export's exact float renders) and
+otherwise from the image files that ``images.txt`` names. The test split is ``split.json`` (ours),
+else ``sparse/0/test.txt`` (recent 3DGS), else every 8th image by name (the reference rule).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
+
+HOLDOUT_EVERY = 8
+
+
+@dataclass
+class TrainingScene:
+    directory: Path
+    cameras: PinholeCameras
+    names: list[str]
+    images: torch.Tensor  # (V, H, W, C) float32 in [0, 1]
+    train: list[int]
+    test: list[int]
+    points: tuple[np.ndarray, np.ndarray] | None  # xyz (P, 3), colours (P, 3) in [0, 1]
+
+    @property
+    def extent(self) -> float:
+        """1.1 × the largest distance of a camera from the cameras' mean (the reference's
+        scene extent, which scales learning rates and size thresholds)."""
+        centres = self.cameras.centres()
+        return 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+
+
+def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarray:
+    import imageio.v3 as iio
+
+    try:
+        pixels = np.asarray(iio.imread(path))
+    except Exception as exc:  # missing or unreadable
+        raise CubecloudError(f"cannot read {path} ({type(exc).__name__}): the scene's images/ must hold every image images.txt names") from None
+    if pixels.shape[:2] != (height, width):
+        raise CubecloudError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but its camera is {width}x{height}: undistort or resize the scene consistently")
+    scale = 65535.0 if pixels.dtype == np.uint16 else 255.0
+    pixels = pixels.astype(np.float32) / scale
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    pixels = pixels[..., :3]  # drop alpha
+    return pixels.mean(axis=2, keepdims=True) if channels == 1 else np.repeat(pixels, 3 // pixels.shape[2], axis=2)
+
+
+def _split(directory: Path, names: list[str]) -> list[int]:
+    split_file = directory / "split.json"
+    if split_file.is_file():
+        test = set(json.loads(split_file.read_text()).get("test", []))
+    elif (find_colmap_model(directory) / "test.txt").is_file():
+        test = set((find_colmap_model(directory) / "test.txt").read_text().split())
+    else:
+        test = {name for index, name in enumerate(names) if index % HOLDOUT_EVERY == 0}
+    return [index for index, name in enumerate(names) if name in test]
+
+
+def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
+    directory = Path(directory)
+    model = read_colmap_model(directory)
+    cameras, names = model.cameras, model.image_names
+    height, width = cameras.height, cameras.width
+    stack = directory / "images.npy"
+    if stack.is_file():
+        images = np.load(stack, mmap_mode="r")
+        if images.shape[:3] != (len(names), height, width):
+            raise CubecloudError(f"{stack} holds {images.shape} but the cameras say {len(names)} views of {width}x{height}: re-export the scene")
+        images = np.array(images, dtype=np.float32)  # a writable copy of the memory map
+        images = images[..., None] if images.ndim == 3 else images
+        images = images if images.shape[3] == channels else (images.mean(axis=3, keepdims=True) if channels == 1 else np.repeat(images, 3, axis=3))
+    else:
+        images = np.stack([_read_image(directory / "images" / name, channels, width, height) for name in names])
+    if not np.isfinite(images).all():
+        raise CubecloudError(f"the images of {directory} hold NaN or Inf values: re-export the scene")
+    test = _split(directory, names)
+    train = [index for index in range(len(names)) if index not in set(test)]
+    if not train:
+        raise CubecloudError(f"{directory} leaves no image for training after the test split")
+    points = None
+    for candidate in (directory / "points3D.ply", find_colmap_model(directory) / "points3D.ply"):
+        if candidate.is_file():
+            xyz, rgb, _ = read_point_cloud_ply(candidate)
+            points = (xyz, rgb.astype(np.float32) / 255.0)
+            break
+    if points is None and len(model.xyz):
+        points = (model.xyz, model.rgb.astype(np.float32) / 255.0)
+    return TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)

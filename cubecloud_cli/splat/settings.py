@@ -1,0 +1,72 @@
+"""Everything that decides what `splat` trains (recorded in its manifest), and the reference
+3DGS schedule scaled to the iteration count (research/3dgs.md §1.1–1.3)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE
+
+REFERENCE_ITERATIONS = 30_000
+INIT_CHOICES = ("cloud", "random")
+
+
+@dataclass(frozen=True)
+class SplatSettings:
+    iterations: int = 3000
+    init: str = "cloud"  # the Cube-Cloud points, or the paper's baseline of random points
+    random_points: int = 100_000
+    channels: int = 1
+    sh_degree: int = 0
+    max_gaussians: int | None = 200_000
+    dssim_weight: float = 0.2
+    lr_means: float = 1.6e-4  # × scene extent, decaying log-linearly to lr_means_final
+    lr_means_final: float = 1.6e-6
+    lr_sh: float = 0.0025  # the rest of the SH bands train at a twentieth of it
+    lr_opacity: float = 0.025
+    lr_scales: float = 0.005
+    lr_rotation: float = 0.001
+    grad_threshold: float = 0.0002
+    percent_dense: float = 0.01
+    refine: bool = True
+    seed: int = 0
+    eval_every: int = 500
+    checkpoint_every: int = 500
+
+    def validate(self) -> None:
+        if self.iterations < 1:
+            raise CubecloudError(f"--iterations {self.iterations} must be at least 1")
+        if self.init not in INIT_CHOICES:
+            raise CubecloudError(f"--init {self.init!r} must be cloud or random")
+        if self.channels not in (1, 3):
+            raise CubecloudError(f"--channels {self.channels} must be 1 (grey CT) or 3")
+        if not 0 <= self.sh_degree <= MAX_DEGREE:
+            raise CubecloudError(f"--sh-degree {self.sh_degree} must be within 0..{MAX_DEGREE}")
+        if self.max_gaussians is not None and self.max_gaussians < 1:
+            raise CubecloudError(f"--max-gaussians {self.max_gaussians} must be at least 1")
+        if self.random_points < 1:
+            raise CubecloudError(f"--random-points {self.random_points} must be at least 1")
+        if not 0.0 <= self.dssim_weight <= 1.0:
+            raise CubecloudError(f"--dssim-weight {self.dssim_weight:g} must be within [0, 1] (the paper: 0.2)")
+        if self.eval_every < 1 or self.checkpoint_every < 1:
+            raise CubecloudError("--eval-every and --checkpoint-every must be at least 1")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def scaled(self, reference_iteration: int, minimum: int = 1) -> int:
+        """A reference iteration number (out of 30 000) at this run's length."""
+        return max(minimum, round(reference_iteration * self.iterations / REFERENCE_ITERATIONS))
+
+    def schedule(self) -> dict[str, int]:
+        """Densification from 500 to 15 000 every 100, opacity reset every 3000, one more SH band
+        every 1000: the reference's iterations scaled to this run (an interval never drops
+        below 10 iterations, so the gradient statistics see several views)."""
+        return {
+            "densify_from": self.scaled(500),
+            "densify_until": self.scaled(15_000),
+            "densify_every": self.scaled(100, minimum=10),
+            "reset_every": self.scaled(3000, minimum=10),
+            "sh_up_every": self.scaled(1000, minimum=1),
+        }

@@ -1,0 +1,185 @@
+"""The splat stage: train 3D Gaussians on the exported scene (or any COLMAP scene).
+
+WORK/splat[-NAME]/ holds
+  point_cloud.ply   the Gaussians in the reference 3DGS layout (viewers open it)
+  preview.png       test views: target (top) and render (bottom)
+  log.csv           iteration, seconds, loss, test PSNR, Gaussian count
+  manifest.json     parameters, inputs, schedule, timings, test metrics, iterations per second
+
+While training, WORK/.splat.partial/checkpoint.pt is written every --checkpoint-every iterations
+and on Ctrl-C; `--resume` continues from it exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage
+from cubecloud_cli.cunerf.interrupts import CubecloudInterrupted, NothingToResume, deferred_interrupt, interrupted
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.export.images import to_uint8
+from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.splat.data import TrainingScene, load_scene
+from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
+from cubecloud_cli.splat.ply import write_gaussians_ply
+from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.training import SplatTrainer, render
+
+log = logging.getLogger("cubecloud")
+
+CHECKPOINT_FILE = "checkpoint.pt"
+PLY_FILE = "point_cloud.ply"
+LOG_COLUMNS = ("iteration", "seconds", "loss", "test_psnr", "gaussians")
+ProgressCallback = Callable[[str, int, int, dict], None]
+
+
+def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
+    if settings.init == "random":
+        xyz, grey = random_points(settings.random_points, settings.seed)
+        return gaussians_from_points(xyz, grey, settings.channels, settings.sh_degree)
+    if scene.points is None or len(scene.points[0]) == 0:
+        raise CubecloudError(f"{scene.directory} has no point cloud (points3D.ply or sparse/0/points3D): use --init random")
+    xyz, rgb = scene.points
+    return gaussians_from_points(xyz, rgb, settings.channels, settings.sh_degree)
+
+
+def _check_resume(checkpoint: Path, settings: SplatSettings, resume: bool, force: bool) -> dict | None:
+    if resume:
+        if not checkpoint.is_file():
+            raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
+        try:
+            state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        except Exception as exc:
+            raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
+        changed = [k for k, v in settings.as_dict().items() if k != "iterations" and state["settings"].get(k) != v]
+        if changed:
+            raise CubecloudError(f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the same options, or --force")
+        return state
+    if checkpoint.is_file() and not force:
+        raise CubecloudError(f"an interrupted run is waiting in {checkpoint.parent}: pass --resume to continue it, or --force to start again")
+    return None
+
+
+def train_splat(
+    work: Path,
+    settings: SplatSettings,
+    *,
+    scene_dir: Path | None = None,
+    force: bool = False,
+    resume: bool = False,
+    runtime: Runtime = Runtime(),
+    name: str | None = None,
+    on_progress: ProgressCallback = lambda phase, done, total, fields: None,
+) -> dict:
+    work = Path(work)
+    settings.validate()
+    if scene_dir is None:
+        require_stage(work, "export")
+        scene_dir = work / "export"
+    device = runtime.apply()
+    reset_peak_memory(device)
+    scene = load_scene(scene_dir, settings.channels)
+    writer = StageWriter(work, "splat", {**settings.as_dict(), "scene": str(scene_dir)}, force=force, name=name,
+                         keep_partial=True, transient=(CHECKPOINT_FILE,))
+    writer.check_can_start()
+    checkpoint = writer.directory / CHECKPOINT_FILE
+    state = _check_resume(checkpoint, settings, resume, force)
+    if state is None and writer.directory.exists():
+        shutil.rmtree(writer.directory)
+    try:
+        with writer:
+            with writer.phase("load"):
+                for path in (scene_dir / "images.npy", scene_dir / "points3D.ply"):
+                    if path.is_file():
+                        writer.add_input(path, str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path))
+                trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
+                initial_count = len(trainer.gaussians)
+                if state is not None:
+                    trainer.restore(state)
+                    log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
+            with writer.phase("train"):
+                _train(trainer, checkpoint, on_progress)
+            with writer.phase("write"):
+                on_progress("write", 0, 1, {})
+                write_gaussians_ply(writer.directory / PLY_FILE, trainer.gaussians)
+                _write_log(writer.directory / "log.csv", trainer.history)
+                _write_preview(trainer, writer.directory / "preview.png")
+            final = trainer.evaluate(scene.test)
+            writer.metrics.update({
+                "test_psnr": final.get("psnr"), "test_l1": final.get("l1"), "test_views": len(scene.test),
+                "gaussians": len(trainer.gaussians), "initial_gaussians": initial_count,
+                "iterations": trainer.iteration, "train_seconds": round(trainer.elapsed_s, 2),
+                "iterations_per_second": round(trainer.iteration / max(trainer.elapsed_s, 1e-9), 3),
+                **peak_memory_mb(device),
+            })
+            writer.extra.update({
+                "schedule": trainer.schedule,
+                "scene": {"directory": str(scene_dir), "views": len(scene.names), "train": len(scene.train),
+                          "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
+                          "height": scene.cameras.height, "extent": scene.extent},
+                "rasterizer": "numba CPU kernels" if device.type == "cpu" else "PyTorch",
+                "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
+            })
+    except (CubecloudInterrupted, NothingToResume):
+        raise
+    except KeyboardInterrupt:
+        raise interrupted(checkpoint) from None
+    return read_manifest(writer.final_dir)
+
+
+def _train(trainer: SplatTrainer, checkpoint: Path, on_progress: ProgressCallback) -> None:
+    settings = trainer.settings
+    total = settings.iterations
+    latest: dict = {}
+    with deferred_interrupt() as interrupt:
+        try:
+            while trainer.iteration < total:
+                loss = trainer.step()
+                it = trainer.iteration
+                if not np.isfinite(loss):
+                    raise CubecloudError(f"training diverged at iteration {it} (loss {loss}): lower the learning rates and pass --force")
+                row = {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": loss, "gaussians": len(trainer.gaussians)}
+                if it % settings.eval_every == 0 or it == total:
+                    latest = trainer.evaluate(trainer.scene.test)
+                    row["test_psnr"] = latest.get("psnr")
+                if it % max(1, total // 200) == 0 or "test_psnr" in row:
+                    trainer.history.append(row)
+                fields = {"loss": loss, "gaussians": len(trainer.gaussians)}
+                if "psnr" in latest:
+                    fields["test PSNR"] = latest["psnr"]
+                on_progress("train", it, total, fields)
+                if it % settings.checkpoint_every == 0 or it == total or interrupt["requested"]:
+                    trainer.save(checkpoint)
+                if interrupt["requested"]:
+                    raise CubecloudInterrupted(checkpoint, it)
+        except (CubecloudInterrupted, NothingToResume):
+            raise
+        except KeyboardInterrupt:
+            raise interrupted(checkpoint) from None
+
+
+def _write_log(path: Path, history: list[dict]) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in history:
+            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+
+
+@torch.no_grad()
+def _write_preview(trainer: SplatTrainer, path: Path) -> None:
+    from PIL import Image
+
+    views = (trainer.scene.test or trainer.scene.train)[:4]
+    targets = [trainer.images[v].cpu().numpy() for v in views]
+    renders = [render(trainer.gaussians, trainer.scene, v, trainer.sh_degree, trainer.compositor)[0].clamp(0, 1).cpu().numpy() for v in views]
+    rows = [np.concatenate(targets, axis=1), np.concatenate(renders, axis=1)]
+    grid = to_uint8(np.concatenate(rows, axis=0))
+    Image.fromarray(grid[..., 0] if grid.shape[2] == 1 else grid).save(path)

@@ -1,0 +1,155 @@
+"""`cubecloud splat`: recovering known Gaussians, an exported scene end to end at 32², resume,
+foreign scenes and refusals."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cli_helpers import assert_one_line_error, invoke
+from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from cubecloud_cli.raster.cpu import composite_cpu
+from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
+from cubecloud_cli.splat.data import TrainingScene
+from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
+from cubecloud_cli.splat.training import SplatTrainer, render
+
+QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "10"]
+
+
+def test_training_recovers_known_gaussians_from_their_images():
+    cameras = orbit_cameras(OrbitSpec(views=16, resolution=32))
+    g = torch.Generator().manual_seed(0)
+    count = 6
+    truth = Gaussians(torch.rand(count, 3, generator=g) * 1.2 - 0.6, torch.log(torch.rand(count, 3, generator=g) * 0.15 + 0.08),
+                      torch.randn(count, 4, generator=g), torch.logit(torch.rand(count, generator=g) * 0.5 + 0.45),
+                      rgb_to_sh(torch.rand(count, 1, 1, generator=g)), torch.zeros(count, 0, 1))
+    scene = TrainingScene(Path("."), cameras, [str(i) for i in range(16)], torch.zeros(16, 32, 32, 1),
+                          [i for i in range(16) if i % 8], [0, 8], None)
+    with torch.no_grad():
+        scene.images = torch.stack([render(truth, scene, view, 0, composite_cpu)[0] for view in range(16)])
+    rng = np.random.default_rng(0)
+    start = gaussians_from_points(rng.uniform(-1, 1, (2000, 3)), rng.uniform(0, 1, (2000, 1)))
+    trainer = SplatTrainer(start, scene, SplatSettings(iterations=400, max_gaussians=5000), torch.device("cpu"))
+    before = trainer.evaluate(scene.test)["psnr"]
+    for _ in range(400):
+        trainer.step()
+    after = trainer.evaluate(scene.test)["psnr"]
+    # Held-out views, never trained on: the scene itself was learned, not the images.
+    assert before < 20 and after > 35
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    work = tmp_path_factory.mktemp("splat") / "work"
+    for args in (["preprocess", "-o", work, "--size", "32"],
+                 ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
+                 ["export", work, "--resolution", "32", "--views", "12", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500"]):
+        result = invoke(*args, "-q")
+        assert result.exit_code == 0, result.output
+    return work
+
+
+def _copy(exported, tmp_path, stages=("preprocess", "cunerf", "export")):
+    work = tmp_path / "work"
+    for stage in stages:
+        shutil.copytree(exported / stage, work / stage)
+    return work
+
+
+@pytest.fixture(scope="module")
+def trained(exported):
+    result = invoke("splat", exported, *QUICK, "-q")
+    assert result.exit_code == 0, result.output
+    return exported / "splat"
+
+
+def test_an_exported_scene_trains_end_to_end(trained):
+    manifest = json.loads((trained / "manifest.json").read_text())
+    assert manifest["metrics"]["iterations"] == 40 and manifest["metrics"]["test_views"] == 2
+    assert manifest["metrics"]["test_psnr"] > 20
+    assert manifest["rasterizer"] == "numba CPU kernels" and manifest["metrics"]["initial_gaussians"] == 1500
+    gaussians = read_gaussians_ply(trained / "point_cloud.ply")
+    assert len(gaussians) == manifest["metrics"]["gaussians"] and gaussians.channels == 1 and gaussians.sh_degree == 0
+    rows = (trained / "log.csv").read_text().splitlines()
+    assert rows[0] == "iteration,seconds,loss,test_psnr,gaussians" and len(rows) > 10
+    assert not (trained / "checkpoint.pt").exists() and (trained / "preview.png").is_file()
+
+
+def test_random_initialisation_beside_it(exported, tmp_path):
+    work = _copy(exported, tmp_path)
+    result = invoke("splat", work, *QUICK, "--init", "random", "--random-points", "500", "--name", "random", "-q")
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "splat-random" / "manifest.json").read_text())
+    assert manifest["params"]["init"] == "random" and manifest["metrics"]["initial_gaussians"] == 500
+
+
+def test_interrupt_and_resume_match_an_uninterrupted_run(exported, trained, tmp_path, monkeypatch):
+    import cubecloud_cli.splat.training as training
+
+    work = _copy(exported, tmp_path)
+    original, calls = training.photometric_loss, []
+
+    def interrupted_loss(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 25:
+            import os
+            import signal
+
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    result = invoke("splat", work, *QUICK)
+    assert result.exit_code == 130 and "iteration 25 is saved" in result.stderr
+    monkeypatch.undo()
+    assert_one_line_error(invoke("splat", work, *QUICK), r"pass --resume")
+    resumed = invoke("splat", work, *QUICK, "--resume", "-q")
+    assert resumed.exit_code == 0, resumed.output
+    a = read_gaussians_ply(work / "splat" / "point_cloud.ply")
+    b = read_gaussians_ply(trained / "point_cloud.ply")
+    for name, value in a.parameters().items():
+        torch.testing.assert_close(value, b.parameters()[name])
+
+
+def test_a_foreign_colmap_scene_with_png_images(exported, tmp_path):
+    scene = tmp_path / "foreign"
+    shutil.copytree(exported / "export" / "sparse", scene / "sparse")
+    shutil.copytree(exported / "export" / "images", scene / "images")  # PNG only, no images.npy
+    (scene / "sparse" / "0" / "points3D.ply").unlink()
+    work = tmp_path / "work"
+    result = invoke("splat", work, "--scene", scene, *QUICK, "-q")
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "splat" / "manifest.json").read_text())
+    assert manifest["scene"]["test"] == ["view_000.png", "view_008.png"]  # sparse/0/test.txt
+    assert manifest["metrics"]["initial_gaussians"] == 1500  # from points3D.bin
+
+
+@pytest.mark.parametrize("args, pattern", [
+    (["--iterations", "0"], r"--iterations 0 must be at least 1"),
+    (["--channels", "2"], r"--channels 2 must be 1"),
+    (["--sh-degree", "4"], r"--sh-degree 4 must be within 0..3"),
+    (["--max-gaussians", "0"], r"--max-gaussians 0"),
+])
+def test_bad_options(exported, tmp_path, args, pattern):
+    work = _copy(exported, tmp_path)
+    assert_one_line_error(invoke("splat", work, *args), pattern)
+    assert not (work / "splat").exists()
+
+
+def test_missing_export_or_scene(exported, tmp_path):
+    work = _copy(exported, tmp_path, ("preprocess", "cunerf"))
+    assert_one_line_error(invoke("splat", work), r"export does not exist: run `cubecloud export")
+    assert_one_line_error(invoke("splat", work, "--scene", tmp_path / "nowhere"), r"nowhere")
+    empty = tmp_path / "no_points"
+    shutil.copytree(exported / "export", empty)
+    for path in (empty / "points3D.ply", empty / "sparse" / "0" / "points3D.ply", empty / "sparse" / "0" / "points3D.bin",
+                 empty / "sparse" / "0" / "points3D.txt"):
+        path.unlink()
+    assert_one_line_error(invoke("splat", work, "--scene", empty, *QUICK), r"no point cloud .* use --init random")
