@@ -1,6 +1,7 @@
 """`cubecloud run`: the stages in order, skipping those already complete with the same settings.
 
-Only the stages that exist so far take part; each later stage joins the list when it lands.
+Only the stages that exist so far take part (preprocess, cunerf, export, splat); eval joins
+when it lands.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ from cubecloud_cli.cunerf.stage import CHECKPOINT_FILE
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
+from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.stage import CHECKPOINT_FILE as SPLAT_CHECKPOINT
+from cubecloud_cli.splat.stage import train_splat
 
 
 @dataclass(frozen=True)
@@ -68,18 +72,24 @@ def _export_quietly(work: Path, settings: ExportSettings, force: bool, runtime: 
     return export_scene(work, settings, force=force, runtime=runtime)
 
 
+def _splat_quietly(work: Path, settings: SplatSettings, force: bool, resume: bool, runtime: Runtime) -> dict:
+    return train_splat(work, settings, force=force, resume=resume, runtime=runtime)
+
+
 def run_pipeline(
     scan: Path,
     work: Path,
     preprocess_settings: PreprocessSettings,
     cunerf_settings: CunerfSettings,
     export_settings: ExportSettings = ExportSettings(),
+    splat_settings: SplatSettings = SplatSettings(),
     *,
     force: bool = False,
     runtime: Runtime = Runtime(),
     run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
     run_cunerf: Callable[[Path, CunerfSettings, bool, bool, Runtime], dict] | None = None,
     run_export: Callable[[Path, ExportSettings, bool, Runtime], dict] | None = None,
+    run_splat: Callable[[Path, SplatSettings, bool, bool, Runtime], dict] | None = None,
 ) -> list[StageOutcome]:
     """Run the stages in order. ``run_*`` let the caller wrap a stage (progress display).
 
@@ -89,6 +99,7 @@ def run_pipeline(
     run_preprocess = run_preprocess or _preprocess_quietly
     run_cunerf = run_cunerf or _cunerf_quietly
     run_export = run_export or _export_quietly
+    run_splat = run_splat or _splat_quietly
     outcomes = []
     work = Path(work)
 
@@ -120,4 +131,16 @@ def run_pipeline(
         manifest = run_export(work, export_settings, upstream_changed or (work / "export").exists(), runtime)
         resumed = bool(manifest.get("resumed", {}).get("views"))
         outcomes.append(StageOutcome("export", "resumed" if resumed else "ran", time.perf_counter() - start))
+    upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
+
+    start = time.perf_counter()
+    splat_params = {**splat_settings.as_dict(), "scene": str(work / "export")}
+    splat_inputs = [work / "export" / "images.npy", work / "export" / "points3D.ply"]
+    if not upstream_changed and stage_is_current(work / "splat", splat_params, splat_inputs):
+        outcomes.append(StageOutcome("splat", "skipped", 0.0))
+    else:
+        checkpoint = work / f".splat{PARTIAL_SUFFIX}" / SPLAT_CHECKPOINT
+        resume = checkpoint.is_file() and not upstream_changed
+        run_splat(work, splat_settings, upstream_changed or (work / "splat").exists(), resume, runtime)
+        outcomes.append(StageOutcome("splat", "resumed" if resume else "ran", time.perf_counter() - start))
     return outcomes

@@ -3,7 +3,7 @@ import numpy as np
 from cli_helpers import assert_one_line_error, invoke
 from conftest import body_phantom, write_nifti
 
-QUICK = ("--cunerf-iterations", 3, "--views", 4, "--resolution", 16)
+QUICK = ("--cunerf-iterations", 3, "--views", 4, "--resolution", 16, "--splat-iterations", 3)
 
 
 def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, phantom_nifti):
@@ -40,9 +40,9 @@ def test_run_on_the_bundled_scan(tmp_path):
 def test_run_redoes_export_when_its_settings_change(tmp_path, phantom_nifti):
     work = tmp_path / "w"
     assert invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK).exit_code == 0
-    error = assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20), "other settings")
+    error = assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, *QUICK[6:]), "other settings")
     assert "resolution: 16 -> 20" in error
-    result = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, "--view", "mip", "--force")
+    result = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, *QUICK[6:], "--view", "mip", "--force")
     assert result.exit_code == 0, result.output
     assert np.load(work / "export" / "images.npy").shape == (4, 20, 20)
 
@@ -52,7 +52,8 @@ def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nift
 
     work = tmp_path / "w"
     interrupt_at_step(monkeypatch, 4)
-    options = ("run", phantom_nifti, "-o", work, "--size", 16, "--cunerf-iterations", 6, "--views", 3, "--resolution", 16)
+    options = ("run", phantom_nifti, "-o", work, "--size", 16, "--cunerf-iterations", 6, "--views", 3, "--resolution", 16,
+               "--splat-iterations", 3)
     interrupted = invoke(*options)
     assert interrupted.exit_code == 130 and (work / "preprocess").is_dir() and not (work / "cunerf").exists()
     assert "resumes by itself" in interrupted.stderr
@@ -63,7 +64,7 @@ def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nift
     assert "resumed" in resumed.stderr and "skipped" in resumed.stderr and "3D PSNR" in resumed.stderr
     assert (work / "cunerf" / "manifest.json").is_file()
     again = invoke(*options)
-    assert again.exit_code == 0 and again.stderr.count("skipped") == 3
+    assert again.exit_code == 0 and again.stderr.count("skipped") == 4
 
 
 def test_run_continues_an_interrupted_export(tmp_path, phantom_nifti, monkeypatch):

@@ -12,6 +12,7 @@ import typer
 from cubecloud_cli.artifacts import read_manifest
 from cubecloud_cli.cli.cunerf import Device, describe_metrics, train_cunerf_with_progress
 from cubecloud_cli.cli.export import View, describe_export, export_settings, export_with_progress
+from cubecloud_cli.cli.splat import describe_splat, splat_settings, train_splat_with_progress
 from cubecloud_cli.cli.preprocess import run_preprocess_with_progress, scan_command
 from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
@@ -27,6 +28,7 @@ def _option(name: str, annotation, default) -> inspect.Parameter:
 
 RUN_OPTIONS = [
     _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help="Training iterations of the cunerf stage. (preset: fast 4000, balanced 6000, paper 200000)", show_default=False)], None),
+    _option("splat_iterations", Annotated[Optional[int], typer.Option("--splat-iterations", help="Training iterations of the splat stage. (preset: fast 2000, balanced 7000, paper 30000)", show_default=False)], None),
     _option("views", Annotated[Optional[int], typer.Option("--views", help="Orbit views of the export stage (the paper: 60). (preset: 60)", show_default=False)], None),
     _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help="Width and height of the exported images. (preset: fast 128, balanced 256, paper 512)", show_default=False)], None),
     _option("view", Annotated[Optional[View], typer.Option("--view", help="Image model of the exported views: dvr, slice (the paper's) or mip. (preset: fast/balanced dvr, paper slice)", show_default=False)], None),
@@ -38,17 +40,20 @@ RUN_OPTIONS = [
 def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, preset: str, extras: dict) -> None:
     cunerf_settings = CunerfSettings(**resolve_cunerf(preset, None, {"iterations": extras["cunerf_iterations"]}))
     export = export_settings(preset, views=extras["views"], resolution=extras["resolution"], view=extras["view"].value if extras["view"] else None)
+    splat = splat_settings(preset, iterations=extras["splat_iterations"])
     outcomes = run_pipeline(
         scan,
         output,
         settings,
         cunerf_settings,
         export,
+        splat,
         force=force,
         runtime=Runtime(extras["device"].value, extras["threads"]),
         run_preprocess=run_preprocess_with_progress,
         run_cunerf=lambda work, s, f, resume, runtime: train_cunerf_with_progress(work, s, f, resume, runtime),
         run_export=lambda work, s, f, runtime: export_with_progress(work, s, f, runtime),
+        run_splat=lambda work, s, f, resume, runtime: train_splat_with_progress(work, s, None, f, resume, runtime),
     )
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status != "skipped" else "skipped (already complete)"
@@ -57,13 +62,14 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
     log.info(f"  {'total':<12} {sum(o.seconds for o in outcomes):7.1f} s   results in {output}")
     log.info(f"cunerf: {describe_metrics(read_manifest(Path(output) / 'cunerf'))}")
     log.info(f"export: {describe_export(read_manifest(Path(output) / 'export'))}")
+    log.info(f"splat: {describe_splat(read_manifest(Path(output) / 'splat'))}")
 
 
 run_command = scan_command(
     _run,
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf and export stages. An interrupted cunerf or export stage continues from its saved work. Stages run today: preprocess, cunerf, export (splat and eval join as they land).
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf and export stages. An interrupted cunerf, export or splat stage continues from its saved work. Stages run today: preprocess, cunerf, export, splat (eval joins when it lands).
 
     Examples:
 
