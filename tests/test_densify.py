@@ -90,3 +90,39 @@ def test_opacity_reset_caps_at_one_percent():
     reset = torch.sigmoid(reset_opacity(logits))
     assert torch.allclose(reset, torch.tensor([0.01, 0.005, 1e-7]), rtol=1e-4)
     assert torch.isfinite(reset_opacity(torch.tensor([100.0, -100.0]))).all()
+
+
+def test_the_reference_schedule_scales_to_the_run_length():
+    from cubecloud_cli.splat.settings import SplatSettings
+
+    assert SplatSettings(iterations=30_000).schedule() == {
+        "densify_from": 500, "densify_until": 15_000, "densify_every": 100, "reset_every": 3000, "sh_up_every": 1000}
+    assert SplatSettings(iterations=2000).schedule() == {
+        "densify_from": 33, "densify_until": 1000, "densify_every": 10, "reset_every": 200, "sh_up_every": 67}
+
+
+def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
+    from pathlib import Path
+
+    import numpy as np
+
+    from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+    from cubecloud_cli.splat import gaussians_from_points
+    from cubecloud_cli.splat.data import TrainingScene
+    from cubecloud_cli.splat.settings import SplatSettings
+    from cubecloud_cli.splat.training import SplatTrainer
+
+    cameras = orbit_cameras(OrbitSpec(views=4, resolution=16))
+    scene = TrainingScene(Path("."), cameras, list("abcd"), torch.rand(4, 16, 16, 1), [1, 2, 3], [0], None)
+    rng = np.random.default_rng(0)
+    trainer = SplatTrainer(gaussians_from_points(rng.uniform(-1, 1, (50, 3)), rng.uniform(0, 1, (50, 1))), scene,
+                           SplatSettings(iterations=200), torch.device("cpu"))
+    events = []
+    monkeypatch.setattr(trainer, "_reset_opacity", lambda: events.append(("reset", trainer.iteration)))
+    original = trainer._densify
+    monkeypatch.setattr(trainer, "_densify", lambda prune_large: (events.append(("densify", trainer.iteration)), original(prune_large)))
+    for _ in range(200):
+        trainer.step()
+    resets = [it for kind, it in events if kind == "reset"]
+    densified = [it for kind, it in events if kind == "densify"]
+    assert resets == [20, 40, 60, 80] and densified == list(range(10, 100, 10))

@@ -103,7 +103,8 @@ class SplatTrainer:
         loss.backward()
         self.iteration += 1
         schedule = self.schedule
-        refining = self.settings.refine and self.iteration <= schedule["densify_until"]
+        # As in the reference: statistics, densification and resets only before densify_until.
+        refining = self.settings.refine and self.iteration < schedule["densify_until"]
         if refining and projected.means2d.grad is not None:
             self.stats.add(projected.means2d.grad, projected.radii, self.scene.cameras.width, self.scene.cameras.height)
         self.optimizer.step()
