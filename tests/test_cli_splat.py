@@ -153,3 +153,18 @@ def test_missing_export_or_scene(exported, tmp_path):
                  empty / "sparse" / "0" / "points3D.txt"):
         path.unlink()
     assert_one_line_error(invoke("splat", work, "--scene", empty, *QUICK), r"no point cloud .* use --init random")
+
+
+def test_threads_bound_the_kernels_too(exported, tmp_path):
+    import numba
+
+    before, torch_before = numba.get_num_threads(), torch.get_num_threads()
+    work = _copy(exported, tmp_path)
+    try:
+        result = invoke("splat", work, *QUICK, "--threads", "1", "-q")
+        assert result.exit_code == 0, result.output
+        runtime = json.loads((work / "splat" / "manifest.json").read_text())["runtime"]
+        assert runtime["threads"] == 1 and runtime["kernel_threads"] == 1
+    finally:
+        numba.set_num_threads(before)
+        torch.set_num_threads(torch_before)

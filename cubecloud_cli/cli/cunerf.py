@@ -76,7 +76,7 @@ ExportScaleOption = Annotated[float, typer.Option("--export-scale", help="recon.
 SkipAirOption = Annotated[bool, typer.Option("--skip-air/--no-skip-air", help="Skip rendering blocks that hold no non-zero training voxel (they read 0).")]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed of every random draw; the same seed repeats a run.")]
 DeviceOption = Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
-ThreadsOption = Annotated[Optional[int], _opt("--threads", "CPU threads for torch (default: torch's choice).")]
+ThreadsOption = Annotated[Optional[int], _opt("--threads", "CPU threads for torch and for splat's numba kernels (default: all cores).")]
 NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/cunerf-NAME/ instead of WORK/cunerf/, for runs side by side.")]
 ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last checkpoint.")]
 

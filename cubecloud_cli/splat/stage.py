@@ -84,6 +84,10 @@ def train_splat(
         require_stage(work, "export")
         scene_dir = work / "export"
     device = runtime.apply()
+    if runtime.threads is not None and device.type == "cpu":
+        import numba  # the kernels run on numba's own thread pool, which --threads bounds too
+
+        numba.set_num_threads(min(runtime.threads, numba.config.NUMBA_NUM_THREADS))
     reset_peak_memory(device)
     scene = load_scene(scene_dir, settings.channels)
     writer = StageWriter(work, "splat", {**settings.as_dict(), "scene": str(scene_dir)}, force=force, name=name,
@@ -125,13 +129,20 @@ def train_splat(
                           "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
                           "height": scene.cameras.height, "extent": scene.extent},
                 "rasterizer": "numba CPU kernels" if device.type == "cpu" else "PyTorch",
-                "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
+                "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
+                            "kernel_threads": _kernel_threads() if device.type == "cpu" else None},
             })
     except (CubecloudInterrupted, NothingToResume):
         raise
     except KeyboardInterrupt:
         raise interrupted(checkpoint) from None
     return read_manifest(writer.final_dir)
+
+
+def _kernel_threads() -> int:
+    import numba
+
+    return numba.get_num_threads()
 
 
 def _train(trainer: SplatTrainer, checkpoint: Path, on_progress: ProgressCallback) -> None:
