@@ -168,3 +168,119 @@ def test_threads_bound_the_kernels_too(exported, tmp_path):
     finally:
         numba.set_num_threads(before)
         torch.set_num_threads(torch_before)
+
+
+def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch):
+    """80 iterations densify every 10 until 40 and reset opacity at 10, 20, 30: an interrupt at
+    25 is resumed through densification, a reset and restored gradient statistics."""
+    import cubecloud_cli.splat.training as training
+
+    options = ["--iterations", "80", "--eval-every", "40", "--checkpoint-every", "7"]
+    reference = _copy(exported, tmp_path / "reference")
+    assert invoke("splat", reference, *options, "-q").exit_code == 0
+    work = _copy(exported, tmp_path / "interrupted")
+    original, calls = training.photometric_loss, []
+
+    def interrupted_loss(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 25:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    assert invoke("splat", work, *options).exit_code == 130
+    monkeypatch.undo()
+    state = torch.load(work / ".splat.partial" / "checkpoint.pt", weights_only=False)
+    assert state["iteration"] == 21 and state["stats"][1].sum() > 0  # mid-way, with statistics
+    assert invoke("splat", work, *options, "--resume", "-q").exit_code == 0
+    a, b = (read_gaussians_ply(w / "splat" / "point_cloud.ply") for w in (work, reference))
+    for name, value in a.parameters().items():
+        torch.testing.assert_close(value, b.parameters()[name])
+    assert_one_line_error(invoke("splat", work, *options, "--resume"), r"already complete")
+
+
+def test_resume_refuses_another_scene(exported, tmp_path, monkeypatch):
+    import cubecloud_cli.splat.training as training
+
+    work = _copy(exported, tmp_path)
+    original, calls = training.photometric_loss, []
+
+    def interrupted_loss(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 15:  # after the checkpoint at 10
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    assert invoke("splat", work, *QUICK).exit_code == 130
+    monkeypatch.undo()
+    other = tmp_path / "other"
+    shutil.copytree(exported / "export", other)
+    assert_one_line_error(invoke("splat", work, *QUICK, "--scene", other, "--resume"), r"other settings \(.*scene")
+
+
+@pytest.mark.parametrize("mode, dtype, expected", [
+    ("LA", np.uint8, 200 / 255), ("RGBA", np.uint8, 200 / 255), ("I;16", np.uint16, 51400 / 65535),
+])
+def test_foreign_images_of_other_kinds(exported, tmp_path, mode, dtype, expected):
+    from PIL import Image
+
+    from cubecloud_cli.splat.data import load_scene
+
+    scene = tmp_path / "scene"
+    shutil.copytree(exported / "export" / "sparse", scene / "sparse")
+    (scene / "images").mkdir()
+    for name in sorted(p.name for p in (exported / "export" / "images").iterdir()):
+        grey = np.full((32, 32), 200 if dtype == np.uint8 else 51400, dtype=dtype)
+        if mode == "LA":
+            image = Image.fromarray(np.stack([grey, np.full_like(grey, 17)], axis=2), mode="LA")
+        elif mode == "RGBA":
+            image = Image.fromarray(np.stack([grey, grey, grey, np.full_like(grey, 17)], axis=2), mode="RGBA")
+        else:
+            image = Image.fromarray(grey)
+        image.save(scene / "images" / name)
+    for channels in (1, 3):
+        loaded = load_scene(scene, channels)
+        assert loaded.images.shape[-1] == channels
+        assert torch.allclose(loaded.images, torch.tensor(expected, dtype=torch.float32), atol=1e-6)
+
+
+def test_degenerate_scenes_are_refused(exported, tmp_path):
+    from cubecloud_cli.scene import read_colmap_model, write_colmap_model
+
+    model = read_colmap_model(exported / "export")
+    same_centre = tmp_path / "same_centre"
+    shutil.copytree(exported / "export", same_centre)
+    rotations = model.cameras.rotations
+    translations = np.tile(model.cameras.translations[:1], (len(rotations), 1))
+    from cubecloud_cli.cameras import PinholeCameras
+
+    cameras = PinholeCameras(rotations, -np.einsum("nij,j->ni", rotations, model.cameras.centres()[0]), 32, 32, model.cameras.focal)
+    for path in (same_centre / "sparse" / "0").glob("*.bin"):
+        path.unlink()
+    write_colmap_model(same_centre / "sparse" / "0", cameras, model.image_names, model.xyz, model.rgb, binary=False)
+    assert_one_line_error(invoke("splat", tmp_path / "w1", "--scene", same_centre, *QUICK), r"share one centre")
+    del translations
+    nan_points = tmp_path / "nan_points"
+    shutil.copytree(exported / "export", nan_points)
+    from cubecloud_cli.scene import read_point_cloud_ply, write_point_cloud_ply
+
+    xyz, rgb, extra = read_point_cloud_ply(nan_points / "points3D.ply")
+    xyz[3] = np.nan
+    write_point_cloud_ply(nan_points / "points3D.ply", xyz, rgb, extra)
+    assert_one_line_error(invoke("splat", tmp_path / "w2", "--scene", nan_points, *QUICK), r"NaN or Inf coordinates")
+
+
+def test_a_nan_gaussian_is_culled_not_a_crash():
+    from cubecloud_cli.raster import project
+    from cubecloud_cli.raster.cpu import composite_cpu
+
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=16))
+    means = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [0.1, 0.1, 0.1]])
+    scales = torch.tensor([[0.1] * 3, [0.1] * 3, [1e20] * 3])  # the last overflows to inf
+    quaternions = torch.tensor([[1.0, 0, 0, 0]] * 3)
+    rotation, translation = (torch.tensor(a, dtype=torch.float32) for a in (cameras.rotations[0], cameras.translations[0]))
+    projected = project(means, scales, quaternions, rotation, translation, float(cameras.focal), 16, 16)
+    assert projected.radii[1] == 0 and projected.radii[2] == 0
+    image, _ = composite_cpu(projected, torch.ones(3, 1), torch.full((3,), 0.5), 16, 16)
+    assert torch.isfinite(image).all() and image.max() > 0

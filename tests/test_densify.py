@@ -51,6 +51,16 @@ def test_clone_split_prune_and_keep():
     assert apply_plan(plan, logits)[4:].eq(logits[1]).all()  # children inherit the opacity
 
 
+def test_a_large_gaussian_with_a_high_gradient_is_split_before_the_size_rule():
+    # max scale 0.3: above 0.1 × extent (0.2) but its children (0.1875) are not: they survive.
+    means, log_scales, quaternions, logits = model([0.3, 0.5], [0.5, 0.5])
+    plan = plan_densification(means, log_scales, quaternions, logits, torch.tensor([1e-3, 1e-3]), DensifySettings(),
+                              EXTENT, True, torch.Generator().manual_seed(0))
+    assert plan.split.tolist() == [0, 1] and plan.keep.tolist() == [False, False]
+    assert plan.child_keep.tolist() == [True, True, False, False]  # 0.5 / 1.6 is still too large
+    assert plan.new_count == 2 and apply_plan(plan, logits).shape == (2,)
+
+
 def test_large_gaussians_are_pruned_only_after_the_first_reset():
     means, log_scales, quaternions, logits = model([0.5, 0.01], [0.5, 0.5])
     gradients = torch.zeros(2)

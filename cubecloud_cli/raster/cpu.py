@@ -20,7 +20,7 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, colours, opacities, background, bounds, depths, width, height):
         tiles_x, tiles_y = -(-width // kernels.TILE), -(-height // kernels.TILE)
         bounds_np = bounds.cpu().numpy()
-        candidates = np.flatnonzero(bounds_np[:, 1] >= bounds_np[:, 0])
+        candidates = np.flatnonzero((bounds_np[:, 1] >= bounds_np[:, 0]) & (bounds_np[:, 3] >= bounds_np[:, 2]))
         offsets, entries = kernels.bin_tiles(candidates, bounds_np, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds_np, _numpy(means2d), _numpy(conics), _numpy(colours), _numpy(opacities), _numpy(background))
         image, final_transmittance, last = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)

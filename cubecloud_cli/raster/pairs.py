@@ -45,13 +45,15 @@ def pixel_bounds(projected: Projected, width: int, height: int, opacities: torch
             covariance = projected.covariances2d.detach().to(u.dtype)
             half_x = torch.minimum(half_x, torch.sqrt(2.0 * level * covariance[:, 0]))
             half_y = torch.minimum(half_y, torch.sqrt(2.0 * level * covariance[:, 2]))
-        x0 = torch.ceil(u - half_x - 0.5).clamp(0, width).long()
-        x1 = torch.floor(u + half_x - 0.5).clamp(-1, width - 1).long()
-        y0 = torch.ceil(v - half_y - 0.5).clamp(0, height).long()
-        y1 = torch.floor(v + half_y - 0.5).clamp(-1, height - 1).long()
-        culled = projected.radii <= 0
-        x1 = torch.where(culled, x0 - 1, x1)
-        return torch.stack((x0, x1, y0, y1), dim=1)
+        # nan_to_num first: .long() of NaN is undefined (INT64_MIN here), and culled rows get an
+        # explicit empty range, so no kernel ever loops over a garbage span.
+        x0 = torch.nan_to_num(torch.ceil(u - half_x - 0.5)).clamp(0, width).long()
+        x1 = torch.nan_to_num(torch.floor(u + half_x - 0.5)).clamp(-1, width - 1).long()
+        y0 = torch.nan_to_num(torch.ceil(v - half_y - 0.5)).clamp(0, height).long()
+        y1 = torch.nan_to_num(torch.floor(v + half_y - 0.5)).clamp(-1, height - 1).long()
+        culled = (projected.radii <= 0) | ~torch.isfinite(half_x) | ~torch.isfinite(half_y)
+        bounds = torch.stack((x0, x1, y0, y1), dim=1)
+        return torch.where(culled[:, None], torch.tensor([0, -1, 0, -1], device=bounds.device), bounds)
 
 
 def depth_order(projected: Projected) -> torch.Tensor:

@@ -115,5 +115,6 @@ def project(
             (means2d[:, 0] + radii > 0) & (means2d[:, 0] - radii < width)
             & (means2d[:, 1] + radii > 0) & (means2d[:, 1] - radii < height)
         )
-        radii = torch.where(in_front & on_screen & torch.isfinite(means2d).all(dim=1), radii, torch.zeros_like(radii))
+        finite = torch.isfinite(means2d).all(dim=1) & torch.isfinite(conics).all(dim=1) & torch.isfinite(largest)
+        radii = torch.where(in_front & on_screen & finite, torch.nan_to_num(radii.float()).long(), torch.zeros_like(radii))
     return Projected(means2d, conics, depth, radii, torch.stack((a, b, c), dim=-1))

@@ -33,9 +33,9 @@ class TrainingScene:
 
     @property
     def extent(self) -> float:
-        """1.1 × the largest distance of a camera from the cameras' mean (the reference's
+        """1.1 × the largest distance of a training camera from their mean (the reference's
         scene extent, which scales learning rates and size thresholds)."""
-        centres = self.cameras.centres()
+        centres = self.cameras.centres()[self.train]
         return 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
 
 
@@ -48,12 +48,22 @@ def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarra
         raise CubecloudError(f"cannot read {path} ({type(exc).__name__}): the scene's images/ must hold every image images.txt names") from None
     if pixels.shape[:2] != (height, width):
         raise CubecloudError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but its camera is {width}x{height}: undistort or resize the scene consistently")
-    scale = 65535.0 if pixels.dtype == np.uint16 else 255.0
-    pixels = pixels.astype(np.float32) / scale
+    if pixels.dtype == np.bool_:
+        pixels = pixels.astype(np.float32)
+    elif np.issubdtype(pixels.dtype, np.integer):
+        pixels = pixels.astype(np.float32) / float(np.iinfo(pixels.dtype).max)  # each depth's own range
+    elif np.issubdtype(pixels.dtype, np.floating):
+        pixels = pixels.astype(np.float32)  # float images are taken as [0, 1] already
+    else:
+        raise CubecloudError(f"{path} has pixels of type {pixels.dtype}: convert the scene's images to 8- or 16-bit PNG")
     if pixels.ndim == 2:
         pixels = pixels[..., None]
-    pixels = pixels[..., :3]  # drop alpha
-    return pixels.mean(axis=2, keepdims=True) if channels == 1 else np.repeat(pixels, 3 // pixels.shape[2], axis=2)
+    if pixels.ndim != 3 or pixels.shape[2] not in (1, 2, 3, 4):
+        raise CubecloudError(f"{path} has an image shape {pixels.shape} that is neither grey nor RGB: convert it to PNG")
+    colour = pixels[..., :1] if pixels.shape[2] <= 2 else pixels[..., :3]  # drop alpha (LA, RGBA)
+    if channels == 1:
+        return colour.mean(axis=2, keepdims=True)
+    return colour if colour.shape[2] == 3 else np.repeat(colour, 3, axis=2)
 
 
 def _split(directory: Path, names: list[str]) -> list[int]:
@@ -96,4 +106,9 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
             break
     if points is None and len(model.xyz):
         points = (model.xyz, model.rgb.astype(np.float32) / 255.0)
-    return TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)
+    if points is not None and not np.isfinite(points[0]).all():
+        raise CubecloudError(f"the point cloud of {directory} holds NaN or Inf coordinates: fix it, or use --init random")
+    scene = TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)
+    if not scene.extent > 1e-9:
+        raise CubecloudError(f"the training cameras of {directory} share one centre, so the scene has no extent: 3DGS needs views from different places")
+    return scene

@@ -8,8 +8,8 @@ applies the plan to every per-Gaussian tensor (parameters and optimizer moments 
   largest scale is at most ``percent_dense`` × the scene extent (copies, unchanged);
 * split the large ones among them into two, drawn from the Gaussian itself, scales ÷ 1.6;
 * prune those with opacity below ``min_opacity`` (and, after the first opacity reset, those
-  larger than ``max_world_size`` × extent; the reference's screen-size rule never fires, see
-  §1.3, and is not reproduced);
+  larger than ``max_world_size`` × extent, judged after splitting as the reference does; the
+  reference's screen-size rule never fires, see §1.3, and is not reproduced);
 * hold the count to ``max_gaussians``: growth goes to the largest gradients first, and a model
   above the budget loses its least opaque Gaussians.
 """
@@ -58,12 +58,13 @@ class DensifyPlan:
     keep: torch.Tensor  # (N,) bool: originals that stay
     clone: torch.Tensor  # (C,) indices of Gaussians copied unchanged
     split: torch.Tensor  # (S,) indices of Gaussians replaced by two children each
-    child_means: torch.Tensor  # (2S, 3)
-    child_log_scales: torch.Tensor  # (2S, 3)
+    child_means: torch.Tensor  # (K, 3), the kept children
+    child_log_scales: torch.Tensor  # (K, 3)
+    child_keep: torch.Tensor  # (2S,) bool: which of the 2 children per split survive the size rule
 
     @property
     def new_count(self) -> int:
-        return int(self.keep.sum()) + self.clone.numel() + 2 * self.split.numel()
+        return int(self.keep.sum()) + self.clone.numel() + int(self.child_keep.sum())
 
 
 def plan_densification(
@@ -82,10 +83,13 @@ def plan_densification(
         scales = torch.exp(log_scales)
         largest = scales.max(dim=1).values
         opacity = torch.sigmoid(opacity_logits)
-        prune = opacity < settings.min_opacity
-        if prune_large:
-            prune |= largest > settings.max_world_size * extent
-        grow = (mean_gradients >= settings.grad_threshold) & ~prune
+        transparent = opacity < settings.min_opacity
+        too_large = (largest > settings.max_world_size * extent) if prune_large else torch.zeros_like(transparent)
+        grow = (mean_gradients >= settings.grad_threshold) & ~transparent
+        big = largest > settings.percent_dense * extent
+        # As the reference: a Gaussian chosen for splitting is split before the world-size rule
+        # looks at it, and then only its children are judged by their own size.
+        prune = transparent | (too_large & ~(grow & big))
         if settings.max_gaussians is not None:
             surviving = count - int(prune.sum())
             if surviving > settings.max_gaussians:  # over budget already: drop the least opaque
@@ -100,7 +104,7 @@ def plan_densification(
                 best = torch.topk(mean_gradients[candidates], room).indices
                 grow = torch.zeros_like(grow)
                 grow[candidates[best]] = True
-        big = largest > settings.percent_dense * extent
+        prune |= too_large & ~(grow & big)  # large ones that lost their split to the budget
         clone = (grow & ~big).nonzero().squeeze(1)
         split = (grow & big).nonzero().squeeze(1)
 
@@ -111,9 +115,12 @@ def plan_densification(
         rotations = quaternion_to_rotation(quaternions[split]).repeat_interleave(2, dim=0)
         child_means = means[split].repeat_interleave(2, dim=0) + (rotations @ noise[:, :, None])[:, :, 0]
         child_log_scales = torch.log(parent_scales / SPLIT_SCALE_DIVISOR)
+        child_keep = torch.ones(child_means.shape[0], dtype=torch.bool, device=means.device)
+        if prune_large:
+            child_keep = torch.exp(child_log_scales).max(dim=1).values <= settings.max_world_size * extent
         keep = ~prune
         keep[split] = False
-        return DensifyPlan(keep, clone, split, child_means, child_log_scales)
+        return DensifyPlan(keep, clone, split, child_means[child_keep], child_log_scales[child_keep], child_keep)
 
 
 def apply_plan(plan: DensifyPlan, values: torch.Tensor, children: torch.Tensor | None = None, new_rows_zero: bool = False) -> torch.Tensor:
@@ -122,9 +129,9 @@ def apply_plan(plan: DensifyPlan, values: torch.Tensor, children: torch.Tensor |
     zeros instead (optimizer moments start afresh for new Gaussians)."""
     kept = values[plan.keep]
     if new_rows_zero:
-        added = values.new_zeros((plan.clone.numel() + 2 * plan.split.numel(), *values.shape[1:]))
+        added = values.new_zeros((plan.clone.numel() + int(plan.child_keep.sum()), *values.shape[1:]))
         return torch.cat((kept, added))
-    split_rows = children if children is not None else values[plan.split].repeat_interleave(2, dim=0)
+    split_rows = children if children is not None else values[plan.split].repeat_interleave(2, dim=0)[plan.child_keep]
     return torch.cat((kept, values[plan.clone], split_rows))
 
 

@@ -16,8 +16,9 @@ import torch
 from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE, coefficient_count, rgb_to_sh, sh_to_colour
 
 INITIAL_OPACITY = 0.1  # the reference initialisation
-# exp(±LOG_SCALE_LIMIT) stays finite and non-zero in float32, whatever the optimizer does.
-LOG_SCALE_LIMIT = 30.0
+# exp(±LOG_SCALE_LIMIT) keeps scales, and the projected covariance's a·c (∝ s⁴ · focal⁴),
+# finite in float32 whatever the optimizer does; e¹⁰ is 22 000 world units, far past any scene.
+LOG_SCALE_LIMIT = 10.0
 MIN_NEIGHBOUR_DISTANCE_SQUARED = 1e-7  # the reference clamp, for duplicated points
 
 

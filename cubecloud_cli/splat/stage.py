@@ -50,7 +50,11 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
     return gaussians_from_points(xyz, rgb, settings.channels, settings.sh_degree)
 
 
-def _check_resume(checkpoint: Path, settings: SplatSettings, resume: bool, force: bool) -> dict | None:
+# Options that change how often things are reported, not what is trained.
+REPORTING_OPTIONS = ("eval_every", "checkpoint_every")
+
+
+def _check_resume(checkpoint: Path, settings: SplatSettings, resume: bool, force: bool, scene: TrainingScene) -> dict | None:
     if resume:
         if not checkpoint.is_file():
             raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
@@ -58,7 +62,10 @@ def _check_resume(checkpoint: Path, settings: SplatSettings, resume: bool, force
             state = torch.load(checkpoint, map_location="cpu", weights_only=False)
         except Exception as exc:
             raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
-        changed = [k for k, v in settings.as_dict().items() if k != "iterations" and state["settings"].get(k) != v]
+        # The schedule scales with --iterations, so it must not change part-way either.
+        changed = [k for k, v in settings.as_dict().items() if k not in REPORTING_OPTIONS and state["settings"].get(k) != v]
+        if state.get("scene") != _scene_identity(scene):
+            changed.append("scene")
         if changed:
             raise CubecloudError(f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the same options, or --force")
         return state
@@ -94,7 +101,7 @@ def train_splat(
                          keep_partial=True, transient=(CHECKPOINT_FILE,))
     writer.check_can_start()
     checkpoint = writer.directory / CHECKPOINT_FILE
-    state = _check_resume(checkpoint, settings, resume, force)
+    state = _check_resume(checkpoint, settings, resume, force, scene)
     if state is None and writer.directory.exists():
         shutil.rmtree(writer.directory)
     try:
@@ -104,6 +111,7 @@ def train_splat(
                     if path.is_file():
                         writer.add_input(path, str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path))
                 trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
+                trainer.identity = _scene_identity(scene)
                 initial_count = len(trainer.gaussians)
                 if state is not None:
                     trainer.restore(state)
@@ -137,6 +145,12 @@ def train_splat(
     except KeyboardInterrupt:
         raise interrupted(checkpoint) from None
     return read_manifest(writer.final_dir)
+
+
+def _scene_identity(scene: TrainingScene) -> dict:
+    """What a checkpoint must have been trained on to be resumed."""
+    return {"directory": str(Path(scene.directory).resolve()), "views": len(scene.names),
+            "size": [scene.cameras.width, scene.cameras.height], "names": scene.names}
 
 
 def _kernel_threads() -> int:
@@ -174,6 +188,8 @@ def _train(trainer: SplatTrainer, checkpoint: Path, on_progress: ProgressCallbac
             raise
         except KeyboardInterrupt:
             raise interrupted(checkpoint) from None
+        except FloatingPointError as exc:
+            raise CubecloudError(f"training diverged: {exc}; lower the learning rates and pass --force") from None
 
 
 def _write_log(path: Path, history: list[dict]) -> None:

@@ -74,6 +74,7 @@ class SplatTrainer:
         self.history: list[dict] = []
         self._queue: list[int] = []
         self.images = scene.images.to(device)
+        self.identity: dict | None = None  # the scene, as the stage describes it in checkpoints
 
     # -- one iteration --------------------------------------------------------------------
 
@@ -109,6 +110,8 @@ class SplatTrainer:
             self.stats.add(projected.means2d.grad, projected.radii, self.scene.cameras.width, self.scene.cameras.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        if not all(bool(torch.isfinite(getattr(self.gaussians, name)).all()) for name in PARAMETERS):
+            raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {self.iteration}")
         if refining and self.iteration > schedule["densify_from"] and self.iteration % schedule["densify_every"] == 0:
             self._densify(prune_large=self.iteration > schedule["reset_every"])
         if refining and self.iteration % schedule["reset_every"] == 0:
@@ -177,6 +180,7 @@ class SplatTrainer:
             "generator": self.generator.get_state(),
             "queue": list(self._queue),
             "settings": self.settings.as_dict(),
+            "scene": self.identity,
         }
 
     def save(self, path: Path) -> None:
