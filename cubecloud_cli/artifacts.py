@@ -13,6 +13,7 @@ Every stage (`preprocess`, `cunerf`, `export`, `splat`, `eval`) writes its files
 
 from __future__ import annotations
 
+import csv
 import datetime as _dt
 import hashlib
 import json
@@ -288,3 +289,12 @@ def check_free_disk(directory: Path, needed_bytes: int) -> None:
             f"not enough disk space in {directory}: {needed_bytes / 1e9:.2f} GB needed, "
             f"{free / 1e9:.2f} GB free; free some space or choose a smaller --size"
         )
+
+
+def write_csv_log(path: Path, columns: tuple[str, ...], rows: list[dict]) -> None:
+    """A training log: one row per entry, floats to 6 significant digits, missing cells empty."""
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})

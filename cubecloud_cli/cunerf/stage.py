@@ -14,7 +14,6 @@ iterations and on Ctrl-C; `--resume` continues from it exactly.
 
 from __future__ import annotations
 
-import csv
 import logging
 import os
 import shutil
@@ -24,20 +23,21 @@ from typing import Callable
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage
+from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
-from cubecloud_cli.cunerf.interrupts import (
-    CubecloudInterrupted,
-    NothingToResume,
-    deferred_interrupt,
-    interrupted,
-    saved_iteration,
-)
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.interrupts import (
+    CubecloudInterrupted,
+    NothingToResume,
+    checkpointed_loop,
+    interrupted,
+    save_on_schedule,
+    saved_iteration,
+)
 from cubecloud_cli.metrics import volume_metrics
 from cubecloud_cli.preprocess.preview import write_preview_rows
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -119,14 +119,6 @@ def _check_resume(
             f"or --force to start again"
         )
     return None
-
-
-def _write_log(path: Path, history: list[dict]) -> None:
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=LOG_COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        for row in history:
-            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
 
 
 def train_cunerf(
@@ -301,7 +293,7 @@ def _reconstruct_and_write(
         difference = np.clip(4.0 * np.abs(recon - volume_np), 0.0, 1.0)
         write_preview_rows([("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)],
                            writer.directory / PREVIEW_FILE)
-        _write_log(writer.directory / LOG_FILE, trainer.history)
+        write_csv_log(writer.directory / LOG_FILE, LOG_COLUMNS, trainer.history)
     return field, metrics, export_size
 
 
@@ -310,35 +302,22 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
     total = settings.iterations
     log_every = max(1, total // 200)
     latest: dict = {}
-    with deferred_interrupt() as interrupt:
-        try:
-            while trainer.iteration < total:
-                trainer.step()
-                running = trainer.smoothed_loss
-                it = trainer.iteration
-                row = None
-                if it % settings.val_every == 0 or it == total:
-                    latest = trainer.validate()
-                    row = {**latest}
-                if row is not None or it % log_every == 0:
-                    trainer.history.append(
-                        {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
-                         "lr": trainer.optimizer.param_groups[0]["lr"], **(row or {})}
-                    )
-                fields = {"loss": running}
-                if "val_psnr" in latest:
-                    fields["val PSNR"] = latest["val_psnr"]
-                on_progress("train", it, total, fields)
-                # The last iteration is saved too: reconstruction can be long, and a resume
-                # then goes straight to it.
-                if it % settings.checkpoint_every == 0 or it == total or interrupt["requested"]:
-                    trainer.save(checkpoint)
-                if interrupt["requested"]:
-                    raise CubecloudInterrupted(checkpoint, it)
-        except (CubecloudInterrupted, NothingToResume):
-            raise
-        except KeyboardInterrupt:
-            # A second Ctrl-C, mid-step: the state may be half-updated, so keep the last save.
-            raise interrupted(checkpoint) from None
-        except FloatingPointError as exc:
-            raise CubecloudError(f"training diverged: {exc}; lower --lr and pass --force to start again") from None
+    with checkpointed_loop(checkpoint, "lower --lr and pass --force to start again") as interrupt:
+        while trainer.iteration < total:
+            trainer.step()
+            running = trainer.smoothed_loss
+            it = trainer.iteration
+            row = None
+            if it % settings.val_every == 0 or it == total:
+                latest = trainer.validate()
+                row = {**latest}
+            if row is not None or it % log_every == 0:
+                trainer.history.append(
+                    {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
+                     "lr": trainer.optimizer.param_groups[0]["lr"], **(row or {})}
+                )
+            fields = {"loss": running}
+            if "val_psnr" in latest:
+                fields["val PSNR"] = latest["val_psnr"]
+            on_progress("train", it, total, fields)
+            save_on_schedule(trainer.save, checkpoint, it, settings.checkpoint_every, total, interrupt)

@@ -12,7 +12,6 @@ and on Ctrl-C; `--resume` continues from it exactly.
 
 from __future__ import annotations
 
-import csv
 import logging
 import shutil
 from pathlib import Path
@@ -21,8 +20,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage
-from cubecloud_cli.cunerf.interrupts import CubecloudInterrupted, NothingToResume, deferred_interrupt, interrupted
+from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.interrupts import CubecloudInterrupted, NothingToResume, checkpointed_loop, interrupted, save_on_schedule
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -121,7 +120,7 @@ def train_splat(
             with writer.phase("write"):
                 on_progress("write", 0, 1, {})
                 write_gaussians_ply(writer.directory / PLY_FILE, trainer.gaussians)
-                _write_log(writer.directory / "log.csv", trainer.history)
+                write_csv_log(writer.directory / "log.csv", LOG_COLUMNS, trainer.history)
                 _write_preview(trainer, writer.directory / "preview.png")
             final = trainer.evaluate(scene.test)
             writer.metrics.update({
@@ -163,41 +162,23 @@ def _train(trainer: SplatTrainer, checkpoint: Path, on_progress: ProgressCallbac
     settings = trainer.settings
     total = settings.iterations
     latest: dict = {}
-    with deferred_interrupt() as interrupt:
-        try:
-            while trainer.iteration < total:
-                loss = trainer.step()
-                it = trainer.iteration
-                if not np.isfinite(loss):
-                    raise CubecloudError(f"training diverged at iteration {it} (loss {loss}): lower the learning rates and pass --force")
-                row = {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": loss, "gaussians": len(trainer.gaussians)}
-                if it % settings.eval_every == 0 or it == total:
-                    latest = trainer.evaluate(trainer.scene.test)
-                    row["test_psnr"] = latest.get("psnr")
-                if it % max(1, total // 200) == 0 or "test_psnr" in row:
-                    trainer.history.append(row)
-                fields = {"loss": loss, "gaussians": len(trainer.gaussians)}
-                if "psnr" in latest:
-                    fields["test PSNR"] = latest["psnr"]
-                on_progress("train", it, total, fields)
-                if it % settings.checkpoint_every == 0 or it == total or interrupt["requested"]:
-                    trainer.save(checkpoint)
-                if interrupt["requested"]:
-                    raise CubecloudInterrupted(checkpoint, it)
-        except (CubecloudInterrupted, NothingToResume):
-            raise
-        except KeyboardInterrupt:
-            raise interrupted(checkpoint) from None
-        except FloatingPointError as exc:
-            raise CubecloudError(f"training diverged: {exc}; lower the learning rates and pass --force") from None
-
-
-def _write_log(path: Path, history: list[dict]) -> None:
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=LOG_COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        for row in history:
-            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    with checkpointed_loop(checkpoint, "lower the learning rates and pass --force") as interrupt:
+        while trainer.iteration < total:
+            loss = trainer.step()
+            it = trainer.iteration
+            if not np.isfinite(loss):
+                raise FloatingPointError(f"the loss is {loss} at iteration {it}")
+            row = {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": loss, "gaussians": len(trainer.gaussians)}
+            if it % settings.eval_every == 0 or it == total:
+                latest = trainer.evaluate(trainer.scene.test)
+                row["test_psnr"] = latest.get("psnr")
+            if it % max(1, total // 200) == 0 or "test_psnr" in row:
+                trainer.history.append(row)
+            fields = {"loss": loss, "gaussians": len(trainer.gaussians)}
+            if "psnr" in latest:
+                fields["test PSNR"] = latest["psnr"]
+            on_progress("train", it, total, fields)
+            save_on_schedule(trainer.save, checkpoint, it, settings.checkpoint_every, total, interrupt)
 
 
 @torch.no_grad()

@@ -1,4 +1,5 @@
-"""Ctrl-C during a long stage: finish the step, save, and say how to resume."""
+"""Ctrl-C during a long training stage (cunerf, splat): finish the step, save, and say how to
+resume; and the checkpoint rhythm both stages share."""
 
 from __future__ import annotations
 
@@ -6,9 +7,11 @@ import signal
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import torch
+
+from cubecloud_cli.errors import CubecloudError
 
 
 @contextmanager
@@ -65,3 +68,29 @@ class CubecloudInterrupted(KeyboardInterrupt):
         )
         self.checkpoint = checkpoint
         self.iteration = iteration
+
+
+@contextmanager
+def checkpointed_loop(checkpoint: Path, divergence_fix: str) -> Iterator[dict]:
+    """Run a training loop with Ctrl-C deferred to step boundaries; turns a second Ctrl-C into
+    the resume message and a FloatingPointError into a one-line divergence error."""
+    with deferred_interrupt() as interrupt:
+        try:
+            yield interrupt
+        except (CubecloudInterrupted, NothingToResume):
+            raise
+        except KeyboardInterrupt:
+            # A second Ctrl-C, mid-step: the state may be half-updated, so keep the last save.
+            raise interrupted(checkpoint) from None
+        except FloatingPointError as exc:
+            raise CubecloudError(f"training diverged: {exc}; {divergence_fix}") from None
+
+
+def save_on_schedule(save: Callable[[Path], None], checkpoint: Path, iteration: int, every: int, total: int,
+                     interrupt: dict) -> None:
+    """Save every ``every`` iterations, after the last one (a resume then goes straight to the
+    stage's end) and on Ctrl-C, then stop if Ctrl-C was pressed."""
+    if iteration % every == 0 or iteration == total or interrupt["requested"]:
+        save(checkpoint)
+    if interrupt["requested"]:
+        raise CubecloudInterrupted(checkpoint, iteration)
