@@ -94,3 +94,21 @@ def save_on_schedule(save: Callable[[Path], None], checkpoint: Path, iteration: 
         save(checkpoint)
     if interrupt["requested"]:
         raise CubecloudInterrupted(checkpoint, iteration)
+
+
+def checkpoint_to_resume(checkpoint: Path, resume: bool, force: bool) -> dict | None:
+    """The saved state to continue from with ``--resume`` (refusing a missing or unreadable one),
+    or None to start afresh; without --resume or --force, refuses to discard a waiting run.
+    The stage then checks that the state fits its inputs and settings."""
+    if resume:
+        if not checkpoint.is_file():
+            raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
+        try:
+            return torch.load(checkpoint, map_location="cpu", weights_only=False)
+        except Exception as exc:  # torch raises many types for a damaged file
+            raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
+    if checkpoint.is_file() and not force:
+        raise CubecloudError(
+            f"an interrupted run is waiting in {checkpoint.parent}: pass --resume to continue it, or --force to start again"
+        )
+    return None

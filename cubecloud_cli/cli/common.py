@@ -73,6 +73,12 @@ def parse_floats(text: str | None, count: int, option: str) -> tuple[float, ...]
     return values
 
 
+def unset_option(flag: str, help_text: str):
+    """An option whose default (None) means "the preset's value": no default is shown, the
+    help text names the presets' values instead."""
+    return typer.Option(flag, help=help_text, show_default=False)
+
+
 class Preset(str, Enum):
     fast = "fast"
     balanced = "balanced"

@@ -17,6 +17,7 @@ from cubecloud_cli.cli.common import (
     QuietOption,
     configure_logging,
     reports_errors,
+    unset_option,
 )
 from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
 from cubecloud_cli.presets import resolve_cunerf
@@ -46,20 +47,16 @@ class Device(str, Enum):
     cuda = "cuda"
 
 
-def _opt(flag: str, help_text: str):
-    return typer.Option(flag, help=help_text, show_default=False)
-
-
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ (from `cubecloud preprocess`).")]
-ModelOption = Annotated[Optional[Model], _opt("--model", "fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional encoding, coarse + fine (GPU). (preset: fast, balanced -> fast; paper -> cunerf)")]
-IterationsOption = Annotated[Optional[int], _opt("--iterations", "Training iterations. (preset fast 4000, balanced 6000; paper 200000 with the cunerf model)")]
-BatchOption = Annotated[Optional[int], _opt("--batch-size", "Cubes (voxels) per iteration. (fast model 4096-8192; cunerf 512-1024)")]
-LrOption = Annotated[Optional[float], _opt("--lr", "Peak learning rate (Adam). (fast 0.05; cunerf 2e-3)")]
-LrFinalOption = Annotated[Optional[float], _opt("--lr-final", "Learning rate at the last iteration, reached by log-linear decay. (fast 5e-4; cunerf 2e-5)")]
-WarmupOption = Annotated[Optional[int], _opt("--warmup", "Iterations of sine warm-up from 1% of --lr. (fast 100; cunerf 1000)")]
-CubeRadiusOption = Annotated[Optional[float], _opt("--cube-radius", "Cube half-size in voxels (times --train-scale). (fast 0.5: the voxel itself; cunerf 1, the paper's)")]
-SamplesOption = Annotated[Optional[int], _opt("--samples-per-axis", "n: n³ points per cube. (fast model 2; cunerf 4, the paper's 64)")]
-ImportanceOption = Annotated[Optional[int], _opt("--importance", "Fine points per cube drawn from the coarse weights; 0 = no fine pass. (fast 0; cunerf 64)")]
+ModelOption = Annotated[Optional[Model], unset_option("--model", "fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional encoding, coarse + fine (GPU). (preset: fast, balanced -> fast; paper -> cunerf)")]
+IterationsOption = Annotated[Optional[int], unset_option("--iterations", "Training iterations. (preset fast 4000, balanced 6000; paper 200000 with the cunerf model)")]
+BatchOption = Annotated[Optional[int], unset_option("--batch-size", "Cubes (voxels) per iteration. (fast model 4096-8192; cunerf 512-1024)")]
+LrOption = Annotated[Optional[float], unset_option("--lr", "Peak learning rate (Adam). (fast 0.05; cunerf 2e-3)")]
+LrFinalOption = Annotated[Optional[float], unset_option("--lr-final", "Learning rate at the last iteration, reached by log-linear decay. (fast 5e-4; cunerf 2e-5)")]
+WarmupOption = Annotated[Optional[int], unset_option("--warmup", "Iterations of sine warm-up from 1% of --lr. (fast 100; cunerf 1000)")]
+CubeRadiusOption = Annotated[Optional[float], unset_option("--cube-radius", "Cube half-size in voxels (times --train-scale). (fast 0.5: the voxel itself; cunerf 1, the paper's)")]
+SamplesOption = Annotated[Optional[int], unset_option("--samples-per-axis", "n: n³ points per cube. (fast model 2; cunerf 4, the paper's 64)")]
+ImportanceOption = Annotated[Optional[int], unset_option("--importance", "Fine points per cube drawn from the coarse weights; 0 = no fine pass. (fast 0; cunerf 64)")]
 LayoutOption = Annotated[Layout, typer.Option("--train-layout", help="Training points: stratified (one per sub-cell) or uniform (i.i.d. in the cube).")]
 OfficialOption = Annotated[bool, typer.Option("--official-quirks", help="Reproduce the official code's sampling and rendering quirks (corner-biased samples, asymmetric lattice, polar-crowded random directions, unbounded weights) for A/B comparison.")]
 DensityOption = Annotated[Density, typer.Option("--density", help="Density activation: softplus, or relu as in the official code (can die and render black).")]
@@ -69,15 +66,15 @@ GridFeaturesOption = Annotated[int, typer.Option("--grid-features", help="fast m
 GridHiddenOption = Annotated[int, typer.Option("--grid-hidden", help="fast model: width of the MLP's hidden layer.")]
 TrainScaleOption = Annotated[int, typer.Option("--train-scale", help="Zero-shot super-resolution: train on every s-th voxel per axis, score against all of them.")]
 HoldoutOption = Annotated[int, typer.Option("--holdout", help="Axial slices kept out of training for validation.")]
-ValEveryOption = Annotated[Optional[int], _opt("--val-every", "Validate on the held-out slices every K iterations. (fast model 1000)")]
-CheckpointEveryOption = Annotated[Optional[int], _opt("--checkpoint-every", "Save a checkpoint every K iterations (and on Ctrl-C). (fast model 500)")]
+ValEveryOption = Annotated[Optional[int], unset_option("--val-every", "Validate on the held-out slices every K iterations. (fast model 1000)")]
+CheckpointEveryOption = Annotated[Optional[int], unset_option("--checkpoint-every", "Save a checkpoint every K iterations (and on Ctrl-C). (fast model 500)")]
 BodyFractionOption = Annotated[float, typer.Option("--body-fraction", help="Share of each batch drawn from non-air voxels; the rest is uniform.")]
 ExportScaleOption = Annotated[float, typer.Option("--export-scale", help="recon.nii.gz resolution as a multiple of the volume's (2 = twice as many voxels per axis).")]
 SkipAirOption = Annotated[bool, typer.Option("--skip-air/--no-skip-air", help="Skip rendering blocks that hold no non-zero training voxel (they read 0).")]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed of every random draw; the same seed repeats a run.")]
 DeviceOption = Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
-ThreadsOption = Annotated[Optional[int], _opt("--threads", "CPU threads for torch and for splat's numba kernels (default: all cores).")]
-NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/cunerf-NAME/ instead of WORK/cunerf/, for runs side by side.")]
+ThreadsOption = Annotated[Optional[int], unset_option("--threads", "CPU threads for torch and for splat's numba kernels (default: all cores).")]
+NameOption = Annotated[Optional[str], unset_option("--name", "Write WORK/cunerf-NAME/ instead of WORK/cunerf/, for runs side by side.")]
 ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last checkpoint.")]
 
 

@@ -10,7 +10,15 @@ from typing import Annotated, Optional
 import typer
 
 from cubecloud_cli.artifacts import stage_dir_name
-from cubecloud_cli.cli.common import DEFAULT_PRESET_VALUE, ForceOption, PresetOption, QuietOption, configure_logging, reports_errors
+from cubecloud_cli.cli.common import (
+    DEFAULT_PRESET_VALUE,
+    ForceOption,
+    PresetOption,
+    QuietOption,
+    configure_logging,
+    reports_errors,
+    unset_option,
+)
 from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
 from cubecloud_cli.cunerf import Runtime
 from cubecloud_cli.export import ExportSettings, export_scene
@@ -42,32 +50,28 @@ Transfer = Enum("Transfer", {name: name for name in TRANSFER_PRESETS}, type=str)
 _PRESET_HELP = "; ".join(f"{name}: {preset.description}" for name, preset in TRANSFER_PRESETS.items())
 
 
-def _opt(flag: str, help_text: str):
-    return typer.Option(flag, help=help_text, show_default=False)
-
-
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ and cunerf/.")]
 CubeOption = Annotated[int, typer.Option("--cube", help="Cube side in voxels for point sampling (the paper: 16).")]
-PointsPerCubeOption = Annotated[Optional[int], _opt("--points-per-cube", "Points drawn uniformly in each cube. (preset fast/balanced 512, paper 64)")]
-MaxPointsOption = Annotated[Optional[int], _opt("--max-points", "Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. (fast 100000, balanced 200000, paper 0)")]
+PointsPerCubeOption = Annotated[Optional[int], unset_option("--points-per-cube", "Points drawn uniformly in each cube. (preset fast/balanced 512, paper 64)")]
+MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", "Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. (fast 100000, balanced 200000, paper 0)")]
 AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
-ViewsOption = Annotated[Optional[int], _opt("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
-AxisOption = Annotated[Optional[Axis], _opt("--axis", "Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. (fast/balanced si, paper ap)")]
+ViewsOption = Annotated[Optional[int], unset_option("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
+AxisOption = Annotated[Optional[Axis], unset_option("--axis", "Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. (fast/balanced si, paper ap)")]
 RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
-FovOption = Annotated[Optional[float], _opt("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
-ResolutionOption = Annotated[Optional[int], _opt("--resolution", "Image width and height in pixels. (fast 128, balanced 256, paper 512)")]
+FovOption = Annotated[Optional[float], unset_option("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
+ResolutionOption = Annotated[Optional[int], unset_option("--resolution", "Image width and height in pixels. (fast 128, balanced 256, paper 512)")]
 ElevationOption = Annotated[float, typer.Option("--elevation", help="Degrees the orbit is raised out of its plane (all views alike).")]
-ViewOption = Annotated[Optional[View], _opt("--view", "Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). (fast/balanced dvr, paper slice)")]
+ViewOption = Annotated[Optional[View], unset_option("--view", "Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). (fast/balanced dvr, paper slice)")]
 TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
-TfLowOption = Annotated[Optional[float], _opt("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
-TfHighOption = Annotated[Optional[float], _opt("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]
-TfDensityOption = Annotated[Optional[float], _opt("--tf-density", "dvr: extinction per world unit at full absorption; higher is more opaque.")]
+TfLowOption = Annotated[Optional[float], unset_option("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
+TfHighOption = Annotated[Optional[float], unset_option("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]
+TfDensityOption = Annotated[Optional[float], unset_option("--tf-density", "dvr: extinction per world unit at full absorption; higher is more opaque.")]
 StepOption = Annotated[float, typer.Option("--step", help="Ray-march step in voxels of the preprocessed volume.")]
 RenderFromOption = Annotated[RenderFrom, typer.Option("--render-from", help="grid: bake CuNeRF to a grid once, then render (fast). field: query CuNeRF's cube renders at every ray sample (slow; exact).")]
-BakeSizeOption = Annotated[Optional[int], _opt("--bake-size", "Grid side for --render-from grid (default: the volume's size).")]
+BakeSizeOption = Annotated[Optional[int], unset_option("--bake-size", "Grid side for --render-from grid (default: the volume's size).")]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed of the point sampling.")]
-CunerfNameOption = Annotated[Optional[str], _opt("--cunerf-name", "Export WORK/cunerf-NAME/ instead of WORK/cunerf/.")]
-NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/export-NAME/ instead of WORK/export/.")]
+CunerfNameOption = Annotated[Optional[str], unset_option("--cunerf-name", "Export WORK/cunerf-NAME/ instead of WORK/cunerf/.")]
+NameOption = Annotated[Optional[str], unset_option("--name", "Write WORK/export-NAME/ instead of WORK/export/.")]
 
 
 def export_settings(preset: str, **options) -> ExportSettings:

@@ -10,7 +10,15 @@ from typing import Annotated, Optional
 import typer
 
 from cubecloud_cli.artifacts import stage_dir_name
-from cubecloud_cli.cli.common import DEFAULT_PRESET_VALUE, ForceOption, PresetOption, QuietOption, configure_logging, reports_errors
+from cubecloud_cli.cli.common import (
+    DEFAULT_PRESET_VALUE,
+    ForceOption,
+    PresetOption,
+    QuietOption,
+    configure_logging,
+    reports_errors,
+    unset_option,
+)
 from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
 from cubecloud_cli.presets import PRESETS, resolve
 from cubecloud_cli.progress import ProgressBar
@@ -26,24 +34,20 @@ class Init(str, Enum):
     random = "random"
 
 
-def _opt(flag: str, help_text: str):
-    return typer.Option(flag, help=help_text, show_default=False)
-
-
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory; its export/ is the scene unless --scene is given.")]
-SceneOption = Annotated[Optional[Path], _opt("--scene", "Train on this COLMAP scene folder instead (sparse/0 + images/, PINHOLE or SIMPLE_PINHOLE).")]
+SceneOption = Annotated[Optional[Path], unset_option("--scene", "Train on this COLMAP scene folder instead (sparse/0 + images/, PINHOLE or SIMPLE_PINHOLE).")]
 InitOption = Annotated[Init, typer.Option("--init", help="cloud: the scene's points (Cube-Cloud). random: uniform points in the volume's cube (the paper's baseline).")]
 RandomPointsOption = Annotated[int, typer.Option("--random-points", help="Points for --init random.")]
-IterationsOption = Annotated[Optional[int], _opt("--iterations", "Training iterations, one view each. (preset fast 2000, balanced 7000, paper 30000)")]
+IterationsOption = Annotated[Optional[int], unset_option("--iterations", "Training iterations, one view each. (preset fast 2000, balanced 7000, paper 30000)")]
 ChannelsOption = Annotated[int, typer.Option("--channels", help="Colour channels: 1 for CT (grey), 3 for RGB scenes.")]
 ShDegreeOption = Annotated[int, typer.Option("--sh-degree", help="Spherical-harmonics degree; dvr and slice images are view-independent, so 0.")]
-MaxGaussiansOption = Annotated[Optional[int], _opt("--max-gaussians", "Gaussian budget; densification stops growing at it. (fast 200000, balanced 500000, paper none)")]
+MaxGaussiansOption = Annotated[Optional[int], unset_option("--max-gaussians", "Gaussian budget; densification stops growing at it. (fast 200000, balanced 500000, paper none)")]
 DssimOption = Annotated[float, typer.Option("--dssim-weight", help="λ of (1-λ)·L1 + λ·D-SSIM (the paper: 0.2).")]
 RefineOption = Annotated[bool, typer.Option("--refine/--no-refine", help="Densify, prune and reset opacity on the reference schedule (scaled to --iterations).")]
 EvalEveryOption = Annotated[int, typer.Option("--eval-every", help="Score the test views every K iterations.")]
 CheckpointEveryOption = Annotated[int, typer.Option("--checkpoint-every", help="Save a checkpoint every K iterations (and on Ctrl-C).")]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed of the view order, random points and splits.")]
-NameOption = Annotated[Optional[str], _opt("--name", "Write WORK/splat-NAME/ instead of WORK/splat/ (e.g. --name random for the baseline).")]
+NameOption = Annotated[Optional[str], unset_option("--name", "Write WORK/splat-NAME/ instead of WORK/splat/ (e.g. --name random for the baseline).")]
 ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last checkpoint.")]
 
 

@@ -33,6 +33,7 @@ from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.interrupts import (
     CubecloudInterrupted,
     NothingToResume,
+    checkpoint_to_resume,
     checkpointed_loop,
     interrupted,
     save_on_schedule,
@@ -88,13 +89,8 @@ def _check_resume(
     force: bool,
 ) -> dict | None:
     """The checkpoint to continue from, or None to start afresh; refuses to guess."""
-    if resume:
-        if not checkpoint.is_file():
-            raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
-        try:
-            state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        except Exception as exc:
-            raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
+    state = checkpoint_to_resume(checkpoint, resume, force)
+    if state is not None:
         recorded = state.get("settings", {})
         trained_on = state.get("context", {}).get("device", device.type)
         if trained_on != device.type:
@@ -112,13 +108,7 @@ def _check_resume(
                 f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the "
                 f"same options, or start again with --force"
             )
-        return state
-    if checkpoint.is_file() and not force:
-        raise CubecloudError(
-            f"an interrupted run is waiting in {checkpoint.parent}: pass --resume to continue it, "
-            f"or --force to start again"
-        )
-    return None
+    return state
 
 
 def train_cunerf(

@@ -21,7 +21,14 @@ import numpy as np
 import torch
 
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
-from cubecloud_cli.interrupts import CubecloudInterrupted, NothingToResume, checkpointed_loop, interrupted, save_on_schedule
+from cubecloud_cli.interrupts import (
+    CubecloudInterrupted,
+    NothingToResume,
+    checkpoint_to_resume,
+    checkpointed_loop,
+    interrupted,
+    save_on_schedule,
+)
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -54,23 +61,15 @@ REPORTING_OPTIONS = ("eval_every", "checkpoint_every")
 
 
 def _check_resume(checkpoint: Path, settings: SplatSettings, resume: bool, force: bool, scene: TrainingScene) -> dict | None:
-    if resume:
-        if not checkpoint.is_file():
-            raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
-        try:
-            state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        except Exception as exc:
-            raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
+    state = checkpoint_to_resume(checkpoint, resume, force)
+    if state is not None:
         # The schedule scales with --iterations, so it must not change part-way either.
         changed = [k for k, v in settings.as_dict().items() if k not in REPORTING_OPTIONS and state["settings"].get(k) != v]
         if state.get("scene") != _scene_identity(scene):
             changed.append("scene")
         if changed:
             raise CubecloudError(f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the same options, or --force")
-        return state
-    if checkpoint.is_file() and not force:
-        raise CubecloudError(f"an interrupted run is waiting in {checkpoint.parent}: pass --resume to continue it, or --force to start again")
-    return None
+    return state
 
 
 def train_splat(
