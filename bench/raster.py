@@ -20,7 +20,7 @@ import torch
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import composite, project, splat_pairs
-from cubecloud_cli.raster.cpu import composite_cpu
+from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA
 
 
@@ -61,7 +61,7 @@ def useful_pairs(projected, opacities, width, height) -> int:
     return int((alpha >= MIN_ALPHA).sum())
 
 
-def time_backend(compositor, scene, cameras, width, repeats):
+def time_backend(projector, compositor, scene, cameras, width, repeats):
     means, log_scales, quaternions, opacities, colours = scene
     rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
     translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
@@ -69,7 +69,7 @@ def time_backend(compositor, scene, cameras, width, repeats):
     for _ in range(repeats + 1):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
         start = time.perf_counter()
-        projected = project(inputs[0], torch.exp(inputs[1]), inputs[2], rotation, translation,
+        projected = projector(inputs[0], torch.exp(inputs[1]), inputs[2], rotation, translation,
                             float(cameras.focal), width, width)
         projected_at = time.perf_counter()
         image, _ = compositor(projected, inputs[4], inputs[3], width, width)
@@ -96,10 +96,10 @@ def main() -> None:
     print(f"{len(scene[0])} Gaussians ({'from ' + args.cloud if args.cloud else 'random'}), {args.resolution}² view, {torch.get_num_threads()} threads; "
           f"median of {args.repeats} forward + backward passes")
     results = {}
-    for name, compositor in (("numba", composite_cpu), ("torch", composite)):
+    for name, projector, compositor in (("numba", project_cpu, composite_cpu), ("torch", project, composite)):
         if name == "torch" and args.skip_torch:
             continue
-        times, projected = time_backend(compositor, scene, cameras, args.resolution, args.repeats if name == "numba" else max(3, args.repeats // 5))
+        times, projected = time_backend(projector, compositor, scene, cameras, args.resolution, args.repeats if name == "numba" else max(3, args.repeats // 5))
         results[name] = times
         print(f"  {name:<6} total {times['total']:7.2f} ms  (project {times['project']:.2f}, "
               f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f})")

@@ -13,7 +13,7 @@ import torch
 
 from cli_helpers import assert_one_line_error, invoke
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-from cubecloud_cli.raster.cpu import composite_cpu
+from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
 from cubecloud_cli.splat.data import TrainingScene
 from cubecloud_cli.splat.settings import SplatSettings
@@ -33,7 +33,7 @@ def test_training_recovers_known_gaussians_from_their_images():
     scene = TrainingScene(Path("."), cameras, [str(i) for i in range(16)], torch.zeros(16, 32, 32, 1),
                           [i for i in range(16) if i % 8], [0, 8], None)
     with torch.no_grad():
-        scene.images = torch.stack([render(truth, scene, view, 0, composite_cpu)[0] for view in range(16)])
+        scene.images = torch.stack([render(truth, scene, view, 0, NUMBA).image for view in range(16)])
     rng = np.random.default_rng(0)
     start = gaussians_from_points(rng.uniform(-1, 1, (2000, 3)), rng.uniform(0, 1, (2000, 1)))
     trainer = SplatTrainer(start, scene, SplatSettings(iterations=400, max_gaussians=5000), torch.device("cpu"))
@@ -273,14 +273,15 @@ def test_degenerate_scenes_are_refused(exported, tmp_path):
 
 def test_a_nan_gaussian_is_culled_not_a_crash():
     from cubecloud_cli.raster import project
-    from cubecloud_cli.raster.cpu import composite_cpu
+    from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
 
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=16))
     means = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [0.1, 0.1, 0.1]])
     scales = torch.tensor([[0.1] * 3, [0.1] * 3, [1e20] * 3])  # the last overflows to inf
     quaternions = torch.tensor([[1.0, 0, 0, 0]] * 3)
     rotation, translation = (torch.tensor(a, dtype=torch.float32) for a in (cameras.rotations[0], cameras.translations[0]))
-    projected = project(means, scales, quaternions, rotation, translation, float(cameras.focal), 16, 16)
-    assert projected.radii[1] == 0 and projected.radii[2] == 0
-    image, _ = composite_cpu(projected, torch.ones(3, 1), torch.full((3,), 0.5), 16, 16)
-    assert torch.isfinite(image).all() and image.max() > 0
+    for projector in (project, project_cpu):
+        projected = projector(means, scales, quaternions, rotation, translation, float(cameras.focal), 16, 16)
+        assert projected.radii[1] == 0 and projected.radii[2] == 0
+        image, _ = composite_cpu(projected, torch.ones(3, 1), torch.full((3,), 0.5), 16, 16)
+        assert torch.isfinite(image).all() and image.max() > 0

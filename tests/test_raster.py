@@ -12,8 +12,9 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.raster import composite, covariances, project
+from cubecloud_cli.raster.backends import NUMBA, TORCH
 from cubecloud_cli.raster.cpu import composite_cpu
-from cubecloud_cli.raster.cpu_kernels import stable_depth_order
+from cubecloud_cli.raster.cpu_binning import stable_depth_order
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA, TRANSMITTANCE_STOP
 
 COMPOSITORS = {"torch": composite, "numba": composite_cpu}
@@ -189,27 +190,41 @@ def test_gradients_match_finite_differences():
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("seed", [0, 3, 7])
-def test_the_numba_kernel_matches_the_oracle_and_its_gradients(seed, dtype):
-    """Forward and every gradient within 1e-4 relative, on scenes with the extremes: tiny and huge
-    scales, opacity near 0 and 1, identical Gaussians, one off screen and one at the near plane."""
+def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype):
+    """The whole numba path (projection and compositing) against the PyTorch path: forward and
+    every gradient within 1e-4 relative, on scenes with the extremes: tiny and huge scales,
+    opacity near 0 and 1, identical Gaussians, one off screen, one at the near plane, one behind
+    the camera and a zero quaternion."""
     means, log_scales, quaternions, opacities, colours = (t.to(dtype) for t in scene(count=60, seed=seed))
-    cameras, _, _ = camera(0)
+    cameras, rotation, translation = camera(0, dtype)
     forward = torch.tensor(cameras.rotations[0][2], dtype=dtype)
-    means[7] = torch.tensor(cameras.centres()[0], dtype=dtype) + 0.21 * forward  # just past the near plane
+    centre = torch.tensor(cameras.centres()[0], dtype=dtype)
+    means[7] = centre + 0.21 * forward  # just past the near plane
+    means[8] = centre - 0.5 * forward  # behind the camera
+    quaternions[9] = 0.0  # degenerate rotation
     weights = torch.rand(H, W, 2, dtype=dtype, generator=torch.Generator().manual_seed(seed))
     results = {}
-    for name, compositor in COMPOSITORS.items():
+    for backend in (TORCH, NUMBA):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
-        (image, coverage), _ = render(*inputs, background=torch.tensor([0.1, 0.3], dtype=dtype), compositor=compositor)
-        (image * weights).sum().backward()
-        results[name] = (image.detach(), coverage.detach(), [t.grad for t in inputs])
+        rendered = backend.render(inputs[0], torch.exp(inputs[1]), inputs[2], inputs[3], inputs[4], rotation, translation,
+                                  float(cameras.focal), W, H, background=torch.tensor([0.1, 0.3], dtype=dtype),
+                                  retain_screen_grad=True)
+        (rendered.image * weights).sum().backward()
+        results[backend.name] = (rendered.image.detach(), rendered.screen_gradient(), [t.grad for t in inputs])
     tolerance = 1e-4 if dtype == torch.float64 else 2e-3
-    (image_t, coverage_t, grads_t), (image_n, coverage_n, grads_n) = results["torch"], results["numba"]
+    (image_t, screen_t, grads_t), (image_n, screen_n, grads_n) = results["torch"], results["numba"]
     torch.testing.assert_close(image_n, image_t, rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)
-    torch.testing.assert_close(coverage_n, coverage_t, rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)
-    for oracle, fast in zip(grads_t, grads_n):
+    for oracle, fast in zip([screen_t, *grads_t], [screen_n, *grads_n]):
+        assert torch.isfinite(fast).all()
         scale = oracle.abs().max().clamp_min(1e-12)
         assert float((fast - oracle).abs().max() / scale) < tolerance
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_numba_compositor_reports_coverage_like_the_oracle(dtype):
+    means, log_scales, quaternions, opacities, colours = (t.to(dtype) for t in scene(count=60, seed=5))
+    coverages = [render(means, log_scales, quaternions, opacities, colours, compositor=c)[0][1] for c in COMPOSITORS.values()]
+    torch.testing.assert_close(coverages[1], coverages[0], rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)
 
 
 @settings(max_examples=40, deadline=None)

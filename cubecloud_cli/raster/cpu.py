@@ -1,30 +1,76 @@
-"""The numba kernels as a torch autograd function: projection stays in torch, compositing runs
-in ``cpu_kernels``."""
+"""The numba kernels as torch autograd functions: projection runs in ``cpu_projection``,
+compositing in ``cpu_kernels``."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
+from cubecloud_cli.raster import cpu_binning as binning
 from cubecloud_cli.raster import cpu_kernels as kernels
-from cubecloud_cli.raster.pairs import pixel_bounds
-from cubecloud_cli.raster.projection import Projected
+from cubecloud_cli.raster import cpu_projection
+from cubecloud_cli.raster.projection import NEAR_PLANE, Projected
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(tensor.detach().cpu().numpy().astype(np.float64, copy=False))
+    """A contiguous float32 or float64 array: the kernels read either (and compute in float64), so
+    float32 training tensors are not copied."""
+    array = tensor.detach().cpu().numpy()
+    if array.dtype not in (np.float32, np.float64):
+        array = array.astype(np.float32 if array.dtype.itemsize < 4 else np.float64)
+    return np.ascontiguousarray(array)
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, scales, quaternions, rotation, translation, focal, width, height, near):
+        inputs = (_numpy(means), _numpy(scales), _numpy(quaternions), _numpy(rotation), _numpy(translation))
+        outputs = cpu_projection.project_forward(*inputs, focal, width, height, near)
+        ctx.saved = (inputs, focal, width, height, near)
+        dtype = means.dtype
+        means2d, conics, covariances2d, depths = (torch.from_numpy(a).to(dtype) for a in outputs[:4])
+        radii = torch.from_numpy(outputs[4])
+        ctx.mark_non_differentiable(covariances2d, depths, radii)
+        return means2d, conics, covariances2d, depths, radii
+
+    @staticmethod
+    def backward(ctx, grad_means2d, grad_conics, *_):
+        inputs, focal, width, height, near = ctx.saved
+        grads = cpu_projection.project_backward(*inputs, focal, width, height, near,
+                                                _numpy(grad_means2d), _numpy(grad_conics))
+        dtype = grad_means2d.dtype
+        return (*(torch.from_numpy(g).to(dtype) for g in grads), None, None, None, None, None, None)
+
+
+def project_cpu(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    quaternions: torch.Tensor,
+    rotation: torch.Tensor,
+    translation: torch.Tensor,
+    focal: float,
+    width: int,
+    height: int,
+    near: float = NEAR_PLANE,
+) -> Projected:
+    """:func:`cubecloud_cli.raster.projection.project` computed by the numba kernels (CPU
+    tensors; the pose takes no gradient)."""
+    means2d, conics, covariances2d, depths, radii = _Project.apply(
+        means, scales, quaternions, rotation.detach(), translation.detach(), float(focal), int(width), int(height), float(near))
+    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, covariances2d=covariances2d)
 
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colours, opacities, background, bounds, depths, width, height):
-        tiles_x, tiles_y = -(-width // kernels.TILE), -(-height // kernels.TILE)
-        bounds_np = bounds.cpu().numpy()
-        candidates = np.flatnonzero((bounds_np[:, 1] >= bounds_np[:, 0]) & (bounds_np[:, 3] >= bounds_np[:, 2]))
-        offsets, entries = kernels.bin_tiles(candidates, bounds_np, _numpy(depths), tiles_x, tiles_y)
-        arrays = (bounds_np, _numpy(means2d), _numpy(conics), _numpy(colours), _numpy(opacities), _numpy(background))
-        image, final_transmittance, last = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
-        ctx.saved = (offsets, entries, arrays, final_transmittance, last, width, height, tiles_x)
+    def forward(ctx, means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height):
+        tiles_x, tiles_y = -(-width // binning.TILE), -(-height // binning.TILE)
+        means2d_np, opacities_np = _numpy(means2d), _numpy(opacities)
+        bounds, levels = binning.splat_boxes(means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np,
+                                             width, height)
+        offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
+        arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
+        image, final_transmittance, last, blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
+        ctx.saved = (offsets, entries, slots, owners, arrays, final_transmittance, last, blended, width, height, tiles_x)
         ctx.count = means2d.shape[0]
         dtype, device = colours.dtype, colours.device
         coverage = torch.from_numpy(1.0 - final_transmittance).to(dtype=dtype, device=device)
@@ -33,13 +79,14 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_coverage):
-        offsets, entries, arrays, final_transmittance, last, width, height, tiles_x = ctx.saved
+        offsets, entries, slots, owners, arrays, final_transmittance, last, blended, width, height, tiles_x = ctx.saved
         grad = _numpy(grad_image.reshape(height * width, -1))
-        slots = kernels.backward(offsets, entries, *arrays, width, height, tiles_x, final_transmittance, last, grad)
-        per_gaussian = torch.from_numpy(kernels.sum_per_gaussian(entries, slots, ctx.count))
+        slot_grads = kernels.backward(offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad)
+        per_gaussian = torch.from_numpy(binning.sum_per_gaussian(slot_grads, *owners, ctx.count))
         dtype, device = grad_image.dtype, grad_image.device
         per_gaussian = per_gaussian.to(dtype=dtype, device=device)
-        return per_gaussian[:, 0:2], per_gaussian[:, 2:5], per_gaussian[:, 6:], per_gaussian[:, 5], None, None, None, None, None
+        return (per_gaussian[:, 0:2], per_gaussian[:, 2:5], per_gaussian[:, 6:], per_gaussian[:, 5],
+                None, None, None, None, None, None)
 
 
 def composite_cpu(
@@ -53,6 +100,5 @@ def composite_cpu(
     """:func:`cubecloud_cli.raster.pairs.composite` computed by the numba kernels."""
     if background is None:
         background = torch.zeros(colours.shape[1], dtype=colours.dtype)
-    bounds = pixel_bounds(projected, width, height, opacities)
-    return _Composite.apply(projected.means2d, projected.conics, colours, opacities, background, bounds,
-                            projected.depths.detach(), width, height)
+    return _Composite.apply(projected.means2d, projected.conics, colours, opacities, background,
+                            projected.covariances2d.detach(), projected.radii, projected.depths.detach(), width, height)

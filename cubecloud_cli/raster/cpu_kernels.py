@@ -3,12 +3,18 @@
 Same rules and the same pairs as the PyTorch oracle (``pairs.py``): each splat covers the pixels
 of its 3σ square, Gaussians are composited front to back in the oracle's depth order, α ≤ 0.99,
 pairs with α < 1/255 are skipped, and a pixel stops before its transmittance would fall below
-1e-4. Arithmetic is float64 inside the kernels.
+1e-4. Arithmetic is float64 inside the kernels; inputs may be float32 or float64.
+
+What makes them fast on two cores (``bench/raster.py``): within a tile each Gaussian visits only
+its own pixels (work ∝ pairs, not pixels × Gaussians); a pair beyond the α = 1/255 ellipse is
+rejected before any exp, and the exp is inline (a table and a short polynomial, not a libm
+call); rows whose pixels have all stopped are skipped by a bit mask; the backward skips entries
+that blended nothing.
 
 Backward walks each pixel's list back to front (as the reference CUDA code does), recovering the
-transmittance before each Gaussian by division by (1 − α) ≥ 0.01. Gradients go into one slot per
-(tile, Gaussian) entry, so threads never write the same memory, and are summed per Gaussian
-afterwards.
+transmittance before each Gaussian by division by (1 − α) ≥ 0.01. Gradients go into one row per
+(tile, Gaussian) entry, numbered Gaussian-major by the binning, so threads never write the same
+memory and the per-Gaussian sums read contiguous rows.
 """
 
 from __future__ import annotations
@@ -16,127 +22,115 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-TILE = 16
+from cubecloud_cli.raster.cpu_binning import TILE
+
 MAX_ALPHA = 0.99
 MIN_ALPHA = 1.0 / 255.0
 TRANSMITTANCE_STOP = 1e-4
+# Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
+LEVEL_MARGIN = 1e-9
 
 
-@njit(cache=True)
-def stable_depth_order(candidates, depths):
-    """``candidates`` sorted by depth, ties kept in index order: an LSD radix sort on the float64
-    bits (sign-flipped so that integer order is float order), linear in the count."""
-    count = candidates.size
-    keys = np.empty(count, dtype=np.uint64)
-    sign = np.uint64(1) << np.uint64(63)
-    for i in range(count):
-        value = depths[candidates[i]] + 0.0  # turns −0 into +0, which compares equal to it
-        bits = np.float64(value).view(np.uint64)
-        keys[i] = ~bits if bits & sign else bits | sign
-    order = candidates.copy()
-    scratch_keys = np.empty_like(keys)
-    scratch_order = np.empty_like(order)
-    counts = np.zeros(2049, dtype=np.int64)
-    for shift in range(0, 64, 11):  # six passes of 11 bits
-        counts[:] = 0
-        for i in range(count):
-            counts[((keys[i] >> np.uint64(shift)) & np.uint64(0x7FF)) + 1] += 1
-        for b in range(2048):
-            counts[b + 1] += counts[b]
-        for i in range(count):
-            digit = (keys[i] >> np.uint64(shift)) & np.uint64(0x7FF)
-            position = counts[digit]
-            scratch_keys[position] = keys[i]
-            scratch_order[position] = order[i]
-            counts[digit] = position + 1
-        keys, scratch_keys = scratch_keys, keys
-        order, scratch_order = scratch_order, order
-    return order
+# exp(−i/16) for the table-driven exp below; powers beyond ln 255 < 6 are never evaluated.
+EXP_STEPS_PER_UNIT = 16
+EXP_TABLE = np.exp(-np.arange(6 * EXP_STEPS_PER_UNIT + 2) / EXP_STEPS_PER_UNIT)
 
 
-@njit(cache=True)
-def bin_tiles(candidates, bounds, depths, tiles_x, tiles_y):
-    """Per-tile lists of Gaussians, front to back (CSR: offsets, entries). ``candidates`` are in
-    index order; filling the tiles in stable depth order leaves every list sorted."""
-    order = stable_depth_order(candidates, depths)
-    counts = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
-    for g in order:
-        x0, x1, y0, y1 = bounds[g, 0], bounds[g, 1], bounds[g, 2], bounds[g, 3]
-        for ty in range(y0 // TILE, y1 // TILE + 1):
-            for tx in range(x0 // TILE, x1 // TILE + 1):
-                counts[ty * tiles_x + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    entries = np.empty(offsets[-1], dtype=np.int64)
-    fill = offsets[:-1].copy()
-    for g in order:
-        x0, x1, y0, y1 = bounds[g, 0], bounds[g, 1], bounds[g, 2], bounds[g, 3]
-        for ty in range(y0 // TILE, y1 // TILE + 1):
-            for tx in range(x0 // TILE, x1 // TILE + 1):
-                tile = ty * tiles_x + tx
-                entries[fill[tile]] = g
-                fill[tile] += 1
-    return offsets, entries
+@njit(cache=True, fastmath=True, inline="always")
+def exp_negative(power):
+    """exp(−power) for 0 ≤ power ≤ 6: exp(−i/16) from a table times exp(−r), r < 1/16, by a
+    degree-6 polynomial in Estrin's form (relative error below 1e-12). Inline arithmetic with a
+    short dependency chain instead of a libm call, which was the largest cost of a pair."""
+    scaled = power * EXP_STEPS_PER_UNIT
+    index = np.int64(scaled)
+    r = (scaled - index) * (1.0 / EXP_STEPS_PER_UNIT)
+    r2 = r * r
+    tail = (1.0 / 24.0 - r * (1.0 / 120.0)) + r2 * (1.0 / 720.0)
+    polynomial = (1.0 - r) + r2 * ((0.5 - r * (1.0 / 6.0)) + r2 * tail)
+    return EXP_TABLE[index] * polynomial
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def forward(offsets, entries, bounds, means2d, conics, colours, opacities, background, width, height, tiles_x):
+def forward(offsets, entries, bounds, means2d, conics, colours, opacities, levels, background, width, height, tiles_x):
     """Gaussian-major within each tile: every entry, front to back, visits only the tile's pixels
-    inside its square, so the work is the pair count rather than pixels × entries."""
+    inside its square, so the work is the pair count rather than pixels × entries.
+
+    ``last`` is, per pixel, the entry where the backward pass starts: the entry at which the pixel
+    stopped (not blended), else the tile's end. Any entry before it with α ≥ 1/255 was blended."""
     channels = colours.shape[1]
     image = np.zeros((height * width, channels))
     final_transmittance = np.ones(height * width)
     last = np.zeros(height * width, dtype=np.int64)
+    blended = np.zeros(entries.size, dtype=np.bool_)  # entries that blended any pixel
     for tile in prange(offsets.size - 1):
         start, end = offsets[tile], offsets[tile + 1]
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
-        transmittance = np.ones(TILE * TILE)
+        # live_transmittance is 0 once a pixel has stopped; its final value is kept apart.
+        live_transmittance = np.ones(TILE * TILE)
+        stopped_transmittance = np.zeros(TILE * TILE)
         colour = np.zeros((TILE * TILE, channels))
-        done = np.zeros(TILE * TILE, dtype=np.bool_)
-        last_entry = np.full(TILE * TILE, start)
+        last_entry = np.full(TILE * TILE, end)  # where the backward pass starts, per pixel
+        live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
         alive = (right - left + 1) * (bottom - top + 1)
         for k in range(start, end):
             if alive == 0:
                 break
             g = entries[k]
             u, v, opacity = means2d[g, 0], means2d[g, 1], opacities[g]
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            a, b, c, level = conics[g, 0], conics[g, 1], conics[g, 2], levels[g]
+            colour_0 = colours[g, 0]
+            x0, x1 = max(left, bounds[g, 0]), min(right, bounds[g, 1])
+            columns = ((1 << (x1 - x0 + 1)) - 1) << (x0 - left)
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
+                if live_columns[py - top] & columns == 0:
+                    continue  # every pixel of this row under the splat has stopped
                 dy = py + 0.5 - v
-                for px in range(max(left, bounds[g, 0]), min(right, bounds[g, 1]) + 1):
-                    local = (py - top) * TILE + (px - left)
-                    if done[local]:
+                row = (py - top) * TILE - left
+                for px in range(x0, x1 + 1):
+                    local = row + px
+                    before = live_transmittance[local]
+                    if before == 0.0:
                         continue
                     dx = px + 0.5 - u
-                    power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    alpha = min(MAX_ALPHA, opacity * np.exp(-max(power, 0.0)))
+                    power = max(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy, 0.0)
+                    if power > level + LEVEL_MARGIN:
+                        continue
+                    alpha = min(MAX_ALPHA, opacity * exp_negative(power))
                     if alpha < MIN_ALPHA:
                         continue
-                    after = transmittance[local] * (1.0 - alpha)
+                    after = before * (1.0 - alpha)
                     if after < TRANSMITTANCE_STOP:
-                        done[local] = True
+                        stopped_transmittance[local] = before
+                        live_transmittance[local] = 0.0
+                        last_entry[local] = k
+                        live_columns[py - top] &= ~(1 << (px - left))
                         alive -= 1
                         continue
-                    weight = transmittance[local] * alpha
-                    for ch in range(channels):
-                        colour[local, ch] += weight * colours[g, ch]
-                    transmittance[local] = after
-                    last_entry[local] = k + 1
+                    weight = before * alpha
+                    blended[k] = True
+                    if channels == 1:
+                        colour[local, 0] += weight * colour_0
+                    else:
+                        for ch in range(channels):
+                            colour[local, ch] += weight * colours[g, ch]
+                    live_transmittance[local] = after
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 local = (py - top) * TILE + (px - left)
                 pixel = py * width + px
+                transmittance = live_transmittance[local] + stopped_transmittance[local]
                 for ch in range(channels):
-                    image[pixel, ch] = colour[local, ch] + transmittance[local] * background[ch]
-                final_transmittance[pixel] = transmittance[local]
+                    image[pixel, ch] = colour[local, ch] + transmittance * background[ch]
+                final_transmittance[pixel] = transmittance
                 last[pixel] = last_entry[local]
-    return image, final_transmittance, last
+    return image, final_transmittance, last, blended
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def backward(offsets, entries, bounds, means2d, conics, colours, opacities, background, width, height, tiles_x,
-             final_transmittance, last, grad_image):
+def backward(offsets, entries, slots, bounds, means2d, conics, colours, opacities, levels, background, width,
+             height, tiles_x, final_transmittance, last, blended, grad_image):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
     colour (C), summed per Gaussian afterwards. Entries are walked back to front; each pixel
     starts at its last blended entry."""
@@ -150,6 +144,8 @@ def backward(offsets, entries, bounds, means2d, conics, colours, opacities, back
         transmittance = np.ones(TILE * TILE)
         behind = np.zeros((TILE * TILE, channels))  # colour from behind the current Gaussian
         last_entry = np.zeros(TILE * TILE, dtype=np.int64)
+        tile_grad = np.zeros((TILE * TILE, channels))
+        colour_grad = np.zeros(channels)
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 local = (py - top) * TILE + (px - left)
@@ -158,52 +154,71 @@ def backward(offsets, entries, bounds, means2d, conics, colours, opacities, back
                 last_entry[local] = last[pixel]
                 for ch in range(channels):
                     behind[local, ch] = final_transmittance[pixel] * background[ch]
-        latest = start
+                    tile_grad[local, ch] = grad_image[pixel, ch]
+        row_latest = np.zeros(TILE, dtype=np.int64)  # per row, the largest last_entry
         for local in range(TILE * TILE):
-            latest = max(latest, last_entry[local])
+            row_latest[local // TILE] = max(row_latest[local // TILE], last_entry[local])
+        latest = start
+        for r in range(TILE):
+            latest = max(latest, row_latest[r])
         for k in range(latest - 1, start - 1, -1):
+            if not blended[k]:  # its gradients are all zero
+                continue
             g = entries[k]
             u, v, opacity = means2d[g, 0], means2d[g, 1], opacities[g]
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            a, b, c, level = conics[g, 0], conics[g, 1], conics[g, 2], levels[g]
+            colour_0 = colours[g, 0]
+            x0, x1 = max(left, bounds[g, 0]), min(right, bounds[g, 1])
+            # Sums over this entry's pixels, kept in registers and written to its slot once.
+            g_u = g_v = g_a = g_b = g_c = g_opacity = g_colour_0 = 0.0
+            colour_grad[:] = 0.0
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
+                if k >= row_latest[py - top]:
+                    continue  # every pixel of this row stopped before this entry
                 dy = py + 0.5 - v
-                for px in range(max(left, bounds[g, 0]), min(right, bounds[g, 1]) + 1):
-                    local = (py - top) * TILE + (px - left)
+                row = (py - top) * TILE - left
+                for px in range(x0, x1 + 1):
+                    local = row + px
                     if k >= last_entry[local]:
                         continue
                     dx = px + 0.5 - u
-                    power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    gaussian = np.exp(-max(power, 0.0))
+                    raw_power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    power = max(raw_power, 0.0)
+                    if power > level + LEVEL_MARGIN:
+                        continue
+                    gaussian = exp_negative(power)
                     raw = opacity * gaussian
                     alpha = min(MAX_ALPHA, raw)
                     if alpha < MIN_ALPHA:
                         continue
-                    pixel = py * width + px
-                    before = transmittance[local] / (1.0 - alpha)
+                    survive = 1.0 / (1.0 - alpha)
+                    before = transmittance[local] * survive
                     transmittance[local] = before
                     weight = before * alpha
-                    grad_alpha = 0.0
-                    for ch in range(channels):
-                        grad_alpha += grad_image[pixel, ch] * (before * colours[g, ch] - behind[local, ch] / (1.0 - alpha))
-                        slot_grads[k, 6 + ch] += weight * grad_image[pixel, ch]
-                        behind[local, ch] += weight * colours[g, ch]
+                    if channels == 1:
+                        grad_alpha = tile_grad[local, 0] * (before * colour_0 - behind[local, 0] * survive)
+                        g_colour_0 += weight * tile_grad[local, 0]
+                        behind[local, 0] += weight * colour_0
+                    else:
+                        grad_alpha = 0.0
+                        for ch in range(channels):
+                            grad_alpha += tile_grad[local, ch] * (before * colours[g, ch] - behind[local, ch] * survive)
+                            colour_grad[ch] += weight * tile_grad[local, ch]
+                            behind[local, ch] += weight * colours[g, ch]
                     if raw <= MAX_ALPHA:  # above it α is clamped and does not move
-                        slot_grads[k, 5] += grad_alpha * gaussian
-                        if power > 0.0:
+                        g_opacity += grad_alpha * gaussian
+                        if raw_power > 0.0:
                             grad_power = -grad_alpha * raw
-                            slot_grads[k, 0] += grad_power * -(a * dx + b * dy)
-                            slot_grads[k, 1] += grad_power * -(c * dy + b * dx)
-                            slot_grads[k, 2] += grad_power * 0.5 * dx * dx
-                            slot_grads[k, 3] += grad_power * dx * dy
-                            slot_grads[k, 4] += grad_power * 0.5 * dy * dy
+                            g_u -= grad_power * (a * dx + b * dy)
+                            g_v -= grad_power * (c * dy + b * dx)
+                            g_a += grad_power * 0.5 * dx * dx
+                            g_b += grad_power * dx * dy
+                            g_c += grad_power * 0.5 * dy * dy
+            slot = slots[k]
+            slot_grads[slot, 0], slot_grads[slot, 1], slot_grads[slot, 2] = g_u, g_v, g_a
+            slot_grads[slot, 3], slot_grads[slot, 4], slot_grads[slot, 5] = g_b, g_c, g_opacity
+            if channels == 1:
+                colour_grad[0] = g_colour_0
+            for ch in range(channels):
+                slot_grads[slot, 6 + ch] = colour_grad[ch]
     return slot_grads
-
-
-@njit(cache=True)
-def sum_per_gaussian(entries, slot_grads, count):
-    grads = np.zeros((count, slot_grads.shape[1]))
-    for k in range(entries.size):
-        g = entries[k]
-        for j in range(slot_grads.shape[1]):
-            grads[g, j] += slot_grads[k, j]
-    return grads

@@ -134,7 +134,7 @@ def train_splat(
                 "scene": {"directory": str(scene_dir), "views": len(scene.names), "train": len(scene.train),
                           "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
                           "height": scene.cameras.height, "extent": scene.extent},
-                "rasterizer": "numba CPU kernels" if device.type == "cpu" else "PyTorch",
+                "rasterizer": trainer.rasterizer.description,
                 "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
                             "kernel_threads": _kernel_threads() if device.type == "cpu" else None},
             })
@@ -186,7 +186,8 @@ def _write_preview(trainer: SplatTrainer, path: Path) -> None:
 
     views = (trainer.scene.test or trainer.scene.train)[:4]
     targets = [trainer.images[v].cpu().numpy() for v in views]
-    renders = [render(trainer.gaussians, trainer.scene, v, trainer.sh_degree, trainer.compositor)[0].clamp(0, 1).cpu().numpy() for v in views]
+    renders = [render(trainer.gaussians, trainer.scene, v, trainer.sh_degree, trainer.rasterizer).image.clamp(0, 1).cpu().numpy()
+               for v in views]
     rows = [np.concatenate(targets, axis=1), np.concatenate(renders, axis=1)]
     grid = to_uint8(np.concatenate(rows, axis=0))
     Image.fromarray(grid[..., 0] if grid.shape[2] == 1 else grid).save(path)

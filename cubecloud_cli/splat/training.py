@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.metrics import psnr_from_mse
-from cubecloud_cli.raster import composite, project
+from cubecloud_cli.raster.backends import Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.splat.data import TrainingScene
 from cubecloud_cli.splat.densify import DensifySettings, GradientStats, apply_plan, plan_densification, reset_opacity
 from cubecloud_cli.splat.gaussians import Gaussians
@@ -21,27 +21,16 @@ from cubecloud_cli.splat.settings import SplatSettings
 PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 
 
-def rasterizer(device: torch.device):
-    """The compositor for a device: the numba kernels on the CPU, the PyTorch path elsewhere."""
-    if device.type == "cpu":
-        from cubecloud_cli.raster.cpu import composite_cpu
-
-        return composite_cpu
-    return composite
-
-
-def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int, compositor, retain: bool = False):
+def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int, rasterizer: Rasterizer,
+           retain: bool = False) -> Rasterized:
     cameras = scene.cameras
     device = gaussians.means.device
     rotation = torch.as_tensor(cameras.rotations[view], dtype=torch.float32, device=device)
     translation = torch.as_tensor(cameras.translations[view], dtype=torch.float32, device=device)
     centre = torch.as_tensor(cameras.centres()[view], dtype=torch.float32, device=device)
-    projected = project(gaussians.means, gaussians.scales(), gaussians.quaternions, rotation, translation,
-                        float(cameras.focal), cameras.width, cameras.height)
-    if retain:
-        projected.means2d.retain_grad()
-    image, _ = compositor(projected, gaussians.colours(centre, sh_degree), gaussians.opacities(), cameras.width, cameras.height)
-    return image, projected
+    return rasterizer.render(gaussians.means, gaussians.scales(), gaussians.quaternions, gaussians.opacities(),
+                             gaussians.colours(centre, sh_degree), rotation, translation, float(cameras.focal),
+                             cameras.width, cameras.height, retain_screen_grad=retain)
 
 
 class SplatTrainer:
@@ -49,7 +38,7 @@ class SplatTrainer:
         self.settings = settings
         self.scene = scene
         self.device = device
-        self.compositor = rasterizer(device)
+        self.rasterizer = rasterizer_for(device)
         self.extent = scene.extent
         for name in PARAMETERS:
             setattr(gaussians, name, getattr(gaussians, name).detach().to(device).requires_grad_(True))
@@ -99,15 +88,16 @@ class SplatTrainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.means_lr()
-        image, projected = render(self.gaussians, self.scene, view, self.sh_degree, self.compositor, retain=True)
-        loss = photometric_loss(image, self.images[view], self.settings.dssim_weight)
+        rendered = render(self.gaussians, self.scene, view, self.sh_degree, self.rasterizer, retain=True)
+        loss = photometric_loss(rendered.image, self.images[view], self.settings.dssim_weight)
         loss.backward()
         self.iteration += 1
         schedule = self.schedule
         # As in the reference: statistics, densification and resets only before densify_until.
         refining = self.settings.refine and self.iteration < schedule["densify_until"]
-        if refining and projected.means2d.grad is not None:
-            self.stats.add(projected.means2d.grad, projected.radii, self.scene.cameras.width, self.scene.cameras.height)
+        screen_gradient = rendered.screen_gradient() if refining else None
+        if screen_gradient is not None:
+            self.stats.add(screen_gradient, rendered.radii, self.scene.cameras.width, self.scene.cameras.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if not all(bool(torch.isfinite(getattr(self.gaussians, name)).all()) for name in PARAMETERS):
@@ -162,8 +152,7 @@ class SplatTrainer:
             return {}
         scores, errors = [], []
         for view in views:
-            image, _ = render(self.gaussians, self.scene, view, self.sh_degree, self.compositor)
-            image = image.clamp(0.0, 1.0)
+            image = render(self.gaussians, self.scene, view, self.sh_degree, self.rasterizer).image.clamp(0.0, 1.0)
             target = self.images[view]
             scores.append(psnr_from_mse(float(((image - target) ** 2).mean())))
             errors.append(float((image - target).abs().mean()))

@@ -1,0 +1,108 @@
+"""One rasterization call, three implementations: which runs depends on the device.
+
+* ``numba``: the CPU kernels (``cpu.py``), projection and compositing with hand-written backwards;
+* ``gsplat``: gsplat's CUDA rasterizer, on a CUDA device when gsplat is installed;
+* ``torch``: the plain PyTorch path (``projection.py`` + ``pairs.py``), on any device.
+
+All three take the same Gaussians and pinhole pose (OpenCV/COLMAP world-to-camera, principal point
+at the image centre, pixel centres at +0.5) and follow the reference rules (0.3 px² dilation, α ≤
+0.99, α < 1/255 skipped, stop at T < 1e-4), so a scene trained with one renders the same with the
+others. Training reads the screen-space gradient of the means for densification, which each
+backend exposes the same way.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from cubecloud_cli.raster.pairs import composite
+from cubecloud_cli.raster.projection import NEAR_PLANE, project
+
+
+@dataclass
+class Rasterized:
+    image: torch.Tensor  # (H, W, C)
+    radii: torch.Tensor  # (N,) > 0 where the Gaussian was drawn
+    screen_means: torch.Tensor  # (N, 2) pixel positions, or gsplat's (1, N, 2)
+
+    def screen_gradient(self) -> torch.Tensor | None:
+        """(N, 2) gradient of the loss with respect to the pixel positions of the means, after
+        ``backward`` (``retain_screen_grad=True``), or None."""
+        grad = self.screen_means.grad
+        return None if grad is None else grad.reshape(-1, 2)
+
+
+RenderFunction = Callable[..., Rasterized]
+
+
+@dataclass(frozen=True)
+class Rasterizer:
+    name: str
+    description: str
+    render: RenderFunction
+
+
+def _render_with(projector, compositor):
+    def render(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height,
+               background=None, retain_screen_grad=False) -> Rasterized:
+        projected = projector(means, scales, quaternions, rotation, translation, focal, width, height)
+        if retain_screen_grad and projected.means2d.requires_grad:
+            projected.means2d.retain_grad()
+        image, _ = compositor(projected, colours, opacities, width, height, background)
+        return Rasterized(image, projected.radii, projected.means2d)
+
+    return render
+
+
+def _render_numba(*args, **kwargs) -> Rasterized:
+    from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
+
+    return _render_with(project_cpu, composite_cpu)(*args, **kwargs)
+
+
+def gsplat_inputs(rotation: torch.Tensor, translation: torch.Tensor, focal: float, width: int, height: int):
+    """Our pose as gsplat's (1, 4, 4) world-to-camera ``viewmats`` and (1, 3, 3) intrinsics ``Ks``."""
+    viewmat = torch.eye(4, dtype=rotation.dtype, device=rotation.device)
+    viewmat[:3, :3] = rotation
+    viewmat[:3, 3] = translation
+    intrinsics = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]],
+                              dtype=rotation.dtype, device=rotation.device)
+    return viewmat[None], intrinsics[None]
+
+
+def _render_gsplat(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height,
+                   background=None, retain_screen_grad=False) -> Rasterized:
+    import gsplat
+
+    viewmats, intrinsics = gsplat_inputs(rotation, translation, focal, width, height)
+    colours_out, _, meta = gsplat.rasterization(
+        means, quaternions, scales, opacities, colours, viewmats, intrinsics, width, height,
+        near_plane=NEAR_PLANE, eps2d=0.3, packed=False, rasterize_mode="classic",
+        backgrounds=None if background is None else background[None])
+    screen_means = meta["means2d"]
+    if retain_screen_grad and screen_means.requires_grad:
+        screen_means.retain_grad()
+    radii = meta["radii"].reshape(means.shape[0], -1).amax(dim=1)  # newer gsplat gives x and y radii
+    return Rasterized(colours_out[0], radii, screen_means)
+
+
+def gsplat_available() -> bool:
+    return importlib.util.find_spec("gsplat") is not None
+
+
+NUMBA = Rasterizer("numba", "numba CPU kernels", _render_numba)
+GSPLAT = Rasterizer("gsplat", "gsplat CUDA kernels", _render_gsplat)
+TORCH = Rasterizer("torch", "plain PyTorch", _render_with(project, composite))
+
+
+def rasterizer_for(device: torch.device) -> Rasterizer:
+    """numba on the CPU; gsplat on CUDA when installed; otherwise the plain PyTorch path."""
+    if device.type == "cpu":
+        return NUMBA
+    if device.type == "cuda" and gsplat_available():
+        return GSPLAT
+    return TORCH
