@@ -13,12 +13,12 @@ from cubecloud_cli.raster.projection import NEAR_PLANE, Projected
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
-    """A contiguous float32 or float64 array: the kernels read either (and compute in float64), so
-    float32 training tensors are not copied."""
+    """A float32 or float64 array, strided or not: the kernels read any of these (and compute in
+    float64), so float32 training tensors and gradient slices are not copied."""
     array = tensor.detach().cpu().numpy()
     if array.dtype not in (np.float32, np.float64):
         array = array.astype(np.float32 if array.dtype.itemsize < 4 else np.float64)
-    return np.ascontiguousarray(array)
+    return array
 
 
 class _Project(torch.autograd.Function):

@@ -44,10 +44,11 @@ class GradientStats:
 
     def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
         # Pixel-space gradients × (W/2, H/2) are the NDC gradients the reference thresholds.
-        ndc = means2d_grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
-        visible = radii > 0
-        self.total[visible] += ndc[visible].norm(dim=1)
-        self.views[visible] += 1.0
+        grad = means2d_grad.detach()
+        ndc_norm = torch.sqrt((grad[:, 0] * (width / 2.0)) ** 2 + (grad[:, 1] * (height / 2.0)) ** 2)
+        visible = (radii > 0).to(self.total.dtype)  # masks by product: boolean indexing costs more
+        self.total += ndc_norm * visible
+        self.views += visible
 
     def mean(self) -> torch.Tensor:
         return torch.where(self.views > 0, self.total / self.views.clamp_min(1.0), torch.zeros_like(self.total))

@@ -1,0 +1,72 @@
+"""Training speed of `cubecloud splat`: iterations per second on an exported scene, and where an
+iteration's time goes (render forward, loss, backward, optimizer, densification).
+
+    cubecloud run -o work                          # makes work/export (fast preset: 128²)
+    python bench/splat.py work/export              # 300 iterations of the fast preset's schedule
+    python bench/splat.py work/export --iterations 300 --schedule-iterations 7000
+
+Densification follows the schedule of --schedule-iterations (the preset's length), so the first
+few hundred iterations measured here are those of a real run: from the initial cloud, before the
+first densification step grows or prunes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from cubecloud_cli.splat.data import load_scene
+from cubecloud_cli.splat.gaussians import gaussians_from_points
+from cubecloud_cli.splat.losses import photometric_loss
+from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.training import SplatTrainer, render
+from cubecloud_cli.scene import read_point_cloud_ply
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scene", type=Path, help="an export directory (images.npy, sparse/0, points3D.ply)")
+    parser.add_argument("--iterations", type=int, default=300)
+    parser.add_argument("--schedule-iterations", type=int, default=2000, help="the run length the schedule is scaled to")
+    parser.add_argument("--max-gaussians", type=int, default=200_000)
+    args = parser.parse_args()
+
+    scene = load_scene(args.scene, 1)
+    xyz, rgb, _ = read_point_cloud_ply(args.scene / "points3D.ply")
+    settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
+    trainer = SplatTrainer(gaussians_from_points(xyz, rgb[:, :1] / 255.0), scene, settings, torch.device("cpu"))
+    print(f"{scene.cameras.width}² views, {len(trainer.gaussians)} initial Gaussians, {torch.get_num_threads()} threads, "
+          f"rasterizer: {trainer.rasterizer.description}")
+    trainer.step()  # compiles the kernels
+    started = time.perf_counter()
+    for _ in range(args.iterations):
+        trainer.step()
+    elapsed = time.perf_counter() - started
+    print(f"  training: {args.iterations / elapsed:.1f} it/s over {args.iterations} iterations "
+          f"({len(trainer.gaussians)} Gaussians at the end)")
+
+    splits = {"render forward": [], "loss": [], "backward": [], "optimizer": []}
+    for _ in range(30):
+        view = trainer.next_view()
+        t0 = time.perf_counter()
+        rendered = render(trainer.gaussians, scene, view, trainer.sh_degree, trainer.rasterizer, retain=True)
+        t1 = time.perf_counter()
+        loss = photometric_loss(rendered.image, trainer.images[view], settings.dssim_weight)
+        t2 = time.perf_counter()
+        loss.backward()
+        t3 = time.perf_counter()
+        trainer.optimizer.step()
+        trainer.optimizer.zero_grad(set_to_none=True)
+        t4 = time.perf_counter()
+        for key, value in zip(splits, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            splits[key].append(value)
+    parts = ", ".join(f"{key} {1000 * statistics.median(values):.1f}" for key, values in splits.items())
+    print(f"  one iteration at {len(trainer.gaussians)} Gaussians, ms (median of 30): {parts}")
+
+
+if __name__ == "__main__":
+    main()
