@@ -73,13 +73,13 @@ def stage_dir_name(stage: str, name: str | None = None) -> str:
     return f"{stage}-{name}"
 
 
-def _to_jsonable(value: Any) -> Any:
+def to_jsonable(value: Any) -> Any:
     if isinstance(value, Mapping):
-        return {str(k): _to_jsonable(v) for k, v in value.items()}
+        return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_to_jsonable(v) for v in value]
+        return [to_jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _to_jsonable(value.tolist())
+        return to_jsonable(value.tolist())
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, Path):
@@ -257,7 +257,7 @@ class StageWriter:
         }
         manifest_path = self.directory / MANIFEST_NAME
         temporary = manifest_path.with_suffix(".json.tmp")
-        temporary.write_text(json.dumps(_to_jsonable(manifest), indent=2, allow_nan=False) + "\n")
+        temporary.write_text(json.dumps(to_jsonable(manifest), indent=2, allow_nan=False) + "\n")
         os.replace(temporary, manifest_path)
 
         # Move the old complete stage aside before the new one takes its place, and delete it

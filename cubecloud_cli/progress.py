@@ -72,6 +72,12 @@ class ProgressBar:
             self._task, advance=steps, description=description or self.description, rate=rate, status=status
         )
 
+    def set_total(self, total: float) -> None:
+        """Change the amount of work (known only once the stage has looked at its inputs)."""
+        self.total = total
+        if self._progress is not None:
+            self._progress.update(self._task, total=total)
+
     def set_completed(self, completed: float, description: str | None = None) -> None:
         """Jump to an absolute amount of work done (for work reported as fractions)."""
         if self._progress is not None:

@@ -8,6 +8,7 @@ import typer
 
 from cubecloud_cli import __version__
 from cubecloud_cli.cli.cunerf import cunerf_command
+from cubecloud_cli.cli.eval import eval_command
 from cubecloud_cli.cli.export import export_command
 from cubecloud_cli.cli.preprocess import preprocess_command
 from cubecloud_cli.cli.run import run_command
@@ -48,6 +49,7 @@ app.command("preprocess")(preprocess_command)
 app.command("cunerf")(cunerf_command)
 app.command("export")(export_command)
 app.command("splat")(splat_command)
+app.command("eval")(eval_command)
 app.command("run")(run_command)
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.metrics import psnr_from_mse
 from cubecloud_cli.raster.backends import Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.splat.data import TrainingScene
@@ -21,9 +22,9 @@ from cubecloud_cli.splat.settings import SplatSettings
 PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 
 
-def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int, rasterizer: Rasterizer,
-           retain: bool = False) -> Rasterized:
-    cameras = scene.cameras
+def render_camera(gaussians: Gaussians, cameras: PinholeCameras, view: int, sh_degree: int, rasterizer: Rasterizer,
+                  retain: bool = False) -> Rasterized:
+    """Render ``gaussians`` from camera ``view`` of ``cameras`` (any orbit, not only the scene's)."""
     device = gaussians.means.device
     rotation = torch.as_tensor(cameras.rotations[view], dtype=torch.float32, device=device)
     translation = torch.as_tensor(cameras.translations[view], dtype=torch.float32, device=device)
@@ -31,6 +32,11 @@ def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int
     return rasterizer.render(gaussians.means, gaussians.scales(), gaussians.quaternions, gaussians.opacities(),
                              gaussians.colours(centre, sh_degree), rotation, translation, float(cameras.focal),
                              cameras.width, cameras.height, retain_screen_grad=retain)
+
+
+def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int, rasterizer: Rasterizer,
+           retain: bool = False) -> Rasterized:
+    return render_camera(gaussians, scene.cameras, view, sh_degree, rasterizer, retain)
 
 
 class SplatTrainer:

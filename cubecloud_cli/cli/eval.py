@@ -1,0 +1,87 @@
+"""`cubecloud eval`: options and the call into cubecloud_cli.eval."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cubecloud_cli.artifacts import is_complete
+from cubecloud_cli.cli.common import ForceOption, QuietOption, configure_logging, reports_errors
+from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
+from cubecloud_cli.eval import EvalSettings, evaluate_work
+from cubecloud_cli.eval.compare import compare_works
+from cubecloud_cli.progress import ProgressBar
+from cubecloud_cli.runtime import Runtime
+
+log = logging.getLogger("cubecloud")
+
+WorkArgument = Annotated[Optional[Path], typer.Argument(help="Work directory with splat runs (splat/, splat-random/, ...).")]
+CompareOption = Annotated[Optional[list[Path]], typer.Option(
+    "--compare", help="Also build one table across these work directories (repeat the option); each is evaluated first if it has no eval/.")]
+OutputOption = Annotated[Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")]
+FramesOption = Annotated[int, typer.Option("--turntable-frames", help="Frames of each run's turntable GIF (a dense orbit like the export's); 0 for none.")]
+TurntableResolutionOption = Annotated[int, typer.Option("--turntable-resolution", help="Largest side of the turntable frames, in pixels.")]
+
+
+def _evaluate_with_progress(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
+    with ProgressBar(1, f"eval {work}", unit="frames") as bar:
+        shown = {"done": 0}
+
+        def on_progress(phase: str, done: int, total: int, fields: dict) -> None:
+            if total != bar.total:
+                bar.set_total(total)
+            bar.advance(done - shown["done"], **fields)
+            shown["done"] = done
+
+        return evaluate_work(work, settings, force=force, runtime=runtime, on_progress=on_progress)
+
+
+def describe_eval(manifest: dict) -> str:
+    parts = []
+    for row, scores in manifest["metrics"].items():
+        if isinstance(scores, dict) and "psnr" in scores:
+            psnr = scores["psnr"]
+            parts.append(f"{row} {psnr:.2f} dB" if isinstance(psnr, float) else f"{row} {psnr} dB")
+    return ", ".join(parts)
+
+
+@reports_errors
+def eval_command(
+    work: WorkArgument = None,
+    compare: CompareOption = None,
+    output: OutputOption = Path("comparison"),
+    turntable_frames: FramesOption = 72,
+    turntable_resolution: TurntableResolutionOption = 256,
+    device: DeviceOption = Device.auto,
+    threads: ThreadsOption = None,
+    force: ForceOption = False,
+    quiet: QuietOption = False,
+) -> None:
+    """Score every splat run in WORK, and CuNeRF, on the held-out views against the reference renders of the volume.
+
+    Writes WORK/eval/: metrics.json ({"protocol", "results": {run: psnr, ssim, mse (mean and std), foreground variants, ms per frame, Gaussians, MB}, "paper"}), per_view.csv, and report.md in the paper's Table I layout with the pictures: per held-out view reference | render | error grids (views/), a turntable GIF per run, and the PSNR-during-training plot.
+
+    Examples:
+
+      cubecloud eval work
+
+      cubecloud eval work --turntable-frames 0            # numbers and grids only
+
+      cubecloud eval --compare work-fast --compare work-balanced --output sweep
+    """
+    configure_logging(quiet)
+    if work is None and not compare:
+        raise typer.BadParameter("give a work directory, or --compare with two or more")
+    settings = EvalSettings(turntable_frames=turntable_frames, turntable_resolution=turntable_resolution)
+    runtime = Runtime(device.value, threads)
+    targets = ([work] if work is not None else []) + list(compare or [])
+    for target in targets:
+        if target == work or not is_complete(Path(target) / "eval"):
+            manifest = _evaluate_with_progress(Path(target), settings, force if target == work else False, runtime)
+            log.info(f"wrote {Path(target) / 'eval'}: {describe_eval(manifest)}")
+    if compare:
+        table = compare_works([Path(t) for t in targets], output)
+        log.info(f"wrote {output / 'comparison.md'}:\n{table}")

@@ -1,0 +1,154 @@
+"""The pictures of the eval report: error grids with a colour bar (PNG), turntables (GIF) and line
+plots (SVG). Drawn with Pillow (already installed with imageio) and plain SVG text, so the
+report needs no plotting library."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from xml.sax.saxutils import escape
+
+import imageio.v3 as iio
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+# A perceptually ordered map from black through purple and orange to pale yellow (the anchor
+# colours of matplotlib's "inferno"), so error magnitude reads as brightness even in grey print.
+ERROR_COLOURS = np.array([(0, 0, 4), (87, 16, 110), (188, 55, 84), (249, 142, 9), (252, 255, 164)], dtype=np.float64)
+PANEL_MIN_PIXELS = 192  # small renders are enlarged (nearest neighbour) so a reader can see pixels
+LABEL_HEIGHT = 16
+BACKGROUND = (255, 255, 255)
+TEXT = (20, 20, 20)
+SERIES_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf", "#7f7f7f")
+
+
+def colour_map(values: np.ndarray, vmax: float) -> np.ndarray:
+    """(…, 3) uint8 colours of ``values`` scaled to [0, vmax] (clipped; NaN shows as black)."""
+    scaled = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float64) / max(vmax, 1e-12)), 0.0, 1.0)
+    position = scaled * (len(ERROR_COLOURS) - 1)
+    low = np.minimum(position.astype(np.int64), len(ERROR_COLOURS) - 2)
+    weight = (position - low)[..., None]
+    colours = ERROR_COLOURS[low] * (1.0 - weight) + ERROR_COLOURS[low + 1] * weight
+    return np.round(colours).astype(np.uint8)
+
+
+def grey_to_rgb(image: np.ndarray) -> np.ndarray:
+    grey = np.round(np.clip(np.nan_to_num(np.asarray(image, dtype=np.float64)), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def _enlarge(image: np.ndarray) -> Image.Image:
+    picture = Image.fromarray(image)
+    factor = max(1, math.ceil(PANEL_MIN_PIXELS / max(image.shape[:2])))
+    return picture.resize((picture.width * factor, picture.height * factor), Image.NEAREST) if factor > 1 else picture
+
+
+def error_scale(reference: np.ndarray, estimates: list[np.ndarray]) -> float:
+    """One colour-bar maximum for a view: the 99.5th percentile of every method's |error|, so a
+    few extreme pixels do not wash out the rest (values above it show at full colour)."""
+    errors = np.concatenate([np.abs(e - reference).ravel() for e in estimates]) if estimates else np.zeros(1)
+    return float(max(np.percentile(errors, 99.5), 1e-3))
+
+
+def _colour_bar(height: int, vmax: float, font) -> Image.Image:
+    bar_width, text_width = 14, 56
+    gradient = colour_map(np.linspace(vmax, 0.0, height)[:, None].repeat(bar_width, axis=1), vmax)
+    bar = Image.new("RGB", (bar_width + text_width, height + LABEL_HEIGHT), BACKGROUND)
+    bar.paste(Image.fromarray(gradient), (0, LABEL_HEIGHT))
+    draw = ImageDraw.Draw(bar)
+    draw.text((0, 2), "|error|", fill=TEXT, font=font)
+    draw.text((bar_width + 3, LABEL_HEIGHT), f"{vmax:.3g}", fill=TEXT, font=font)
+    draw.text((bar_width + 3, LABEL_HEIGHT + height // 2 - 5), f"{vmax / 2:.3g}", fill=TEXT, font=font)
+    draw.text((bar_width + 3, LABEL_HEIGHT + height - 10), "0", fill=TEXT, font=font)
+    return bar
+
+
+def error_grid(reference: np.ndarray, renders: dict[str, np.ndarray], title: str) -> Image.Image:
+    """One row per method: reference | render | |render − reference| colour-mapped, with one
+    colour bar for the whole grid (shared scale, so rows compare)."""
+    font = ImageFont.load_default()
+    vmax = error_scale(reference, list(renders.values()))
+    panel = _enlarge(grey_to_rgb(reference))
+    width, height = panel.size
+    bar = _colour_bar(height, vmax, font)
+    grid = Image.new("RGB", (3 * width + bar.width + 8, LABEL_HEIGHT + len(renders) * (height + LABEL_HEIGHT)), BACKGROUND)
+    draw = ImageDraw.Draw(grid)
+    draw.text((2, 2), title, fill=TEXT, font=font)
+    for row, (name, render) in enumerate(renders.items()):
+        top = LABEL_HEIGHT + row * (height + LABEL_HEIGHT)
+        for column, (label, image) in enumerate((
+            ("reference", grey_to_rgb(reference)),
+            (name, grey_to_rgb(render)),
+            (f"|{name} - reference|", colour_map(np.abs(render - reference), vmax)),
+        )):
+            draw.text((column * width + 2, top + 2), label, fill=TEXT, font=font)
+            grid.paste(_enlarge(image), (column * width, top + LABEL_HEIGHT))
+        grid.paste(bar, (3 * width + 6, top))
+    return grid
+
+
+def write_turntable(path: Path, frames: np.ndarray, seconds: float = 6.0) -> None:
+    """A looping GIF of (N, H, W) grey frames in [0, 1], one full turn in ``seconds``."""
+    frames = np.stack([grey_to_rgb(frame) for frame in frames])
+    iio.imwrite(path, frames, extension=".gif", duration=max(20, int(1000 * seconds / max(len(frames), 1))), loop=0)
+
+
+def _nice_ticks(low: float, high: float, count: int = 5) -> list[float]:
+    if not (math.isfinite(low) and math.isfinite(high)) or high <= low:
+        high = low + 1.0 if math.isfinite(low) else 1.0
+        low = high - 1.0
+    raw = (high - low) / count
+    magnitude = 10 ** math.floor(math.log10(raw))
+    step = next(m * magnitude for m in (1, 2, 2.5, 5, 10) if m * magnitude >= raw)
+    first = math.ceil(low / step) * step
+    return [first + i * step for i in range(int((high - first) / step + 1e-9) + 1)]
+
+
+def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str, x_label: str, y_label: str,
+                  markers_only: bool = False, point_labels: dict[str, list[str]] | None = None) -> str:
+    """An SVG plot of ``(label, xs, ys)`` series: lines (or points), axes with ticks, a legend.
+    Non-finite points are left out."""
+    width, height, left, right, top, bottom = 640, 400, 70, 170, 40, 50
+    points = [(x, y) for _, xs, ys in series for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
+    xs_all, ys_all = [p[0] for p in points] or [0.0, 1.0], [p[1] for p in points] or [0.0, 1.0]
+    x_ticks = _nice_ticks(min(xs_all), max(xs_all))
+    y_ticks = _nice_ticks(min(ys_all), max(ys_all))
+    x0, x1 = min(x_ticks[0], min(xs_all)), max(x_ticks[-1], max(xs_all))
+    y0, y1 = min(y_ticks[0], min(ys_all)), max(y_ticks[-1], max(ys_all))
+    x1, y1 = (x1 if x1 > x0 else x0 + 1.0), (y1 if y1 > y0 else y0 + 1.0)
+
+    def sx(x: float) -> float:
+        return left + (x - x0) / (x1 - x0) * (width - left - right)
+
+    def sy(y: float) -> float:
+        return height - bottom - (y - y0) / (y1 - y0) * (height - top - bottom)
+
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="12">',
+             f'<rect width="{width}" height="{height}" fill="white"/>',
+             f'<text x="{width / 2 - right / 2:.0f}" y="22" text-anchor="middle" font-size="14">{escape(title)}</text>',
+             f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
+             f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>']
+    for x in x_ticks:
+        parts.append(f'<line x1="{sx(x):.1f}" y1="{height - bottom}" x2="{sx(x):.1f}" y2="{height - bottom + 5}" stroke="black"/>'
+                     f'<text x="{sx(x):.1f}" y="{height - bottom + 18}" text-anchor="middle">{x:g}</text>')
+    for y in y_ticks:
+        parts.append(f'<line x1="{left - 5}" y1="{sy(y):.1f}" x2="{width - right}" y2="{sy(y):.1f}" stroke="#e5e5e5"/>'
+                     f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{y:g}</text>')
+    parts.append(f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(x_label)}</text>'
+                 f'<text transform="translate(18 {(top + height - bottom) / 2:.0f}) rotate(-90)" text-anchor="middle">{escape(y_label)}</text>')
+    for index, (label, xs, ys) in enumerate(series):
+        colour = SERIES_COLOURS[index % len(SERIES_COLOURS)]
+        kept = [(x, y) for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
+        if len(kept) > 1 and not markers_only:
+            path = " ".join(f"{sx(x):.1f},{sy(y):.1f}" for x, y in kept)
+            parts.append(f'<polyline points="{path}" fill="none" stroke="{colour}" stroke-width="2"/>')
+        names = (point_labels or {}).get(label, [])
+        for i, (x, y) in enumerate(kept):
+            parts.append(f'<circle cx="{sx(x):.1f}" cy="{sy(y):.1f}" r="3.5" fill="{colour}"/>')
+            if i < len(names) and names[i]:
+                parts.append(f'<text x="{sx(x) + 6:.1f}" y="{sy(y) - 6:.1f}" font-size="10">{escape(names[i])}</text>')
+        legend_y = top + 10 + 18 * index
+        parts.append(f'<rect x="{width - right + 12}" y="{legend_y - 9}" width="12" height="12" fill="{colour}"/>'
+                     f'<text x="{width - right + 30}" y="{legend_y + 1}">{escape(label)}</text>')
+    parts.append("</svg>")
+    return "\n".join(parts)

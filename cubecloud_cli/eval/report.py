@@ -1,0 +1,88 @@
+"""The files `cubecloud eval` writes: ``metrics.json`` (nerfstudio-like ``{"results": …}``),
+``per_view.csv`` and ``report.md`` in the layout of the paper's Table I."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+from cubecloud_cli.eval.scoring import METRICS
+
+# The paper's Table I (KiTS23, 30 000 iterations each): its data, its protocol.
+PAPER_TABLE_I = {
+    "source": "Cube-Cloud 3DGS paper, Table I (KiTS23; their images, cameras and protocol, not ours)",
+    "results": {
+        "Cube-Cloud 3DGS": {"psnr": 28.104, "ssim": 0.7856, "mse": 0.0501},
+        "3DGS, random init": {"psnr": 25.397, "ssim": 0.7352, "mse": 0.0682},
+    },
+}
+
+PER_VIEW_COLUMNS = ("row", "method", "view", *METRICS)
+
+
+def write_per_view_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=PER_VIEW_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({key: (f"{value:.6g}" if isinstance(value, float) else value) for key, value in row.items()})
+
+
+def _number(value, digits: int = 2, scientific: bool = False) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if isinstance(value, float) and math.isinf(value):
+        return "∞" if value > 0 else "−∞"
+    if isinstance(value, int):
+        return f"{value:,}".replace(",", " ")
+    return f"{value:.{digits}e}" if scientific else f"{value:.{digits}f}"
+
+
+def _with_std(result: dict, metric: str, digits: int, scientific: bool = False) -> str:
+    mean, std = result.get(metric), result.get(f"{metric}_std")
+    text = _number(mean, digits, scientific)
+    if isinstance(std, float) and math.isfinite(std) and text != "–":
+        text += f" ± {_number(std, digits, scientific)}"
+    return text
+
+
+def table_rows(results: dict[str, dict]) -> list[str]:
+    lines = ["| row | method | views | PSNR ↑ (dB) | SSIM ↑ | MSE ↓ | PSNR fg | SSIM fg | render ms/frame | training | Gaussians | size MB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row, result in results.items():
+        training = result.get("train_seconds")
+        lines.append(" | ".join([
+            f"| `{row}`", result["method_name"], str(result["views"]), _with_std(result, "psnr", 2), _with_std(result, "ssim", 4),
+            _with_std(result, "mse", 2, scientific=True), _with_std(result, "psnr_foreground", 2),
+            _with_std(result, "ssim_foreground", 4), _number(result.get("ms_per_frame"), 1),
+            "–" if training is None else f"{training:.0f} s", _number(result.get("gaussians")),
+            _number(result.get("size_mb"), 1)]) + " |")
+    return lines
+
+
+def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictures: dict[str, list[str]]) -> str:
+    lines = [f"# {title}", "", "## Protocol", ""]
+    lines += [f"- **{key.replace('_', ' ')}**: {value}" for key, value in protocol.items() if isinstance(value, str)]
+    lines += ["", "## Results (Table I layout, our protocol)", "", "Mean ± standard deviation over views. "
+              "`fg`: inside the foreground (reference > 0). `training`: the stage's training time.", ""]
+    lines += table_rows(results)
+    lines += ["", "## The paper's Table I, for orientation", "",
+              f"These are **the paper's numbers** ({PAPER_TABLE_I['source']}); they are not comparable number for number "
+              "with ours: other scans, other images (sagittal slices), and the baseline trained from one camera pose.", "",
+              "| method (paper) | PSNR | SSIM | MSE |", "|---|---|---|---|"]
+    for method, values in PAPER_TABLE_I["results"].items():
+        lines.append(f"| {method} (paper) | {values['psnr']:.3f} | {values['ssim']:.4f} | {values['mse']:.4f} |")
+    if pictures.get("views"):
+        lines += ["", "## Held-out views", "", "Each row: the reference, a method's render, and its absolute error "
+                  "(one colour scale per view, shown by the bar).", ""]
+        lines += [f"![{Path(p).stem}]({p})" for p in pictures["views"]]
+    if pictures.get("turntables"):
+        lines += ["", "## Turntables", ""]
+        lines += [f"![{Path(p).stem}]({p})" for p in pictures["turntables"]]
+    if pictures.get("curves"):
+        lines += ["", "## Training curves", "", "Test PSNR during training, from each run's `log.csv`: against the images it "
+                  "trained on (CuNeRF renders), not the volume's reference renders.", ""]
+        lines += [f"![{Path(p).stem}]({p})" for p in pictures["curves"]]
+    lines += ["", "Per-view scores: [per_view.csv](per_view.csv). Machine-readable: [metrics.json](metrics.json).", ""]
+    return "\n".join(lines)
