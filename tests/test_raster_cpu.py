@@ -170,3 +170,39 @@ def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch):
     assert calls == {"near_plane": 0.2, "eps2d": 0.3, "viewmats": (1, 4, 4), "Ks": (1, 3, 3)}
     viewmats, _ = gsplat_inputs(rotation, translation, float(CAMERAS.focal), W, H)
     assert torch.equal(viewmats[0, 3], torch.tensor([0, 0, 0, 1.0], dtype=torch.float64))
+
+
+def test_opacities_outside_the_contract_match_the_oracle_or_are_culled():
+    """Above e⁶/255 pairs reach powers beyond the exp table (the kernels fall back to libm); a
+    NaN or infinite opacity culls its Gaussian instead of drawing it opaque."""
+    means, scales, quaternions = gaussians(40, 9)
+    means = means * 0.3
+    colours = torch.rand(40, 1, dtype=torch.float64)
+    rotation, translation = pose()
+    args = (rotation, translation, float(CAMERAS.focal), W, H)
+    # One Gaussian at a time: stacks of α clamped to exactly 0.99 land T on 1e-4 exactly, a tie
+    # that products and the oracle's log sums may break either way.
+    for opacity in (3.0, 50.0):
+        for i in range(0, 40, 4):
+            one = slice(i, i + 1)
+            opacities = torch.full((1,), opacity, dtype=torch.float64)
+            ours = NUMBA.render(means[one], scales[one], quaternions[one], opacities, colours[one], *args).image
+            oracle = TORCH.render(means[one], scales[one], quaternions[one], opacities, colours[one], *args).image
+            torch.testing.assert_close(ours, oracle, rtol=0, atol=1e-9)
+    opacities = torch.full((40,), 0.5, dtype=torch.float64)
+    opacities[3], opacities[4] = float("nan"), float("inf")
+    projected = project(means, scales, quaternions, *args)
+    bounds, _ = splat_boxes(projected.means2d.detach().numpy(), projected.covariances2d.detach().numpy(),
+                            projected.radii.numpy(), opacities.numpy(), W, H)
+    assert (bounds[3] == [0, -1, 0, -1]).all() and (bounds[4] == [0, -1, 0, -1]).all()
+    assert torch.isfinite(NUMBA.render(means, scales, quaternions, opacities, colours, *args).image).all()
+
+
+def test_a_radius_too_large_for_an_integer_is_culled():
+    means = torch.tensor([[0.0, 0.0, 0.0]], dtype=torch.float64)
+    quaternions = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    rotation, translation = pose()
+    for scale, drawn in ((1e3, True), (1e20, False), (float("inf"), False)):
+        projected = project_cpu(means, torch.full((1, 3), scale, dtype=torch.float64), quaternions, rotation, translation,
+                                float(CAMERAS.focal), W, H)
+        assert bool(projected.radii[0] > 0) == drawn

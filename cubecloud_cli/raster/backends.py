@@ -5,10 +5,13 @@
 * ``torch``: the plain PyTorch path (``projection.py`` + ``pairs.py``), on any device.
 
 All three take the same Gaussians and pinhole pose (OpenCV/COLMAP world-to-camera, principal point
-at the image centre, pixel centres at +0.5) and follow the reference rules (0.3 px² dilation, α ≤
-0.99, α < 1/255 skipped, stop at T < 1e-4), so a scene trained with one renders the same with the
-others. Training reads the screen-space gradient of the means for densification, which each
-backend exposes the same way.
+at the image centre, pixel centres at +0.5). ``numba`` and ``torch`` follow the reference 3DGS
+rules exactly (0.3 px² dilation, α ≤ 0.99, α < 1/255 skipped, stop before T < 1e-4) and agree to
+rounding. gsplat differs in small ways of its own: α is capped at 0.999, a pixel stops at
+T ≤ 1e-4, and from version 1.5 boxes are opacity-aware (up to 3.33σ) and Gaussians with opacity
+below 1/255 are culled; a model trained with one renders nearly, not exactly, the same with it.
+Training reads the screen-space gradient of the means for densification, in pixels on every
+backend.
 """
 
 from __future__ import annotations

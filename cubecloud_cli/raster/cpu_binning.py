@@ -55,9 +55,13 @@ def stable_depth_order(candidates, depths):
 
 @njit(parallel=True, cache=True)
 def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
-    """Per Gaussian: the inclusive pixel box (x0, x1, y0, y1) exactly as ``pixel_bounds`` with
-    opacities computes it (empty, (0, −1, 0, −1), where culled), and the power level
-    ln(255·o) ≥ 0 below which α ≥ 1/255."""
+    """Per Gaussian: the inclusive pixel box (x0, x1, y0, y1) as ``pixel_bounds`` with opacities
+    computes it (empty, (0, −1, 0, −1), where culled), and the power level ln(255·o) ≥ 0 below
+    which α ≥ 1/255. Opacities are in [0, 1]; a NaN or infinite one culls its Gaussian.
+
+    The arithmetic is float64. ``pixel_bounds`` on float32 tensors rounds in float32, so where
+    u ± r − ½ lands within float32 rounding of an integer, a box edge can differ by one pixel:
+    the box here is the exact one, and the forward and backward kernels use the same."""
     count = means2d.shape[0]
     bounds = np.empty((count, 4), dtype=np.int64)
     levels = np.empty(count)
@@ -67,7 +71,9 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
         u, v, radius = means2d[i, 0], means2d[i, 1], np.float64(radii[i])
         half_x = min(radius, math.sqrt(2.0 * level * covariances2d[i, 0]))
         half_y = min(radius, math.sqrt(2.0 * level * covariances2d[i, 2]))
-        if radii[i] <= 0 or not (np.isfinite(half_x) and np.isfinite(half_y) and np.isfinite(u) and np.isfinite(v)):
+        finite = np.isfinite(half_x) and np.isfinite(half_y) and np.isfinite(u) and np.isfinite(v) and np.isfinite(level)
+        # numba's min/max drop a NaN rather than propagate it, so a NaN opacity is culled by name
+        if radii[i] <= 0 or not finite or not opacities[i] >= 0.0:
             bounds[i, 0], bounds[i, 1], bounds[i, 2], bounds[i, 3] = 0, -1, 0, -1
             continue
         bounds[i, 0] = np.int64(min(max(math.ceil(u - half_x - 0.5), 0.0), width))

@@ -33,7 +33,15 @@ LEVEL_MARGIN = 1e-9
 
 # exp(−i/16) for the table-driven exp below; powers beyond ln 255 < 6 are never evaluated.
 EXP_STEPS_PER_UNIT = 16
-EXP_TABLE = np.exp(-np.arange(6 * EXP_STEPS_PER_UNIT + 2) / EXP_STEPS_PER_UNIT)
+EXP_TABLE_LIMIT = 6.0
+EXP_TABLE = np.exp(-np.arange(int(EXP_TABLE_LIMIT) * EXP_STEPS_PER_UNIT + 2) / EXP_STEPS_PER_UNIT)
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def pair_gaussian(power):
+    """exp(−power) for the kernels' pairs: inline below 6, libm beyond (reached only with
+    opacities above e⁶/255 ≈ 1.6, outside the [0, 1] contract, but then still right)."""
+    return exp_negative(power) if power <= EXP_TABLE_LIMIT else np.exp(-power)
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -97,7 +105,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                     power = max(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy, 0.0)
                     if power > level + LEVEL_MARGIN:
                         continue
-                    alpha = min(MAX_ALPHA, opacity * exp_negative(power))
+                    alpha = min(MAX_ALPHA, opacity * pair_gaussian(power))
                     if alpha < MIN_ALPHA:
                         continue
                     after = before * (1.0 - alpha)
@@ -186,7 +194,7 @@ def backward(offsets, entries, slots, bounds, means2d, conics, colours, opacitie
                     power = max(raw_power, 0.0)
                     if power > level + LEVEL_MARGIN:
                         continue
-                    gaussian = exp_negative(power)
+                    gaussian = pair_gaussian(power)
                     raw = opacity * gaussian
                     alpha = min(MAX_ALPHA, raw)
                     if alpha < MIN_ALPHA:

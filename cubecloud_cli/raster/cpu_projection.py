@@ -92,10 +92,12 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         means2d[i, 0], means2d[i, 1] = u, v
         middle = 0.5 * (a + c)
         largest = middle + math.sqrt(max(middle * middle - determinant, 0.1))
-        radius = math.ceil(3.0 * math.sqrt(largest))
         finite = (np.isfinite(u) and np.isfinite(v) and np.isfinite(conics[i, 0]) and np.isfinite(conics[i, 1])
-                  and np.isfinite(conics[i, 2]) and np.isfinite(radius))
-        if in_front and finite and u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height:
+                  and np.isfinite(conics[i, 2]) and np.isfinite(largest) and largest < 1e36)  # ceil(3√λ) stays within int64
+        if not (in_front and finite):
+            continue  # tested before ceil: converting an infinite radius to an integer is undefined
+        radius = math.ceil(3.0 * math.sqrt(largest))
+        if u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height:
             radii[i] = np.int64(radius)
     return means2d, conics, covariances2d, depths, radii
 
