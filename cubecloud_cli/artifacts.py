@@ -81,7 +81,7 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return to_jsonable(value.tolist())
     if isinstance(value, np.generic):
-        return value.item()
+        return to_jsonable(value.item())  # a numpy NaN still becomes "nan"
     if isinstance(value, Path):
         return str(value)
     if isinstance(value, float) and not np.isfinite(value):
@@ -122,13 +122,17 @@ def require_stage(work: Path, stage: str, name: str | None = None) -> dict[str, 
             f"run `{fix} --force`"
         )
     manifest = read_manifest(directory)
-    for relative, info in manifest.get("files", {}).items():
-        path = directory / relative
-        if not path.is_file() or path.stat().st_size != info.get("bytes"):
-            raise CubecloudError(
-                f"{path} is missing or changed since the stage was written: run `{fix} --force`"
-            )
+    verify_stage_files(directory, manifest, f"{fix} --force")
     return manifest
+
+
+def verify_stage_files(directory: Path, manifest: dict[str, Any], fix: str) -> None:
+    """Every file the manifest lists is still there with its recorded size, or a one-line error
+    that names ``fix``."""
+    for relative, info in manifest.get("files", {}).items():
+        path = Path(directory) / relative
+        if not path.is_file() or path.stat().st_size != info.get("bytes"):
+            raise CubecloudError(f"{path} is missing or changed since the stage was written: run `{fix}`")
 
 
 @dataclass

@@ -1,14 +1,14 @@
 """`cubecloud run`: the stages in order, skipping those already complete with the same settings.
 
-Only the stages that exist so far take part (preprocess, cunerf, export, splat); eval joins
-when it lands.
+preprocess → cunerf → export → splat (Cube-Cloud initialisation) → splat-random (the paper's
+baseline: the same training from random points) → eval.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -16,6 +16,8 @@ from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, 
 from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
 from cubecloud_cli.cunerf.stage import CHECKPOINT_FILE
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.eval import EvalSettings, evaluate_work
+from cubecloud_cli.eval.runs import find_splat_runs
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.splat.settings import SplatSettings
@@ -72,8 +74,16 @@ def _export_quietly(work: Path, settings: ExportSettings, force: bool, runtime: 
     return export_scene(work, settings, force=force, runtime=runtime)
 
 
-def _splat_quietly(work: Path, settings: SplatSettings, force: bool, resume: bool, runtime: Runtime) -> dict:
-    return train_splat(work, settings, force=force, resume=resume, runtime=runtime)
+def _splat_quietly(work: Path, settings: SplatSettings, force: bool, resume: bool, runtime: Runtime,
+                   name: str | None = None) -> dict:
+    return train_splat(work, settings, force=force, resume=resume, runtime=runtime, name=name)
+
+
+def _eval_quietly(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
+    return evaluate_work(work, settings, force=force, runtime=runtime)
+
+
+BASELINE_NAME = "random"
 
 
 def run_pipeline(
@@ -89,7 +99,10 @@ def run_pipeline(
     run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
     run_cunerf: Callable[[Path, CunerfSettings, bool, bool, Runtime], dict] | None = None,
     run_export: Callable[[Path, ExportSettings, bool, Runtime], dict] | None = None,
-    run_splat: Callable[[Path, SplatSettings, bool, bool, Runtime], dict] | None = None,
+    run_splat: Callable[..., dict] | None = None,
+    eval_settings: EvalSettings = EvalSettings(),
+    run_eval: Callable[[Path, EvalSettings, bool, Runtime], dict] | None = None,
+    baseline: bool = True,
 ) -> list[StageOutcome]:
     """Run the stages in order. ``run_*`` let the caller wrap a stage (progress display).
 
@@ -100,6 +113,7 @@ def run_pipeline(
     run_cunerf = run_cunerf or _cunerf_quietly
     run_export = run_export or _export_quietly
     run_splat = run_splat or _splat_quietly
+    run_eval = run_eval or _eval_quietly
     outcomes = []
     work = Path(work)
 
@@ -133,14 +147,39 @@ def run_pipeline(
         outcomes.append(StageOutcome("export", "resumed" if resumed else "ran", time.perf_counter() - start))
     upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
 
+    export_changed = upstream_changed
+    runs = [("splat", None, splat_settings)]
+    if baseline:
+        runs.append((f"splat-{BASELINE_NAME}", BASELINE_NAME, replace(splat_settings, init="random")))
+    for folder, name, settings in runs:
+        start = time.perf_counter()
+        splat_params = {**settings.as_dict(), "scene": str(work / "export")}
+        splat_inputs = [work / "export" / "images.npy", work / "export" / "points3D.ply"]
+        if not export_changed and stage_is_current(work / folder, splat_params, splat_inputs):
+            outcomes.append(StageOutcome(folder, "skipped", 0.0))
+        else:
+            checkpoint = work / f".{folder}{PARTIAL_SUFFIX}" / SPLAT_CHECKPOINT
+            resume = checkpoint.is_file() and not export_changed
+            run_splat(work, settings, export_changed or (work / folder).exists(), resume, runtime, name)
+            outcomes.append(StageOutcome(folder, "resumed" if resume else "ran", time.perf_counter() - start))
+        upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
+
     start = time.perf_counter()
-    splat_params = {**splat_settings.as_dict(), "scene": str(work / "export")}
-    splat_inputs = [work / "export" / "images.npy", work / "export" / "points3D.ply"]
-    if not upstream_changed and stage_is_current(work / "splat", splat_params, splat_inputs):
-        outcomes.append(StageOutcome("splat", "skipped", 0.0))
+    evaluated = find_splat_runs(work)  # the pipeline's runs and any the user trained beside them
+    eval_params = {**asdict(eval_settings), "runs": evaluated}
+    eval_inputs = [work / folder / "point_cloud.ply" for folder in evaluated]
+    if not upstream_changed and _eval_is_current(work / "eval", eval_params, eval_inputs):
+        outcomes.append(StageOutcome("eval", "skipped", 0.0))
     else:
-        checkpoint = work / f".splat{PARTIAL_SUFFIX}" / SPLAT_CHECKPOINT
-        resume = checkpoint.is_file() and not upstream_changed
-        run_splat(work, splat_settings, upstream_changed or (work / "splat").exists(), resume, runtime)
-        outcomes.append(StageOutcome("splat", "resumed" if resume else "ran", time.perf_counter() - start))
+        run_eval(work, eval_settings, upstream_changed or (work / "eval").exists(), runtime)
+        outcomes.append(StageOutcome("eval", "ran", time.perf_counter() - start))
     return outcomes
+
+
+def _eval_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> bool:
+    """eval is cheap and holds no choices worth protecting, so an eval made with other settings
+    or of other runs is simply redone rather than refused."""
+    try:
+        return stage_is_current(stage_dir, params, input_paths)
+    except CubecloudError:
+        return False

@@ -51,7 +51,8 @@ def test_a_report_from_a_tiny_run(work):
     for picture in ("views/view_000.png", "views/view_008.png", "turntable_splat.gif", "turntable_splat-random.gif",
                     "psnr_vs_iteration.svg"):
         assert f"]({picture})" in report and (eval_dir / picture).is_file()
-    assert "28.104" in report and "(paper)" in report and "| `splat` | Cube-Cloud 3DGS | 2 |" in report
+    assert "| paper | Cube-Cloud 3DGS | KiTS23, their protocol | – | 28.104 |" in report and "the paper's own numbers" in report
+    assert "| `splat` | Cube-Cloud 3DGS | volume | 2 |" in report
 
 
 def test_renders_are_scored_against_the_reference_not_the_training_images(work, tmp_path):
@@ -69,35 +70,79 @@ def test_renders_are_scored_against_the_reference_not_the_training_images(work, 
 def test_compare_builds_one_table(work, tmp_path):
     other = tmp_path / "other"
     shutil.copytree(work, other, ignore=shutil.ignore_patterns("eval", "splat-random"))
-    result = invoke("eval", "--compare", work, "--compare", other, "--output", tmp_path / "cmp", "--turntable-frames", "0", "-q")
+    # WORK also named in --compare, under another spelling: evaluated once, listed once.
+    result = invoke("eval", work, "--compare", work.parent / ".." / work.parent.name / work.name, "--compare", other,
+                    "--output", tmp_path / "cmp", "--turntable-frames", "0", "-q")
     assert result.exit_code == 0, result.output
-    assert (other / "eval" / "metrics.json").is_file()  # evaluated on the way
+    assert (other / "eval" / "metrics.json").is_file()  # evaluated on the way; work's current eval was kept
     records = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
     assert [r["work"] for r in records] == [str(work), str(other)]
     assert set(records[0]["rows"]) == {"splat", "splat-random", "cunerf", "cunerf-training-views"}
     assert records[0]["setup"]["resolution"] == 32 and records[0]["rows"]["splat"]["iterations"] == 40
-    assert records[0]["rows"]["splat"]["pipeline_seconds"] > records[0]["rows"]["splat"]["splat_seconds"]
+    row = records[0]["rows"]["splat"]
+    assert row["scene"] == "this work's export" and row["pipeline_seconds"] > row["splat_seconds"] > 0
     table = (tmp_path / "cmp" / "comparison.md").read_text().splitlines()
     assert len([line for line in table if line.startswith("| `")]) == 4 + 3
+    # A run retrained after its eval makes that eval stale: the comparison redoes it.
+    stamp = (other / "eval" / "manifest.json").stat().st_mtime_ns
+    assert invoke("splat", other, *QUICK, "--iterations", "30", "--force").exit_code == 0
+    assert invoke("eval", "--compare", work, "--compare", other, "--output", tmp_path / "cmp", "--turntable-frames", "0", "-q").exit_code == 0
+    assert (other / "eval" / "manifest.json").stat().st_mtime_ns != stamp
+    assert json.loads((tmp_path / "cmp" / "comparison.json").read_text())[1]["rows"]["splat"]["iterations"] == 30
+
+
+def test_a_run_on_a_foreign_scene_is_marked_and_counted(work, tmp_path):
+    from cubecloud_cli.eval import EvalSettings, evaluate_work
+
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy, ignore=shutil.ignore_patterns("eval"))
+    foreign = tmp_path / "foreign"  # a COLMAP scene of PNG files, no reference renders
+    shutil.copytree(work / "export", foreign, ignore=shutil.ignore_patterns("*.npy", "manifest.json", "split.json"))
+    assert invoke("splat", copy, "--scene", foreign, "--name", "foreign", *QUICK).exit_code == 0
+    calls = []
+    evaluate_work(copy, EvalSettings(turntable_frames=5), on_progress=lambda *a: calls.append(a[1:3]))
+    assert calls[-1][0] == calls[-1][1] and all(done <= total for done, total in calls)
+    metrics = json.loads((copy / "eval" / "metrics.json").read_text())
+    assert metrics["results"]["splat-foreign"]["reference"] == "images" and metrics["results"]["splat"]["reference"] == "volume"
+    assert "splat-foreign" in metrics["protocol"]["other scenes"]
+    assert "| `splat-foreign` | Cube-Cloud 3DGS | own images |" in (copy / "eval" / "report.md").read_text()
+    assert "cunerf" in metrics["results"]  # the work's own export still gives the CuNeRF rows
 
 
 def test_bad_input(work, tmp_path):
+    def copy(name, ignore=("eval",)):
+        target = tmp_path / name
+        shutil.copytree(work, target, ignore=shutil.ignore_patterns(*ignore))
+        return target
+
     assert_one_line_error(invoke("eval", tmp_path / "nowhere"), r"not a work directory")
-    empty = tmp_path / "empty"
-    shutil.copytree(work, empty, ignore=shutil.ignore_patterns("eval", "splat*"))
-    assert_one_line_error(invoke("eval", empty), r"no trained splat run.*cubecloud splat")
+    assert_one_line_error(invoke("eval", copy("empty", ("eval", "splat*"))), r"no trained splat run.*cubecloud splat")
     assert_one_line_error(invoke("eval", work), r"already complete.*--force")
-    broken = tmp_path / "broken"
-    shutil.copytree(work, broken, ignore=shutil.ignore_patterns("eval"))
+    broken = copy("broken")
     (broken / "splat" / "point_cloud.ply").write_bytes(b"ply\nnot really")
     assert_one_line_error(invoke("eval", broken), r"point_cloud.ply is missing or changed")
     assert not (broken / "eval").exists()
-    moved = tmp_path / "moved"  # its runs name a scene that no longer exists, and it has no export of its own
-    shutil.copytree(work, moved, ignore=shutil.ignore_patterns("eval", "export"))
-    for run in ("splat", "splat-random"):
-        manifest = json.loads((moved / run / "manifest.json").read_text())
-        manifest["scene"]["directory"] = str(tmp_path / "gone" / "export")
-        (moved / run / "manifest.json").write_text(json.dumps(manifest))
-    assert_one_line_error(invoke("eval", moved), r"scene .* is gone")
+    no_reference = copy("no_reference")  # never silently scored against the CuNeRF images instead
+    (no_reference / "export" / "reference.npy").unlink()
+    assert_one_line_error(invoke("eval", no_reference), r"reference.npy is missing.*cubecloud export")
+    changed = copy("changed")  # the export was redone after training: other views, other cameras
+    assert invoke("export", changed, "--resolution", "24", "--views", "16", "--cube", "8", "--points-per-cube", "64",
+                  "--max-points", "1500", "--force", "-q").exit_code == 0
+    assert_one_line_error(invoke("eval", changed), r"export is gone or has changed since splat was trained.*--force")
+    moved = copy("moved", ("eval", "export"))
+    assert_one_line_error(invoke("eval", moved), r"export is gone or has changed")
+    nan_run = copy("nan_run")  # the same size, non-finite values
+    from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
+
+    gaussians = read_gaussians_ply(nan_run / "splat" / "point_cloud.ply")
+    gaussians.sh_dc[:] = float("nan")
+    write_gaussians_ply(nan_run / "splat" / "point_cloud.ply", gaussians)
+    assert_one_line_error(invoke("eval", nan_run), r"splat renders NaN or Inf.*retrain")
+    bad_split = copy("bad_split")
+    (bad_split / "export" / "split.json").write_text('{"test": ')
+    assert_one_line_error(invoke("eval", bad_split), r"split.json")
     assert_one_line_error(invoke("eval", work, "--turntable-frames", "-1", "--force"), r"--turntable-frames")
     assert_one_line_error(invoke("eval", "--compare", tmp_path / "nowhere"), r"not a work directory")
+    corrupt = copy("corrupt", ())
+    (corrupt / "eval" / "metrics.json").write_text("[1, 2]")
+    assert_one_line_error(invoke("eval", "--compare", corrupt, "--compare", work), r"metrics.json")

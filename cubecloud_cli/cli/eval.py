@@ -8,10 +8,10 @@ from typing import Annotated, Optional
 
 import typer
 
-from cubecloud_cli.artifacts import is_complete
 from cubecloud_cli.cli.common import ForceOption, QuietOption, configure_logging, reports_errors
 from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
 from cubecloud_cli.eval import EvalSettings, evaluate_work
+from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.eval.compare import compare_works
 from cubecloud_cli.progress import ProgressBar
 from cubecloud_cli.runtime import Runtime
@@ -20,13 +20,13 @@ log = logging.getLogger("cubecloud")
 
 WorkArgument = Annotated[Optional[Path], typer.Argument(help="Work directory with splat runs (splat/, splat-random/, ...).")]
 CompareOption = Annotated[Optional[list[Path]], typer.Option(
-    "--compare", help="Also build one table across these work directories (repeat the option); each is evaluated first if it has no eval/.")]
+    "--compare", help="Build one table across these work directories (repeat the option), WORK included; each is evaluated first when its eval/ is missing or older than its runs (all with --force).")]
 OutputOption = Annotated[Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")]
 FramesOption = Annotated[int, typer.Option("--turntable-frames", help="Frames of each run's turntable GIF (a dense orbit like the export's); 0 for none.")]
 TurntableResolutionOption = Annotated[int, typer.Option("--turntable-resolution", help="Largest side of the turntable frames, in pixels.")]
 
 
-def _evaluate_with_progress(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
+def evaluate_with_progress(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
     with ProgressBar(1, f"eval {work}", unit="frames") as bar:
         shown = {"done": 0}
 
@@ -77,11 +77,20 @@ def eval_command(
         raise typer.BadParameter("give a work directory, or --compare with two or more")
     settings = EvalSettings(turntable_frames=turntable_frames, turntable_resolution=turntable_resolution)
     runtime = Runtime(device.value, threads)
-    targets = ([work] if work is not None else []) + list(compare or [])
+    if not compare:
+        manifest = evaluate_with_progress(work, settings, force, runtime)
+        log.info(f"wrote {Path(work) / 'eval'}: {describe_eval(manifest)}")
+        return
+    # A comparison evaluates each directory whose eval is missing or older than its runs (all of
+    # them with --force), once, in the order given.
+    targets, seen = [], set()
+    for target in ([work] if work is not None else []) + list(compare):
+        if Path(target).resolve() not in seen:
+            seen.add(Path(target).resolve())
+            targets.append(Path(target))
     for target in targets:
-        if target == work or not is_complete(Path(target) / "eval"):
-            manifest = _evaluate_with_progress(Path(target), settings, force if target == work else False, runtime)
-            log.info(f"wrote {Path(target) / 'eval'}: {describe_eval(manifest)}")
-    if compare:
-        table = compare_works([Path(t) for t in targets], output)
-        log.info(f"wrote {output / 'comparison.md'}:\n{table}")
+        if force or not eval_is_current(target):
+            manifest = evaluate_with_progress(target, settings, True, runtime)
+            log.info(f"wrote {target / 'eval'}: {describe_eval(manifest)}")
+    table = compare_works(targets, output)
+    log.info(f"wrote {output / 'comparison.md'}:\n{table}")

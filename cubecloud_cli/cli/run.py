@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import json
 import logging
 from pathlib import Path
 from typing import Annotated, Optional
@@ -12,7 +13,9 @@ import typer
 from cubecloud_cli.artifacts import read_manifest
 from cubecloud_cli.cli.cunerf import Device, describe_metrics, train_cunerf_with_progress
 from cubecloud_cli.cli.export import View, describe_export, export_settings, export_with_progress
+from cubecloud_cli.cli.eval import evaluate_with_progress
 from cubecloud_cli.cli.splat import describe_splat, splat_settings, train_splat_with_progress
+from cubecloud_cli.eval.report import table_rows
 from cubecloud_cli.cli.preprocess import run_preprocess_with_progress, scan_command
 from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
@@ -53,7 +56,8 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
         run_preprocess=run_preprocess_with_progress,
         run_cunerf=lambda work, s, f, resume, runtime: train_cunerf_with_progress(work, s, f, resume, runtime),
         run_export=lambda work, s, f, runtime: export_with_progress(work, s, f, runtime),
-        run_splat=lambda work, s, f, resume, runtime: train_splat_with_progress(work, s, None, f, resume, runtime),
+        run_splat=lambda work, s, f, resume, runtime, name: train_splat_with_progress(work, s, None, f, resume, runtime, name),
+        run_eval=lambda work, s, f, runtime: evaluate_with_progress(work, s, f, runtime),
     )
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status != "skipped" else "skipped (already complete)"
@@ -63,17 +67,21 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
     log.info(f"cunerf: {describe_metrics(read_manifest(Path(output) / 'cunerf'))}")
     log.info(f"export: {describe_export(read_manifest(Path(output) / 'export'))}")
     log.info(f"splat: {describe_splat(read_manifest(Path(output) / 'splat'))}")
+    log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
+    results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
+    table = "\n".join(table_rows(results))
+    log.info(f"held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}")
 
 
 run_command = scan_command(
     _run,
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf and export stages. An interrupted cunerf, export or splat stage continues from its saved work. Stages run today: preprocess, cunerf, export, splat (eval joins when it lands).
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the held-out table of eval/report.md.
 
     Examples:
 
-      cubecloud run -o work            # bundled CT, preset fast (about 3 min on 2 cores)
+      cubecloud run -o work            # bundled CT, preset fast (about 6 min on 2 cores)
 
       cubecloud run scan.nii.gz -o work --preset balanced
     """,

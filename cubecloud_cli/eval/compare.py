@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 from cubecloud_cli.artifacts import is_complete, read_manifest, to_jsonable
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.eval.stage import eval_is_current
 
 STAGES = ("preprocess", "cunerf", "export")
 
@@ -18,16 +20,25 @@ def _stage_seconds(manifest: dict | None) -> float | None:
     return None if manifest is None else manifest.get("timings_s", {}).get("total")
 
 
-def describe_work(work: Path) -> dict:
-    """The setup of a work directory and its eval results, as one comparable record."""
-    work = Path(work)
+def _load_metrics(work: Path) -> dict:
     metrics_file = work / "eval" / "metrics.json"
-    if not is_complete(work / "eval") or not metrics_file.is_file():
-        raise CubecloudError(f"{work} has no complete eval: run `cubecloud eval {work}` first")
+    if not eval_is_current(work) or not metrics_file.is_file():
+        raise CubecloudError(f"{work}/eval is missing or older than its splat runs: run `cubecloud eval {work} --force`")
     try:
         metrics = json.loads(metrics_file.read_text())
     except (OSError, ValueError) as exc:
-        raise CubecloudError(f"{metrics_file} is unreadable ({exc}): run `cubecloud eval {work} --force`") from None
+        raise CubecloudError(f"{metrics_file} is unreadable ({type(exc).__name__}): run `cubecloud eval {work} --force`") from None
+    results = metrics.get("results") if isinstance(metrics, dict) else None
+    if not isinstance(results, dict) or not all(isinstance(r, dict) for r in results.values()):
+        raise CubecloudError(f"{metrics_file} is not an eval result ({{\"results\": {{row: scores}}}}): "
+                             f"run `cubecloud eval {work} --force`")
+    return results
+
+
+def describe_work(work: Path) -> dict:
+    """The setup of a work directory and its eval results, as one comparable record."""
+    work = Path(work)
+    results = _load_metrics(work)
     manifests = {stage: read_manifest(work / stage) if is_complete(work / stage) else None for stage in STAGES}
     params = {stage: (m or {}).get("params", {}) for stage, m in manifests.items()}
     setup = {
@@ -40,19 +51,25 @@ def describe_work(work: Path) -> dict:
         "max_points": params["export"].get("max_points"),
     }
     seconds = {stage: _stage_seconds(m) for stage, m in manifests.items()}
+    upstream = sum(seconds.values()) if all(s is not None for s in seconds.values()) else None
+    own_export = str((work / "export").resolve())
     rows = {}
-    for row, result in metrics.get("results", {}).items():
+    for row, result in results.items():
         splat = read_manifest(work / row) if row.startswith("splat") and is_complete(work / row) else None
+        on_own_export = result.get("scene") == own_export
+        splat_seconds = _stage_seconds(splat)
         rows[row] = {
             "method": result.get("method_name"),
+            "scene": "this work's export" if on_own_export else result.get("scene"),
             "psnr": result.get("psnr"), "ssim": result.get("ssim"), "mse": result.get("mse"),
             "psnr_foreground": result.get("psnr_foreground"),
             "gaussians": result.get("gaussians"),
             "iterations": (splat or {}).get("params", {}).get("iterations"),
             "max_gaussians": (splat or {}).get("params", {}).get("max_gaussians"),
-            "splat_seconds": _stage_seconds(splat),
-            # Everything the row needed, from the scan: the shared stages plus its own training.
-            "pipeline_seconds": (sum(s for s in seconds.values() if s) + (_stage_seconds(splat) or 0.0)) if splat else None,
+            "splat_seconds": splat_seconds,
+            # From the scan to this row: the shared stages plus its own training (splat rows on
+            # this work's export only; others came from elsewhere).
+            "pipeline_seconds": upstream + splat_seconds if splat and on_own_export and upstream is not None and splat_seconds is not None else None,
         }
     return {"work": str(work), "setup": setup, "stage_seconds": seconds, "rows": rows}
 
@@ -73,9 +90,10 @@ def comparison_markdown(records: list[dict]) -> str:
     for record in records:
         setup = record["setup"]
         for row, values in record["rows"].items():
+            own = values["scene"] == "this work's export"
             lines.append("| " + " | ".join([
-                f"`{record['work']}`", f"`{row}`", _cell(values["method"]), _cell(setup["volume"]),
-                f"{_cell(setup['views'])} × {_cell(setup['resolution'])}²", _cell(setup["points_per_cube"]),
+                f"`{record['work']}`", f"`{row}`", _cell(values["method"]), _cell(setup["volume"]) if own else "other scene",
+                f"{_cell(setup['views'])} × {_cell(setup['resolution'])}²" if own else "–", _cell(setup["points_per_cube"]) if own else "–",
                 _cell(values["iterations"]), _cell(values["max_gaussians"]), _cell(values["psnr"]), _cell(values["ssim"], 4),
                 _cell(values["psnr_foreground"]), _cell(values["gaussians"]), _cell(values["splat_seconds"], 0),
                 _cell(values["pipeline_seconds"], 0)]) + " |")
@@ -90,6 +108,12 @@ def compare_works(works: list[Path], output: Path) -> str:
     output.mkdir(parents=True, exist_ok=True)
     header = ("# cubecloud comparison\n\nHeld-out scores (eval/metrics.json of each work directory) against the setup "
               "and wall time of each stage. `pipeline s`: preprocess + cunerf + export + that row's splat.\n\n")
-    (output / "comparison.md").write_text(header + table + "\n")
-    (output / "comparison.json").write_text(json.dumps(to_jsonable(records), indent=2, allow_nan=False) + "\n")
+    _write_atomically(output / "comparison.md", header + table + "\n")
+    _write_atomically(output / "comparison.json", json.dumps(to_jsonable(records), indent=2, allow_nan=False) + "\n")
     return table
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    temporary = path.with_name(f".{path.name}.partial")
+    temporary.write_text(text)
+    os.replace(temporary, path)

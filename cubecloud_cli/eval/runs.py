@@ -7,15 +7,17 @@ import logging
 import statistics
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import is_complete, read_manifest, require_stage
+from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, require_stage, sha256_of_path, verify_stage_files
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.raster.backends import Rasterizer
+from cubecloud_cli.scene import read_colmap_model
 from cubecloud_cli.splat.data import TrainingScene, load_scene
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import read_gaussians_ply
@@ -24,6 +26,7 @@ from cubecloud_cli.splat.training import render_camera
 log = logging.getLogger("cubecloud")
 
 SPLAT_PLY = "point_cloud.ply"
+MAX_TURNTABLE_FRAMES = 720
 
 
 @dataclass
@@ -31,7 +34,6 @@ class SplatRun:
     name: str  # its folder: splat, splat-random, ...
     directory: Path
     manifest: dict
-    gaussians: Gaussians
 
     @property
     def method(self) -> str:
@@ -42,6 +44,15 @@ class SplatRun:
     @property
     def size_mb(self) -> float:
         return (self.directory / SPLAT_PLY).stat().st_size / 1e6
+
+    @property
+    def retrain(self) -> str:
+        name = self.name[len("splat-"):] if self.name.startswith("splat-") else None
+        return f"cubecloud splat {self.directory.parent}{f' --name {name}' if name else ''} --force"
+
+    def gaussians(self) -> Gaussians:
+        """Read when needed, so that only one run's Gaussians are in memory at a time."""
+        return read_gaussians_ply(self.directory / SPLAT_PLY)
 
 
 @dataclass
@@ -56,42 +67,104 @@ class ScoredScene:
 
 def find_splat_runs(work: Path) -> list[str]:
     """Names of the complete splat runs in ``work`` (``splat`` first, then ``splat-*`` sorted).
-    Folders without a manifest (interrupted runs) are reported and skipped."""
+    Incomplete ones are reported and skipped."""
     names = []
     for directory in sorted(Path(work).glob("splat*")):
         if not directory.is_dir() or not (directory.name == "splat" or directory.name.startswith("splat-")):
             continue
         if not is_complete(directory):
-            log.warning(f"skipping {directory}: it is incomplete (an interrupted run); finish it with "
-                        f"`cubecloud splat {work} --resume`")
+            log.warning(f"skipping {directory}: it has no manifest.json (not a finished run); retrain it with `cubecloud "
+                        f"splat {work}{_name_option(directory.name)} --force`")
             continue
         names.append(directory.name)
+    for partial in sorted(Path(work).glob(f".splat*{PARTIAL_SUFFIX}")):
+        folder = partial.name[1:-len(PARTIAL_SUFFIX)]
+        if not (Path(work) / folder).exists():
+            log.warning(f"not evaluating {folder}: its training was interrupted; finish it with `cubecloud splat {work}"
+                        f"{_name_option(folder)} --resume`")
     return sorted(names, key=lambda name: (name != "splat", name))
+
+
+def _name_option(folder: str) -> str:
+    return f" --name {folder[len('splat-'):]}" if folder.startswith("splat-") else ""
 
 
 def load_run(work: Path, folder: str) -> SplatRun:
     name = folder[len("splat-"):] if folder.startswith("splat-") else None
     manifest = require_stage(work, "splat", name)
-    gaussians = read_gaussians_ply(Path(work) / folder / SPLAT_PLY)
-    return SplatRun(folder, Path(work) / folder, manifest, gaussians)
+    return SplatRun(folder, Path(work) / folder, manifest)
+
+
+@lru_cache(maxsize=64)
+def _digest(path: Path, size: int, modified_ns: int) -> str:
+    return sha256_of_path(path)
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file, computed once per (path, size, modification time) in this process."""
+    stat = path.stat()
+    return _digest(path.resolve(), stat.st_size, stat.st_mtime_ns)
+
+
+def _is_the_scene(candidate: Path, recorded: dict, images_hash: str | None) -> bool:
+    if not candidate.is_dir():
+        return False
+    images = candidate / "images.npy"
+    if images_hash:
+        return images.is_file() and file_digest(images) == images_hash
+    try:  # a foreign scene of image files: the same views, size and held-out names
+        model = read_colmap_model(candidate)
+    except CubecloudError:
+        return False
+    names = set(model.image_names)
+    return (len(model.image_names) == recorded.get("views") and model.cameras.width == recorded.get("width")
+            and model.cameras.height == recorded.get("height") and set(recorded.get("test", [])) <= names)
+
+
+def resolve_scene(work: Path, run: SplatRun) -> Path:
+    """The scene ``run`` trained on, as it is now. A run on its work directory's export is scored
+    against that export (so a copied or moved work directory uses its own files); a run on another
+    scene against the directory it names. A scene that is gone or whose images changed since is an
+    error: its held-out views would not be the run's."""
+    recorded = run.manifest.get("scene", {})
+    inputs = run.manifest.get("inputs", {})
+    images_hash = recorded.get("images_sha256") or inputs.get("export/images.npy")
+    own_export = recorded.get("own_export")
+    if own_export is None:  # manifests written before the flag: the default scene is WORK/export
+        own_export = "export/images.npy" in inputs and Path(recorded.get("directory", "export")).name == "export"
+    if own_export:
+        if _is_the_scene(Path(work) / "export", recorded, images_hash):
+            return (Path(work) / "export").resolve()
+        raise CubecloudError(f"{Path(work) / 'export'} is gone or has changed since {run.name} was trained on it: "
+                             f"retrain it with `{run.retrain}`")
+    named = [Path(p) for p in (recorded.get("resolved"), recorded.get("directory")) if p]
+    for candidate in named:
+        if _is_the_scene(candidate, recorded, images_hash):
+            return candidate.resolve()
+    where = recorded.get("resolved") or recorded.get("directory")
+    raise CubecloudError(f"{run.name} was trained on the scene {where}, which is gone or has changed since: "
+                         f"retrain it with `{run.retrain}`")
 
 
 def load_scored_scene(directory: Path, channels: int = 1) -> ScoredScene:
-    """The scene, and its reference: ``reference.npy`` (renders of the preprocessed volume, written
-    by `cubecloud export`) when present, otherwise its own images (a foreign COLMAP scene)."""
+    """The scene, and its reference: ``reference.npy`` (renders of the preprocessed volume) for an
+    export of ours, which must be intact; a foreign COLMAP scene's own images otherwise."""
     directory = Path(directory)
-    if not directory.is_dir():
-        raise CubecloudError(f"the scene {directory} a splat run was trained on is gone: export it again, or retrain")
+    export_manifest = read_manifest(directory) if is_complete(directory) else None
+    is_export = bool(export_manifest) and export_manifest.get("stage") == "export"
+    fix = f"cubecloud export {directory.parent} --force"
+    if is_export:
+        verify_stage_files(directory, export_manifest, fix)
     scene = load_scene(directory, channels)
     reference_file = directory / "reference.npy"
-    if reference_file.is_file():
+    if is_export or reference_file.is_file():
         try:
             reference = np.load(reference_file, mmap_mode="r")
         except (OSError, ValueError) as exc:
-            raise CubecloudError(f"{reference_file} is unreadable ({exc}): re-export with `cubecloud export --force`") from None
+            raise CubecloudError(f"{reference_file} is unreadable ({type(exc).__name__}): run `{fix}`") from None
         expected = (len(scene.names), scene.cameras.height, scene.cameras.width)
         if reference.shape[:3] != expected:
-            raise CubecloudError(f"{reference_file} holds {reference.shape}, not {expected}: re-export with `cubecloud export --force`")
+            raise CubecloudError(f"{reference_file} holds {reference.shape}, not {expected}: run `{fix}`")
         reference = np.asarray(reference, dtype=np.float32)
         reference = reference.mean(axis=-1) if reference.ndim == 4 else reference
         kind = "volume"
@@ -99,8 +172,7 @@ def load_scored_scene(directory: Path, channels: int = 1) -> ScoredScene:
         reference, kind = scene.images.numpy().mean(axis=-1), "images"
     if not np.isfinite(reference).all():
         raise CubecloudError(f"the reference images of {directory} hold NaN or Inf: re-export the scene")
-    export_manifest = read_manifest(directory) if (directory / "manifest.json").is_file() else None
-    return ScoredScene(scene, reference, kind, export_manifest)
+    return ScoredScene(scene, reference, kind, export_manifest if is_export else None)
 
 
 @torch.no_grad()
@@ -112,6 +184,8 @@ def render_views(gaussians: Gaussians, cameras: PinholeCameras, views: list[int]
     for index, view in enumerate(views):
         if index == 0:
             render_camera(gaussians, cameras, view, gaussians.sh_degree, rasterizer)
+            if gaussians.means.is_cuda:
+                torch.cuda.synchronize()
         started = time.perf_counter()
         image = render_camera(gaussians, cameras, view, gaussians.sh_degree, rasterizer).image
         if image.is_cuda:
@@ -119,17 +193,24 @@ def render_views(gaussians: Gaussians, cameras: PinholeCameras, views: list[int]
         times.append(1000.0 * (time.perf_counter() - started))
         frames.append(image.clamp(0.0, 1.0).mean(dim=-1).cpu().numpy())
         on_frame()
-    height, width = cameras.height, cameras.width
-    stack = np.stack(frames) if frames else np.zeros((0, height, width), dtype=np.float32)
+    stack = np.stack(frames) if frames else np.zeros((0, cameras.height, cameras.width), dtype=np.float32)
     return stack.astype(np.float32), (statistics.median(times) if times else float("nan"))
+
+
+def _downscaled(cameras: PinholeCameras, indices: np.ndarray, max_resolution: int) -> PinholeCameras:
+    factor = min(1.0, max_resolution / max(cameras.width, cameras.height))
+    return PinholeCameras(cameras.rotations[indices], cameras.translations[indices], max(1, round(cameras.width * factor)),
+                          max(1, round(cameras.height * factor)), cameras.focal * factor)
 
 
 def turntable_cameras(scored: ScoredScene, frames: int, max_resolution: int) -> PinholeCameras:
     """A dense orbit like the export's (same axis, radius, elevation and field of view), or, for a
-    foreign scene, its own cameras in order."""
+    foreign scene, ``frames`` of its own cameras in order; at most ``max_resolution`` pixels."""
     manifest = scored.export_manifest
     if manifest is None or "cameras" not in manifest:
-        return scored.scene.cameras
+        cameras = scored.scene.cameras
+        indices = np.unique(np.linspace(0, len(cameras) - 1, min(frames, len(cameras))).round().astype(np.int64))
+        return _downscaled(cameras, indices, max_resolution)
     params = manifest.get("params", {})
     resolution = min(int(manifest["cameras"]["width"]), max_resolution)
     return orbit_cameras(OrbitSpec(views=frames, axis=params.get("axis", "si"), radius=float(params.get("radius", 4.0)),

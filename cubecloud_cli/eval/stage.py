@@ -13,17 +13,20 @@ from typing import Callable
 
 import numpy as np
 
-from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, sha256_of_path, to_jsonable
+from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
 from cubecloud_cli.eval.report import PAPER_TABLE_I, report_markdown, write_per_view_csv
 from cubecloud_cli.eval.runs import (
+    MAX_TURNTABLE_FRAMES,
     ScoredScene,
     SplatRun,
+    file_digest,
     find_splat_runs,
     load_run,
     load_scored_scene,
     render_views,
+    resolve_scene,
     turntable_cameras,
 )
 from cubecloud_cli.eval.scoring import score_views, summarize
@@ -42,55 +45,64 @@ class EvalSettings:
     turntable_resolution: int = 256  # renders larger than this are shown at this size
 
     def validate(self) -> None:
-        if self.turntable_frames < 0 or self.turntable_frames > 3600:
-            raise CubecloudError(f"--turntable-frames {self.turntable_frames} must be between 0 (none) and 3600, e.g. 72")
+        if self.turntable_frames != 0 and not 2 <= self.turntable_frames <= MAX_TURNTABLE_FRAMES:
+            raise CubecloudError(f"--turntable-frames {self.turntable_frames} must be 0 (none) or between 2 and "
+                                 f"{MAX_TURNTABLE_FRAMES}, e.g. 72")
         if not 16 <= self.turntable_resolution <= 4096:
             raise CubecloudError(f"--turntable-resolution {self.turntable_resolution} must be between 16 and 4096 pixels")
 
 
-def protocol_description(scored: ScoredScene | None) -> dict:
-    reference = ("renders of the preprocessed volume (export/reference.npy), with the export's image model"
-                 if scored is None or scored.reference_kind == "volume" else
-                 "the scene's own images (it has no reference.npy: a foreign COLMAP scene)")
-    return {
+def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:
+    protocol = {
         "name": "cubecloud held-out views v1",
-        "reference": reference,
+        "reference": ("renders of the preprocessed volume (export/reference.npy), with the export's image model"
+                      if scored.reference_kind == "volume" else
+                      "the scene's own images (it has no reference.npy: a foreign COLMAP scene)"),
         "views": "the scene's held-out test views (split.json: every 8th view of the orbit), never trained on",
         "metrics": "DESIGN §5: PSNR with data range 1, SSIM (Gaussian window σ = 1.5, 11 taps, no sample-covariance "
-                   "correction, as scikit-image), MSE on [0, 1]; per view, then mean and population std over views",
+                   "correction, as scikit-image), MSE on [0, 1]; per view, then mean and population std over views; "
+                   "colour renders are scored on their grey mean, as the references are grey",
         "foreground": "the *_foreground scores count only pixels where the reference is non-zero",
         "rows": "each splat run; `cunerf`: CuNeRF's own renders of the same views; `cunerf-training-views`: CuNeRF's "
                 "renders of the training views against the reference, the error baked into 3DGS's targets",
+        "timing": "splat rows: median ms per frame rendering the held-out views here; CuNeRF rows: the export's "
+                  "render time per view from the baked grid, as recorded when the export ran",
         "non-finite values": "written as the strings \"inf\" and \"nan\" (identical images have infinite PSNR)",
-        "image_model": json.dumps(scored.export_manifest.get("image_model")) if scored and scored.export_manifest else "unknown",
+        "image_model": json.dumps(scored.export_manifest.get("image_model")) if scored.export_manifest else "unknown",
     }
+    if foreign_rows:
+        protocol["other scenes"] = (f"{', '.join(foreign_rows)} trained on another scene and are scored on its held-out "
+                                    "views against its own reference (column `against`): not comparable with the rows above")
+    return protocol
 
 
 def _score_row(reference: np.ndarray, estimate: np.ndarray, names: list[str], row: str, method: str,
-               per_view: list[dict]) -> dict:
+               per_view: list[dict], scene: Path, against: str) -> dict:
     scores = score_views(reference, estimate)
-    per_view += [{"row": row, "method": method, "view": name, **score} for name, score in zip(names, scores)]
-    return {"method_name": method, **summarize(scores), "view_names": names}
+    per_view += [{"row": row, "method": method, "view": name, "scene": str(scene), "against": against, **score}
+                 for name, score in zip(names, scores)]
+    return {"method_name": method, **summarize(scores), "view_names": names, "scene": str(scene), "reference": against}
 
 
 def _cunerf_rows(work: Path, scored: ScoredScene, per_view: list[dict]) -> dict[str, dict]:
     scene, export = scored.scene, scored.export_manifest or {}
     images = scene.images.numpy().mean(axis=-1)
-    rows = {}
     cunerf_dir = work / "cunerf"
     cunerf = read_manifest(cunerf_dir) if is_complete(cunerf_dir) else {}
     timings = export.get("timings_s", {})
-    views = max(1, len(scene.names))
+    resumed = bool(export.get("resumed", {}).get("views"))  # then only the missing views were timed
     extra = {
-        "ms_per_frame": 1000.0 * timings["render_images"] / views if "render_images" in timings else None,
+        "ms_per_frame": None if resumed or "render_images" not in timings else 1000.0 * timings["render_images"] / max(1, len(scene.names)),
         "train_seconds": cunerf.get("timings_s", {}).get("total"),
         "size_mb": (cunerf_dir / "model.pt").stat().st_size / 1e6 if (cunerf_dir / "model.pt").is_file() else None,
         "render_source": export.get("render_source"),
     }
+    rows = {}
     for row, method, views_of in ((CUNERF_ROW, "CuNeRF renders (held-out views)", scene.test),
                                   (CUNERF_TRAINING_ROW, "CuNeRF renders = 3DGS targets (training views)", scene.train)):
         names = [scene.names[i] for i in views_of]
-        rows[row] = {**_score_row(scored.reference[views_of], images[views_of], names, row, method, per_view), **extra}
+        rows[row] = {**_score_row(scored.reference[views_of], images[views_of], names, row, method, per_view,
+                                  scene.directory, "volume"), **extra}
     return rows
 
 
@@ -101,24 +113,31 @@ def _training_curve(run: SplatRun) -> tuple[list[float], list[float]]:
         with open(path, newline="") as handle:
             for row in csv.DictReader(handle):
                 try:
-                    value = float(row.get("test_psnr") or "nan")
+                    iteration, value = float(row.get("iteration") or "nan"), float(row.get("test_psnr") or "nan")
                 except ValueError:
                     continue
-                if math.isfinite(value):
-                    iterations.append(float(row["iteration"]))
+                if math.isfinite(iteration) and math.isfinite(value):
+                    iterations.append(iteration)
                     psnrs.append(value)
     return iterations, psnrs
 
 
-def _scene_directory(work: Path, manifest: dict) -> Path:
-    """The scene a run trained on: this work directory's own export when its images are the ones
-    the run recorded (so a copied or moved work directory scores against its own files), else the
-    directory the manifest names."""
-    own = work / "export" / "images.npy"
-    recorded_hash = manifest.get("inputs", {}).get("export/images.npy")
-    if recorded_hash and own.is_file() and sha256_of_path(own) == recorded_hash:
-        return own.parent.resolve()
-    return Path(manifest.get("scene", {}).get("directory", work / "export")).resolve()
+def _picture_name(view_name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(view_name).with_suffix("").as_posix())
+
+
+def eval_is_current(work: Path) -> bool:
+    """``work/eval`` is complete, of the runs there are now, made from their present files."""
+    directory = Path(work) / "eval"
+    if not is_complete(directory):
+        return False
+    manifest = read_manifest(directory)
+    runs = find_splat_runs(work)
+    if manifest.get("params", {}).get("runs") != runs:
+        return False
+    recorded = manifest.get("inputs", {})
+    return all((Path(work) / run / "point_cloud.ply").is_file()
+               and recorded.get(f"{run}/point_cloud.ply") == file_digest(Path(work) / run / "point_cloud.ply") for run in runs)
 
 
 def evaluate_work(
@@ -143,68 +162,79 @@ def evaluate_work(
     with writer:
         with writer.phase("load"):
             runs = [load_run(work, folder) for folder in folders]
+            scene_of = {run.name: resolve_scene(work, run) for run in runs}
             scenes: dict[Path, ScoredScene] = {}
             for run in runs:
-                directory = _scene_directory(work, run.manifest)
-                run.manifest["scene"]["resolved"] = directory
-                if directory not in scenes:
-                    scenes[directory] = load_scored_scene(directory, run.gaussians.channels)
+                if scene_of[run.name] not in scenes:
+                    channels = int(run.manifest.get("params", {}).get("channels", 1))
+                    scenes[scene_of[run.name]] = load_scored_scene(scene_of[run.name], channels)
                 writer.add_input(run.directory / "point_cloud.ply", f"{run.name}/point_cloud.ply")
-            main_scene = scenes.get((work / "export").resolve()) or next(iter(scenes.values()))
-        frames_per_run = len(main_scene.scene.test) + settings.turntable_frames
-        total, done = len(runs) * frames_per_run, 0
-        results: dict[str, dict] = {}
-        per_view: list[dict] = []
-        renders_by_view: dict[str, dict[str, np.ndarray]] = {}
+            own_export = (work / "export").resolve()
+            main_scene = scenes.get(own_export) or scenes[scene_of[runs[0].name]]
+            turntables = {run.name: turntable_cameras(scenes[scene_of[run.name]], settings.turntable_frames,
+                                                      settings.turntable_resolution) if settings.turntable_frames else None
+                          for run in runs}
+        total = sum(len(scenes[scene_of[run.name]].scene.test) + (len(turntables[run.name]) if turntables[run.name] else 0)
+                    for run in runs)
+        done = 0
 
         def tick() -> None:
             nonlocal done
             done += 1
             on_progress("render", done, total, {})
 
+        results: dict[str, dict] = {}
+        per_view: list[dict] = []
+        renders_by_view: dict[str, dict[str, np.ndarray]] = {}
+        pictures: dict[str, list[str]] = {"views": [], "turntables": [], "curves": []}
         with writer.phase("score"):
             for run in runs:
-                scored = scenes[run.manifest["scene"]["resolved"]]
+                scored = scenes[scene_of[run.name]]
                 test, names = scored.scene.test, [scored.scene.names[i] for i in scored.scene.test]
-                renders, ms = render_views(run.gaussians, scored.scene.cameras, test, rasterizer, tick)
+                gaussians = run.gaussians()
+                renders, ms = render_views(gaussians, scored.scene.cameras, test, rasterizer, tick)
+                if not np.isfinite(renders).all():
+                    raise CubecloudError(f"{run.name} renders NaN or Inf (its point_cloud.ply holds non-finite values): "
+                                         f"retrain it with `{run.retrain}`")
                 results[run.name] = {
-                    **_score_row(scored.reference[test], renders, names, run.name, run.method, per_view),
-                    "ms_per_frame": ms, "fps": 1000.0 / ms if ms > 0 else None, "gaussians": len(run.gaussians),
+                    **_score_row(scored.reference[test], renders, names, run.name, run.method, per_view,
+                                 scored.scene.directory, scored.reference_kind),
+                    "ms_per_frame": ms, "fps": 1000.0 / ms if ms > 0 else None, "gaussians": len(gaussians),
                     "size_mb": run.size_mb, "train_seconds": run.manifest.get("timings_s", {}).get("train"),
                     "iterations": run.manifest.get("metrics", {}).get("iterations"), "rasterizer": rasterizer.description,
-                    "reference": scored.reference_kind,
                 }
                 if scored is main_scene:
                     for name, render in zip(names, renders):
                         renders_by_view.setdefault(name, {})[run.name] = render
-            if main_scene.reference_kind == "volume" and main_scene.scene.directory == (work / "export").resolve():
+                if turntables[run.name] is not None:
+                    frames, _ = render_views(gaussians, turntables[run.name], list(range(len(turntables[run.name]))),
+                                             rasterizer, tick)
+                    relative = f"turntable_{run.name}.gif"
+                    write_turntable(writer.directory / relative, frames)
+                    pictures["turntables"].append(relative)
+                del gaussians
+            if main_scene.reference_kind == "volume" and main_scene.scene.directory.resolve() == own_export:
                 results.update(_cunerf_rows(work, main_scene, per_view))
                 images = main_scene.scene.images.numpy().mean(axis=-1)
                 for index in main_scene.scene.test:
                     renders_by_view.setdefault(main_scene.scene.names[index], {})[CUNERF_ROW] = images[index]
-        pictures: dict[str, list[str]] = {"views": [], "turntables": [], "curves": []}
+            else:
+                log.warning(f"no CuNeRF rows: {own_export} is not the scene the runs trained on, or has no reference renders")
         with writer.phase("pictures"):
             (writer.directory / "views").mkdir(exist_ok=True)
             for index in main_scene.scene.test:
                 name = main_scene.scene.names[index]
                 if name in renders_by_view:
-                    relative = f"views/{Path(name).stem}.png"
+                    relative = f"views/{_picture_name(name)}.png"
                     error_grid(main_scene.reference[index], renders_by_view[name], f"held-out view {name}").save(writer.directory / relative)
                     pictures["views"].append(relative)
-            if settings.turntable_frames:
-                for run in runs:
-                    scored = scenes[run.manifest["scene"]["resolved"]]
-                    cameras = turntable_cameras(scored, settings.turntable_frames, settings.turntable_resolution)
-                    frames, _ = render_views(run.gaussians, cameras, list(range(len(cameras.rotations))), rasterizer, tick)
-                    relative = f"turntable_{run.name}.gif"
-                    write_turntable(writer.directory / relative, frames)
-                    pictures["turntables"].append(relative)
             curves = [(run.name, *_training_curve(run)) for run in runs]
             if any(xs for _, xs, _ in curves):
                 (writer.directory / "psnr_vs_iteration.svg").write_text(line_plot_svg(
                     curves, "test PSNR during training (against the training images)", "iteration", "PSNR (dB)"))
                 pictures["curves"].append("psnr_vs_iteration.svg")
-        protocol = protocol_description(main_scene)
+        foreign = [run.name for run in runs if scenes[scene_of[run.name]] is not main_scene]
+        protocol = protocol_description(main_scene, foreign)
         metrics = {"protocol": protocol, "results": results, "paper": PAPER_TABLE_I}
         (writer.directory / "metrics.json").write_text(json.dumps(to_jsonable(metrics), indent=2, allow_nan=False) + "\n")
         write_per_view_csv(writer.directory / "per_view.csv", per_view)

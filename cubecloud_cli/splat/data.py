@@ -69,7 +69,10 @@ def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarra
 def _split(directory: Path, names: list[str]) -> list[int]:
     split_file = directory / "split.json"
     if split_file.is_file():
-        test = set(json.loads(split_file.read_text()).get("test", []))
+        try:
+            test = set(json.loads(split_file.read_text()).get("test", []))
+        except (ValueError, AttributeError, TypeError):
+            raise CubecloudError(f"{split_file} is not a split ({{\"test\": [image names]}}): re-export the scene, or delete it to hold out every 8th image") from None
     elif (find_colmap_model(directory) / "test.txt").is_file():
         test = set((find_colmap_model(directory) / "test.txt").read_text().split())
     else:

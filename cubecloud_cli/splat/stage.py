@@ -105,9 +105,11 @@ def train_splat(
     try:
         with writer:
             with writer.phase("load"):
+                images_digest = None
                 for path in (scene_dir / "images.npy", scene_dir / "points3D.ply"):
                     if path.is_file():
-                        writer.add_input(path, str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path))
+                        digest = writer.add_input(path, str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path))
+                        images_digest = digest if path.name == "images.npy" else images_digest
                 trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
                 trainer.identity = _scene_identity(scene)
                 initial_count = len(trainer.gaussians)
@@ -131,7 +133,11 @@ def train_splat(
             })
             writer.extra.update({
                 "schedule": trainer.schedule,
-                "scene": {"directory": str(scene_dir), "views": len(scene.names), "train": len(scene.train),
+                # resolved: eval finds the scene from any working directory; images_sha256 tells
+                # it whether the scene there is still the one trained on.
+                "scene": {"directory": str(scene_dir), "resolved": str(Path(scene_dir).resolve()),
+                          "own_export": Path(scene_dir).resolve() == (work / "export").resolve(),
+                          "images_sha256": images_digest, "views": len(scene.names), "train": len(scene.train),
                           "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
                           "height": scene.cameras.height, "extent": scene.extent},
                 "rasterizer": trainer.rasterizer.description,
