@@ -103,6 +103,7 @@ def run_pipeline(
     eval_settings: EvalSettings = EvalSettings(),
     run_eval: Callable[[Path, EvalSettings, bool, Runtime], dict] | None = None,
     baseline: bool = True,
+    on_stage: Callable[[StageOutcome], None] = lambda outcome: None,
 ) -> list[StageOutcome]:
     """Run the stages in order. ``run_*`` let the caller wrap a stage (progress display).
 
@@ -114,37 +115,42 @@ def run_pipeline(
     run_export = run_export or _export_quietly
     run_splat = run_splat or _splat_quietly
     run_eval = run_eval or _eval_quietly
-    outcomes = []
+    outcomes: list[StageOutcome] = []
+
+    def finish(stage: str, status: str, started: float) -> None:
+        outcomes.append(StageOutcome(stage, status, 0.0 if status == "skipped" else time.perf_counter() - started))
+        on_stage(outcomes[-1])
+
     work = Path(work)
 
     start = time.perf_counter()
     if not force and stage_is_current(work / "preprocess", asdict(preprocess_settings), [Path(scan)]):
-        outcomes.append(StageOutcome("preprocess", "skipped", 0.0))
+        finish("preprocess", "skipped", start)
     else:
         run_preprocess(scan, work, preprocess_settings, force)
-        outcomes.append(StageOutcome("preprocess", "ran", time.perf_counter() - start))
+        finish("preprocess", "ran", start)
     upstream_changed = force or outcomes[-1].status == "ran"
 
     start = time.perf_counter()
     volume = work / "preprocess" / "volume.npy"
     if not upstream_changed and stage_is_current(work / "cunerf", cunerf_settings.as_dict(), [volume]):
-        outcomes.append(StageOutcome("cunerf", "skipped", 0.0))
+        finish("cunerf", "skipped", start)
     else:
         checkpoint = work / f".cunerf{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
         resume = checkpoint.is_file() and not upstream_changed
         run_cunerf(work, cunerf_settings, upstream_changed or (work / "cunerf").exists(), resume, runtime)
-        outcomes.append(StageOutcome("cunerf", "resumed" if resume else "ran", time.perf_counter() - start))
+        finish("cunerf", "resumed" if resume else "ran", start)
     upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
 
     start = time.perf_counter()
     export_params = {**export_settings.as_dict(), "cunerf": "cunerf"}
     export_inputs = [volume, work / "cunerf" / "model.pt"]
     if not upstream_changed and stage_is_current(work / "export", export_params, export_inputs):
-        outcomes.append(StageOutcome("export", "skipped", 0.0))
+        finish("export", "skipped", start)
     else:
         manifest = run_export(work, export_settings, upstream_changed or (work / "export").exists(), runtime)
         resumed = bool(manifest.get("resumed", {}).get("views"))
-        outcomes.append(StageOutcome("export", "resumed" if resumed else "ran", time.perf_counter() - start))
+        finish("export", "resumed" if resumed else "ran", start)
     upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
 
     export_changed = upstream_changed
@@ -156,12 +162,12 @@ def run_pipeline(
         splat_params = {**settings.as_dict(), "scene": str(work / "export")}
         splat_inputs = [work / "export" / "images.npy", work / "export" / "points3D.ply"]
         if not export_changed and stage_is_current(work / folder, splat_params, splat_inputs):
-            outcomes.append(StageOutcome(folder, "skipped", 0.0))
+            finish(folder, "skipped", start)
         else:
             checkpoint = work / f".{folder}{PARTIAL_SUFFIX}" / SPLAT_CHECKPOINT
             resume = checkpoint.is_file() and not export_changed
             run_splat(work, settings, export_changed or (work / folder).exists(), resume, runtime, name)
-            outcomes.append(StageOutcome(folder, "resumed" if resume else "ran", time.perf_counter() - start))
+            finish(folder, "resumed" if resume else "ran", start)
         upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
 
     start = time.perf_counter()
@@ -169,10 +175,10 @@ def run_pipeline(
     eval_params = {**asdict(eval_settings), "runs": evaluated}
     eval_inputs = [work / folder / "point_cloud.ply" for folder in evaluated]
     if not upstream_changed and _eval_is_current(work / "eval", eval_params, eval_inputs):
-        outcomes.append(StageOutcome("eval", "skipped", 0.0))
+        finish("eval", "skipped", start)
     else:
         run_eval(work, eval_settings, upstream_changed or (work / "eval").exists(), runtime)
-        outcomes.append(StageOutcome("eval", "ran", time.perf_counter() - start))
+        finish("eval", "ran", start)
     return outcomes
 
 

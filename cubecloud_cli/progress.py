@@ -27,6 +27,55 @@ def terminal_wants_progress() -> bool:
     return sys.stderr.isatty() and logging.getLogger("cubecloud").getEffectiveLevel() <= logging.INFO
 
 
+def _columns(counts: bool = True) -> tuple:
+    """Fresh column objects for each display (rich columns may cache per-task state)."""
+    return (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        *((MofNCompleteColumn(),) if counts else ()),
+        TaskProgressColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[status]}"),
+    )
+
+
+_shared: Progress | None = None  # the display of a whole pipeline, when one is open
+
+
+class PipelineProgress:
+    """One display for a whole pipeline: a line for the stages done so far, and under it the bar
+    of the stage running now (each ``ProgressBar`` opened meanwhile joins this display)."""
+
+    def __init__(self, stages: int, description: str = "run", enabled: bool | None = None):
+        self.enabled = terminal_wants_progress() if enabled is None else enabled
+        self.stages = stages
+        self.description = description
+        self._progress: Progress | None = None
+        self._task = None
+
+    def __enter__(self) -> "PipelineProgress":
+        global _shared
+        if self.enabled:
+            self._progress = Progress(*_columns(), console=Console(stderr=True), transient=False)
+            self._progress.__enter__()
+            self._task = self._progress.add_task(self.description, total=self.stages, rate="", status="")
+            _shared = self._progress
+        return self
+
+    def stage_done(self, stage: str, status: str) -> None:
+        if self._progress is not None:
+            self._progress.update(self._task, advance=1, status=f"{stage} {status}")
+
+    def __exit__(self, *exc_info) -> None:
+        global _shared
+        if self._progress is not None:
+            _shared = None
+            self._progress.__exit__(*exc_info)
+
+
 class ProgressBar:
     """``with ProgressBar(total, "training") as bar: bar.advance(1, loss=0.1)``; silent when disabled."""
 
@@ -42,22 +91,14 @@ class ProgressBar:
         self._task = None
 
     def __enter__(self) -> "ProgressBar":
-        if self.enabled:
-            counts = [MofNCompleteColumn()] if self.unit else []
-            self._progress = Progress(
-                TextColumn("{task.description}"),
-                BarColumn(),
-                *counts,
-                TaskProgressColumn(),
-                TextColumn("{task.fields[rate]}"),
-                TimeElapsedColumn(),
-                TextColumn("ETA"),
-                TimeRemainingColumn(),
-                TextColumn("{task.fields[status]}"),
-                console=Console(stderr=True),
-                transient=False,
-            )
+        self._owned = False
+        if self.enabled and _shared is not None:
+            self._progress = _shared
+        elif self.enabled:
+            self._progress = Progress(*_columns(counts=bool(self.unit)), console=Console(stderr=True), transient=False)
             self._progress.__enter__()
+            self._owned = True
+        if self._progress is not None:
             self._task = self._progress.add_task(self.description, total=self.total, rate="", status="")
         return self
 
@@ -65,8 +106,7 @@ class ProgressBar:
         if self._progress is None:
             return
         status = "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in fields.items())
-        task = self._progress.tasks[0]
-        speed = task.speed
+        speed = next((task.speed for task in self._progress.tasks if task.id == self._task), None)
         rate = f"{speed:.3g} {self.unit}/s" if speed and self.unit else ""
         self._progress.update(
             self._task, advance=steps, description=description or self.description, rate=rate, status=status
@@ -86,5 +126,7 @@ class ProgressBar:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if self._progress is not None:
+        if self._progress is not None and self._owned:
             self._progress.__exit__(exc_type, exc, tb)
+        elif self._progress is not None:
+            self._progress.remove_task(self._task)  # the pipeline's line shows the stage as done

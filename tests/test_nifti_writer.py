@@ -30,3 +30,22 @@ def test_progress_bar_draws_and_ignores_when_disabled(capsys):
     with ProgressBar(10, "quiet", enabled=False) as bar:
         bar.advance(5, loss=1.0)
     assert capsys.readouterr().err == ""
+
+
+def test_a_pipeline_shows_one_display_that_stage_bars_join(capsys):
+    from cubecloud_cli.progress import PipelineProgress
+
+    with PipelineProgress(2, "run a → b", enabled=True) as display:
+        with ProgressBar(4, "stage a", enabled=True) as bar:
+            assert bar._progress is display._progress and len(display._progress.tasks) == 2
+            bar.advance(4, loss=0.1)
+        assert len(display._progress.tasks) == 1  # the stage's bar leaves; the pipeline line stays
+        display.stage_done("a", "ran")
+        with ProgressBar(3, "stage b", enabled=True, unit=None) as bar:
+            bar.advance(3)
+        display.stage_done("b", "skipped")
+        assert display._progress.tasks[0].completed == 2
+    err = capsys.readouterr().err
+    assert "run a → b" in err and "b skipped" in err
+    with ProgressBar(2, "alone", enabled=True) as bar:  # after the pipeline, bars draw on their own again
+        assert bar._owned

@@ -21,6 +21,7 @@ from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
 from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.presets import resolve_cunerf
+from cubecloud_cli.progress import PipelineProgress
 
 log = logging.getLogger("cubecloud")
 
@@ -44,7 +45,16 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
     cunerf_settings = CunerfSettings(**resolve_cunerf(preset, None, {"iterations": extras["cunerf_iterations"]}))
     export = export_settings(preset, views=extras["views"], resolution=extras["resolution"], view=extras["view"].value if extras["view"] else None)
     splat = splat_settings(preset, iterations=extras["splat_iterations"])
-    outcomes = run_pipeline(
+    with PipelineProgress(len(RUN_STAGES), "run " + " → ".join(RUN_STAGES)) as display:
+        outcomes = _run_stages(scan, output, settings, force, extras, cunerf_settings, export, splat, display)
+    _report(outcomes, output)
+
+
+RUN_STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
+
+
+def _run_stages(scan, output, settings, force, extras, cunerf_settings, export, splat, display) -> list:
+    return run_pipeline(
         scan,
         output,
         settings,
@@ -58,7 +68,11 @@ def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, pr
         run_export=lambda work, s, f, runtime: export_with_progress(work, s, f, runtime),
         run_splat=lambda work, s, f, resume, runtime, name: train_splat_with_progress(work, s, None, f, resume, runtime, name),
         run_eval=lambda work, s, f, runtime: evaluate_with_progress(work, s, f, runtime),
+        on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
     )
+
+
+def _report(outcomes: list, output: Path) -> None:
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status != "skipped" else "skipped (already complete)"
         note = "  (resumed from its saved work)" if outcome.status == "resumed" else ""
