@@ -50,8 +50,11 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
     if settings.init == "random":
         xyz, grey = random_points(settings.random_points, settings.seed)
         return gaussians_from_points(xyz, grey, settings.channels, settings.sh_degree)
-    if scene.points is None or len(scene.points[0]) == 0:
+    if scene.points is None:
         raise CubecloudError(f"{scene.directory} has no point cloud (points3D.ply or sparse/0/points3D): use --init random")
+    if len(scene.points[0]) == 0:
+        raise CubecloudError(f"{scene.directory}'s point cloud is empty: the field is air everywhere (an empty or constant "
+                             f"scan, or an --air-threshold too high); check the scan and its --window, or use --init random")
     xyz, rgb = scene.points
     return gaussians_from_points(xyz, rgb, settings.channels, settings.sh_degree)
 

@@ -1,0 +1,163 @@
+"""The speed–accuracy trade of cubecloud, measured: a preset and single-knob variations of it,
+each run through the whole pipeline, with every stage's wall time and the held-out scores.
+
+    python examples/trade_study.py --out trade                        # bundled CT, every knob
+    python examples/trade_study.py --scan ../shared/data/ct_chest_5mm_pyradiomics_lung1.nii.gz \\
+        --window lung --out trade-chest
+    python examples/trade_study.py --knobs iterations,budget --out quick   # only the splat knobs
+    python examples/trade_study.py --knobs iterations --values iterations=500,1000 \
+        --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
+
+Knobs (each varied alone around the preset; ``--preset`` fast by default):
+
+    volume           preprocess --size
+    views            export --views
+    points_per_cube  export --points-per-cube
+    iterations       splat --iterations (both runs)
+    budget           splat --max-gaussians (both runs)
+
+Each configuration gets a work directory OUT/<config>/. Stages whose options and inputs match an
+earlier configuration's are hard-linked from it rather than rerun, and keep that run's recorded
+wall time, so every configuration's time is that of a run from the scan. Writes:
+
+    OUT/trade.csv, OUT/trade.json   one line per configuration and method
+    OUT/trade.md                    the table
+    OUT/time_vs_psnr.svg            pipeline time against held-out PSNR, one point per configuration
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from cubecloud_cli.eval.figures import line_plot_svg
+
+STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
+KNOBS = {  # knob: (stage, option, values around the fast preset)
+    "volume": ("preprocess", "--size", [96, 128, 192]),
+    "views": ("export", "--views", [30, 60, 120]),
+    "points_per_cube": ("export", "--points-per-cube", [128, 512, 2048]),
+    "iterations": ("splat", "--iterations", [1000, 2000, 4000]),
+    "budget": ("splat", "--max-gaussians", [25_000, 50_000, 200_000]),
+}
+PRESET_VALUES = {"volume": 128, "views": 60, "points_per_cube": 512, "iterations": 2000, "budget": 200_000}
+
+
+def stage_commands(scan: str | None, work: Path, preset: str, window: str | None, overrides: dict,
+                   extra: dict[str, list[str]] | None = None) -> dict[str, list[str]]:
+    """The command line of each stage for one configuration (``overrides``: the knob's options;
+    ``extra``: options every configuration passes to a stage, e.g. shorter cunerf training)."""
+    extra = extra or {}
+    scan_args = [scan] if scan else []
+    window_args = ["--window", window] if window else []
+    splat = ["--preset", preset, *extra.get("splat", []), *overrides.get("splat", [])]
+    return {
+        "preprocess": ["preprocess", *scan_args, "-o", str(work), "--preset", preset, *window_args,
+                       *extra.get("preprocess", []), *overrides.get("preprocess", [])],
+        "cunerf": ["cunerf", str(work), "--preset", preset, *extra.get("cunerf", [])],
+        "export": ["export", str(work), "--preset", preset, *extra.get("export", []), *overrides.get("export", [])],
+        "splat": ["splat", str(work), *splat],
+        "splat-random": ["splat", str(work), *splat, "--init", "random", "--name", "random"],
+        "eval": ["eval", str(work), "--turntable-frames", "0"],
+    }
+
+
+def configurations(knobs: list[str], values: dict[str, list[int]] | None = None) -> list[tuple[str, dict]]:
+    configs = [("preset", {})]
+    for knob in knobs:
+        stage, option, defaults = KNOBS[knob]
+        for value in (values or {}).get(knob, defaults):
+            if value != PRESET_VALUES[knob]:
+                configs.append((f"{knob}={value}", {stage: [option, str(value)]}))
+    return configs
+
+
+def run_configuration(name: str, commands: dict[str, list[str]], work: Path, done: dict[tuple, Path]) -> None:
+    """Run the stages in order, hard-linking any whose command chain an earlier configuration ran."""
+    chain: tuple = ()
+    for stage in STAGES:
+        chain = chain + (tuple(a.replace(str(work), "WORK") for a in commands[stage]),)
+        if stage != "eval" and chain in done and not (work / stage).exists():
+            shutil.copytree(done[chain], work / stage, copy_function=os.link)
+            print(f"  {name}: {stage} reused from {done[chain].parent.name}", flush=True)
+            continue
+        if not (work / stage / "manifest.json").is_file():
+            print(f"  {name}: cubecloud {' '.join(commands[stage])}", flush=True)
+            subprocess.run([sys.executable, "-m", "cubecloud_cli", *commands[stage], "-q"], check=True)
+        done[chain] = work / stage
+
+
+def collect(name: str, work: Path) -> list[dict]:
+    seconds = {stage: json.loads((work / stage / "manifest.json").read_text())["timings_s"]["total"] for stage in STAGES}
+    results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
+    rows = []
+    for run in ("splat", "splat-random"):
+        result = results[run]
+        rows.append({
+            "config": name, "method": result["method_name"], "psnr": result["psnr"], "ssim": result["ssim"],
+            "psnr_foreground": result["psnr_foreground"], "gaussians": result["gaussians"],
+            **{f"{stage}_s": round(seconds[stage], 1) for stage in ("preprocess", "cunerf", "export")},
+            "splat_s": round(seconds[run], 1),
+            # From the scan to this model: the shared stages and its own training.
+            "pipeline_s": round(seconds["preprocess"] + seconds["cunerf"] + seconds["export"] + seconds[run], 1),
+        })
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scan", help="a CT scan (default: the bundled abdomen CT)")
+    parser.add_argument("--window", help="CT window for preprocess, e.g. lung for a chest CT")
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--knobs", default=",".join(KNOBS), help="comma-separated subset of: " + ", ".join(KNOBS))
+    parser.add_argument("--values", action="append", default=[], metavar="KNOB=V1,V2",
+                        help="values of a knob instead of its defaults, e.g. iterations=500,1000 (repeatable)")
+    parser.add_argument("--stage-options", action="append", default=[], metavar="STAGE=OPTIONS",
+                        help='options every configuration passes to a stage, e.g. "cunerf=--iterations 1000"')
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    knobs = [k.strip() for k in args.knobs.split(",") if k.strip()]
+    values = {key: [int(v) for v in text.split(",")] for key, text in (item.split("=", 1) for item in args.values)}
+    extra = {stage: text.split() for stage, text in (item.split("=", 1) for item in args.stage_options)}
+    unknown = (set(knobs) | set(values)) - set(KNOBS)
+    if unknown or set(extra) - set(STAGES):
+        parser.error(f"unknown knobs or stages: {', '.join(sorted(unknown | (set(extra) - set(STAGES))))}")
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    done: dict[tuple, Path] = {}
+    rows = []
+    for name, overrides in configurations(knobs, values):
+        work = args.out / name.replace("=", "-")
+        run_configuration(name, stage_commands(args.scan, work, args.preset, args.window, overrides, extra), work, done)
+        rows += collect(name, work)
+
+    with open(args.out / "trade.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (args.out / "trade.json").write_text(json.dumps(rows, indent=2))
+    lines = ["| config | method | pipeline s | cunerf s | export s | splat s | PSNR | SSIM | PSNR fg | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['config']} | {r['method']} | {r['pipeline_s']:.0f} | {r['cunerf_s']:.0f} | {r['export_s']:.0f} | "
+              f"{r['splat_s']:.0f} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['psnr_foreground']:.2f} | {r['gaussians']} |" for r in rows]
+    (args.out / "trade.md").write_text("\n".join(lines) + "\n")
+    series = []
+    labels = {}
+    for method in dict.fromkeys(r["method"] for r in rows):
+        mine = [r for r in rows if r["method"] == method]
+        series.append((method, [r["pipeline_s"] for r in mine], [r["psnr"] for r in mine]))
+        labels[method] = [r["config"] if method == rows[0]["method"] else "" for r in mine]
+    (args.out / "time_vs_psnr.svg").write_text(line_plot_svg(
+        series, "held-out PSNR against pipeline time", "pipeline time from the scan (s)", "PSNR vs the volume's renders (dB)",
+        markers_only=True, point_labels=labels))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
