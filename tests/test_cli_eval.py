@@ -116,6 +116,7 @@ def test_bad_input(work, tmp_path):
         return target
 
     assert_one_line_error(invoke("eval", tmp_path / "nowhere"), r"not a work directory")
+    assert_one_line_error(invoke("eval"), r"give a work directory")
     assert_one_line_error(invoke("eval", copy("empty", ("eval", "splat*"))), r"no trained splat run.*cubecloud splat")
     assert_one_line_error(invoke("eval", work), r"already complete.*--force")
     broken = copy("broken")

@@ -10,6 +10,7 @@ import typer
 
 from cubecloud_cli.cli.common import ForceOption, QuietOption, configure_logging, reports_errors
 from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
+from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
 from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.eval.compare import compare_works
@@ -20,7 +21,7 @@ log = logging.getLogger("cubecloud")
 
 WorkArgument = Annotated[Optional[Path], typer.Argument(help="Work directory with splat runs (splat/, splat-random/, ...).")]
 CompareOption = Annotated[Optional[list[Path]], typer.Option(
-    "--compare", help="Build one table across these work directories (repeat the option), WORK included; each is evaluated first when its eval/ is missing or older than its runs (all with --force).")]
+    "--compare", metavar="WORK", help="Build one table across these work directories (repeat the option), WORK included; each is evaluated first when its eval/ is missing or older than its runs (all with --force).")]
 OutputOption = Annotated[Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")]
 FramesOption = Annotated[int, typer.Option("--turntable-frames", help="Frames of each run's turntable GIF (a dense orbit like the export's); 0 for none.")]
 TurntableResolutionOption = Annotated[int, typer.Option("--turntable-resolution", help="Largest side of the turntable frames, in pixels.")]
@@ -74,7 +75,7 @@ def eval_command(
     """
     configure_logging(quiet)
     if work is None and not compare:
-        raise typer.BadParameter("give a work directory, or --compare with two or more")
+        raise CubecloudError("give a work directory (cubecloud eval work), or work directories to compare with --compare")
     settings = EvalSettings(turntable_frames=turntable_frames, turntable_resolution=turntable_resolution)
     runtime = Runtime(device.value, threads)
     if not compare:
