@@ -17,7 +17,7 @@ from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
 from cubecloud_cli.cunerf.stage import CHECKPOINT_FILE
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
-from cubecloud_cli.eval.runs import find_splat_runs
+from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.splat.settings import SplatSettings
@@ -171,21 +171,11 @@ def run_pipeline(
         upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
 
     start = time.perf_counter()
-    evaluated = find_splat_runs(work)  # the pipeline's runs and any the user trained beside them
-    eval_params = {**asdict(eval_settings), "runs": evaluated}
-    eval_inputs = [work / folder / "point_cloud.ply" for folder in evaluated]
-    if not upstream_changed and _eval_is_current(work / "eval", eval_params, eval_inputs):
+    # eval is cheap and holds no choices worth protecting: one made with other settings or of
+    # other runs (a splat-NAME/ the user trained beside them) is simply redone, never refused.
+    if not upstream_changed and eval_is_current(work, eval_settings):
         finish("eval", "skipped", start)
     else:
         run_eval(work, eval_settings, upstream_changed or (work / "eval").exists(), runtime)
         finish("eval", "ran", start)
     return outcomes
-
-
-def _eval_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> bool:
-    """eval is cheap and holds no choices worth protecting, so an eval made with other settings
-    or of other runs is simply redone rather than refused."""
-    try:
-        return stage_is_current(stage_dir, params, input_paths)
-    except CubecloudError:
-        return False

@@ -126,14 +126,17 @@ def _picture_name(view_name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(view_name).with_suffix("").as_posix())
 
 
-def eval_is_current(work: Path) -> bool:
-    """``work/eval`` is complete, of the runs there are now, made from their present files."""
+def eval_is_current(work: Path, settings: EvalSettings | None = None) -> bool:
+    """``work/eval`` is complete, of the runs there are now, made from their present files (and,
+    given ``settings``, with them)."""
     directory = Path(work) / "eval"
     if not is_complete(directory):
         return False
     manifest = read_manifest(directory)
     runs = find_splat_runs(work)
     if manifest.get("params", {}).get("runs") != runs:
+        return False
+    if settings is not None and any(manifest["params"].get(k) != v for k, v in asdict(settings).items()):
         return False
     recorded = manifest.get("inputs", {})
     return all((Path(work) / run / "point_cloud.ply").is_file()
