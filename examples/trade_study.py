@@ -2,8 +2,7 @@
 each run through the whole pipeline, with every stage's wall time and the held-out scores.
 
     python examples/trade_study.py --out trade                        # bundled CT, every knob
-    python examples/trade_study.py --scan ../shared/data/ct_chest_5mm_pyradiomics_lung1.nii.gz \\
-        --window lung --out trade-chest
+    python examples/trade_study.py --scan ../shared/data/ct_chest_5mm_pyradiomics_lung1.nii.gz --window lung --out trade-chest
     python examples/trade_study.py --knobs iterations,budget --out quick   # only the splat knobs
     python examples/trade_study.py --knobs iterations --values iterations=500,1000 \
         --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
@@ -18,7 +17,9 @@ Knobs (each varied alone around the preset; ``--preset`` fast by default):
 
 Each configuration gets a work directory OUT/<config>/. Stages whose options and inputs match an
 earlier configuration's are hard-linked from it rather than rerun, and keep that run's recorded
-wall time, so every configuration's time is that of a run from the scan. Writes:
+wall time, so every configuration's time is that of a run from the scan. Rerunning into the same
+OUT keeps the stages whose command chain is unchanged and redoes the others (an interrupted one
+from scratch, so that its time stays whole). Writes:
 
     OUT/trade.csv, OUT/trade.json   one line per configuration and method
     OUT/trade.md                    the table
@@ -46,7 +47,20 @@ KNOBS = {  # knob: (stage, option, values around the fast preset)
     "iterations": ("splat", "--iterations", [1000, 2000, 4000]),
     "budget": ("splat", "--max-gaussians", [25_000, 50_000, 200_000]),
 }
-PRESET_VALUES = {"volume": 128, "views": 60, "points_per_cube": 512, "iterations": 2000, "budget": 200_000}
+
+
+def preset_values(preset: str, extra: dict[str, list[str]]) -> dict[str, int | None]:
+    """Each knob's value in the base configuration: the preset's, or the --stage-options one."""
+    from cubecloud_cli.presets import PRESETS
+
+    values = {"volume": PRESETS["preprocess"][preset]["size"], "views": PRESETS["export"][preset]["views"],
+              "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
+              "iterations": PRESETS["splat"][preset]["iterations"], "budget": PRESETS["splat"][preset]["max_gaussians"]}
+    for knob, (stage, option, _) in KNOBS.items():
+        options = extra.get(stage, [])
+        if option in options and options.index(option) + 1 < len(options):  # the last one given wins, as on the CLI
+            values[knob] = int(options[len(options) - 1 - options[::-1].index(option) + 1])
+    return values
 
 
 def stage_commands(scan: str | None, work: Path, preset: str, window: str | None, overrides: dict,
@@ -68,29 +82,51 @@ def stage_commands(scan: str | None, work: Path, preset: str, window: str | None
     }
 
 
-def configurations(knobs: list[str], values: dict[str, list[int]] | None = None) -> list[tuple[str, dict]]:
+def configurations(knobs: list[str], base: dict, values: dict[str, list[int]] | None = None) -> list[tuple[str, dict]]:
     configs = [("preset", {})]
     for knob in knobs:
         stage, option, defaults = KNOBS[knob]
-        for value in (values or {}).get(knob, defaults):
-            if value != PRESET_VALUES[knob]:
+        for value in dict.fromkeys((values or {}).get(knob, defaults)):  # in order, once each
+            if value != base[knob]:
                 configs.append((f"{knob}={value}", {stage: [option, str(value)]}))
     return configs
 
 
-def run_configuration(name: str, commands: dict[str, list[str]], work: Path, done: dict[tuple, Path]) -> None:
-    """Run the stages in order, hard-linking any whose command chain an earlier configuration ran."""
-    chain: tuple = ()
+def run_configuration(name: str, commands: dict[str, list[str]], keys: dict[str, tuple], work: Path,
+                      done: dict[tuple, Path]) -> None:
+    """Run the stages in order. A stage whose command chain (``keys``) an earlier configuration
+    ran is hard-linked from it; one already here from the same chain is kept; anything else is
+    (re)done, with every stage after it."""
+    record = work / ".trade"
+    record.mkdir(parents=True, exist_ok=True)
+    stale = False
     for stage in STAGES:
-        chain = chain + (tuple(a.replace(str(work), "WORK") for a in commands[stage]),)
-        if stage != "eval" and chain in done and not (work / stage).exists():
-            shutil.copytree(done[chain], work / stage, copy_function=os.link)
-            print(f"  {name}: {stage} reused from {done[chain].parent.name}", flush=True)
+        key, marker = keys[stage], record / f"{stage}.json"
+        here = (work / stage / "manifest.json").is_file() and marker.is_file() and json.loads(marker.read_text()) == list(map(list, key))
+        if here and not stale:
+            done.setdefault(key, work / stage)
             continue
-        if not (work / stage / "manifest.json").is_file():
+        stale = True
+        if (work / stage).exists():
+            shutil.rmtree(work / stage)
+        if stage != "eval" and key in done:
+            shutil.copytree(done[key], work / stage, copy_function=os.link)
+            print(f"  {name}: {stage} reused from {done[key].parent.name}", flush=True)
+        else:
             print(f"  {name}: cubecloud {' '.join(commands[stage])}", flush=True)
-            subprocess.run([sys.executable, "-m", "cubecloud_cli", *commands[stage], "-q"], check=True)
-        done[chain] = work / stage
+            # --force: a run interrupted earlier restarts, so its recorded time is whole.
+            subprocess.run([sys.executable, "-m", "cubecloud_cli", *commands[stage], "--force", "-q"], check=True)
+        marker.write_text(json.dumps(list(map(list, key))))
+        done[key] = work / stage
+
+
+def chain_keys(commands: dict[str, list[str]]) -> dict[str, tuple]:
+    """Per stage, the commands of it and every stage before it: equal keys, equal outputs."""
+    keys, chain = {}, ()
+    for stage in STAGES:
+        chain = chain + (tuple(commands[stage]),)
+        keys[stage] = chain
+    return keys
 
 
 def collect(name: str, work: Path) -> list[dict]:
@@ -126,15 +162,20 @@ def main() -> None:
     values = {key: [int(v) for v in text.split(",")] for key, text in (item.split("=", 1) for item in args.values)}
     extra = {stage: text.split() for stage, text in (item.split("=", 1) for item in args.stage_options)}
     unknown = (set(knobs) | set(values)) - set(KNOBS)
+    if set(values) - set(knobs):
+        parser.error(f"--values for knobs not in --knobs: {', '.join(sorted(set(values) - set(knobs)))}")
     if unknown or set(extra) - set(STAGES):
         parser.error(f"unknown knobs or stages: {', '.join(sorted(unknown | (set(extra) - set(STAGES))))}")
 
     args.out.mkdir(parents=True, exist_ok=True)
     done: dict[tuple, Path] = {}
     rows = []
-    for name, overrides in configurations(knobs, values):
+    base = preset_values(args.preset, extra)
+    for name, overrides in configurations(knobs, base, values):
         work = args.out / name.replace("=", "-")
-        run_configuration(name, stage_commands(args.scan, work, args.preset, args.window, overrides, extra), work, done)
+        commands = stage_commands(args.scan, work, args.preset, args.window, overrides, extra)
+        keys = chain_keys(stage_commands(args.scan, Path("WORK"), args.preset, args.window, overrides, extra))
+        run_configuration(name, commands, keys, work, done)
         rows += collect(name, work)
 
     with open(args.out / "trade.csv", "w", newline="") as handle:

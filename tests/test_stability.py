@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cli_helpers import invoke
@@ -22,13 +22,15 @@ quaternion = st.tuples(*[st.floats(-1, 1)] * 4)
 @settings(max_examples=60, deadline=None)
 @given(st.floats(-9, 4), st.floats(-9, 4), quaternion)
 def test_covariances_stay_symmetric_and_positive(log_a, log_b, q):
+    # Below 1e-12 in norm a quaternion is degenerate and normalised only approximately (the
+    # guard that keeps its gradient finite); exactly zero is the identity.
+    assume(sum(c * c for c in q) >= 1e-24 or all(c == 0 for c in q))
     scales = torch.tensor([[10.0 ** log_a, 10.0 ** log_b, 10.0 ** ((log_a + log_b) / 2)]], dtype=torch.float64)
     sigma = covariances(scales, torch.tensor([q], dtype=torch.float64))[0]
     assert torch.isfinite(sigma).all() and torch.allclose(sigma, sigma.T)
     eigenvalues = torch.linalg.eigvalsh(sigma)
     assert float(eigenvalues.min()) >= -1e-12 * max(1.0, float(eigenvalues.max()))
-    # rotations keep the trace (a quaternion under 1e-12 in norm is degenerate, normalised approximately)
-    assert math.isclose(float(torch.trace(sigma)), float((scales ** 2).sum()), rel_tol=1e-6)
+    assert math.isclose(float(torch.trace(sigma)), float((scales ** 2).sum()), rel_tol=1e-9)  # rotations keep the trace
 
 
 @settings(max_examples=40, deadline=None)

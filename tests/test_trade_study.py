@@ -32,3 +32,11 @@ def test_a_toy_trade_study(tmp_path):
     iterations = json.loads((varied / "splat" / "manifest.json").read_text())["params"]["iterations"]
     assert iterations == 12
     assert "<svg" in (out / "time_vs_psnr.svg").read_text() and (out / "trade.md").read_text().count("\n") == 2 + 6
+    # Into the same OUT again: nothing is redone; a changed knob value runs only its new stages.
+    again = subprocess.run(command, capture_output=True, text=True)
+    assert again.returncode == 0 and "cubecloud " not in again.stdout.replace("trade", "")
+    command[command.index("iterations=12,24")] = "iterations=12,30"
+    changed = subprocess.run(command, capture_output=True, text=True)
+    assert changed.returncode == 0, changed.stderr[-2000:]
+    ran = [line for line in changed.stdout.splitlines() if ": cubecloud " in line]
+    assert ran and all(line.strip().startswith("iterations=30:") for line in ran)

@@ -132,7 +132,10 @@ def eval_is_current(work: Path, settings: EvalSettings | None = None) -> bool:
     directory = Path(work) / "eval"
     if not is_complete(directory):
         return False
-    manifest = read_manifest(directory)
+    try:
+        manifest = read_manifest(directory)
+    except CubecloudError:  # an unreadable eval is simply not current: it is redone
+        return False
     runs = find_splat_runs(work)
     if manifest.get("params", {}).get("runs") != runs:
         return False
