@@ -12,6 +12,7 @@ import sys
 from types import TracebackType
 
 from rich.console import Console
+from rich.text import Text
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -27,12 +28,19 @@ def terminal_wants_progress() -> bool:
     return sys.stderr.isatty() and logging.getLogger("cubecloud").getEffectiveLevel() <= logging.INFO
 
 
-def _columns(counts: bool = True) -> tuple:
+class _Counts(MofNCompleteColumn):
+    """M/N, for tasks counted in units (a bar in arbitrary work units hides it)."""
+
+    def render(self, task) -> Text:
+        return super().render(task) if task.fields.get("counts", True) else Text("")
+
+
+def _columns() -> tuple:
     """Fresh column objects for each display (rich columns may cache per-task state)."""
     return (
         TextColumn("{task.description}"),
         BarColumn(),
-        *((MofNCompleteColumn(),) if counts else ()),
+        _Counts(),
         TaskProgressColumn(),
         TextColumn("{task.fields[rate]}"),
         TimeElapsedColumn(),
@@ -95,11 +103,12 @@ class ProgressBar:
         if self.enabled and _shared is not None:
             self._progress = _shared
         elif self.enabled:
-            self._progress = Progress(*_columns(counts=bool(self.unit)), console=Console(stderr=True), transient=False)
+            self._progress = Progress(*_columns(), console=Console(stderr=True), transient=False)
             self._progress.__enter__()
             self._owned = True
         if self._progress is not None:
-            self._task = self._progress.add_task(self.description, total=self.total, rate="", status="")
+            self._task = self._progress.add_task(self.description, total=self.total, rate="", status="",
+                                                 counts=bool(self.unit))
         return self
 
     def advance(self, steps: float = 1, description: str | None = None, **fields: float | str) -> None:

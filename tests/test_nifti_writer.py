@@ -43,6 +43,10 @@ def test_a_pipeline_shows_one_display_that_stage_bars_join(capsys):
         display.stage_done("a", "ran")
         with ProgressBar(3, "stage b", enabled=True, unit=None) as bar:
             bar.advance(3)
+            columns = display._progress.columns
+            counts = next(c for c in columns if type(c).__name__ == "_Counts")
+            assert str(counts.render(display._progress.tasks[1])) == ""  # no M/N for a unitless bar
+            assert str(counts.render(display._progress.tasks[0])) == "1/2"
         display.stage_done("b", "skipped")
         assert display._progress.tasks[0].completed == 2
     err = capsys.readouterr().err
