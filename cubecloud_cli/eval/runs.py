@@ -65,21 +65,22 @@ class ScoredScene:
     export_manifest: dict | None
 
 
-def find_splat_runs(work: Path) -> list[str]:
+def find_splat_runs(work: Path, report: bool = True) -> list[str]:
     """Names of the complete splat runs in ``work`` (``splat`` first, then ``splat-*`` sorted).
-    Incomplete ones are reported and skipped."""
+    Incomplete ones are skipped, and reported when ``report`` (once per command, not per look)."""
     names = []
     for directory in sorted(Path(work).glob("splat*")):
         if not directory.is_dir() or not (directory.name == "splat" or directory.name.startswith("splat-")):
             continue
         if not is_complete(directory):
-            log.warning(f"skipping {directory}: it has no manifest.json (not a finished run); retrain it with `cubecloud "
-                        f"splat {work}{_name_option(directory.name)} --force`")
+            if report:
+                log.warning(f"skipping {directory}: it has no manifest.json (not a finished run); retrain it with `cubecloud "
+                            f"splat {work}{_name_option(directory.name)} --force`")
             continue
         names.append(directory.name)
     for partial in sorted(Path(work).glob(f".splat*{PARTIAL_SUFFIX}")):
         folder = partial.name[1:-len(PARTIAL_SUFFIX)]
-        if not (Path(work) / folder).exists():
+        if report and not (Path(work) / folder).exists():
             log.warning(f"not evaluating {folder}: its training was interrupted; finish it with `cubecloud splat {work}"
                         f"{_name_option(folder)} --resume`")
     return sorted(names, key=lambda name: (name != "splat", name))

@@ -136,7 +136,7 @@ def eval_is_current(work: Path, settings: EvalSettings | None = None) -> bool:
         manifest = read_manifest(directory)
     except CubecloudError:  # an unreadable eval is simply not current: it is redone
         return False
-    runs = find_splat_runs(work)
+    runs = find_splat_runs(work, report=False)  # the evaluation that may follow reports them
     if manifest.get("params", {}).get("runs") != runs:
         return False
     if settings is not None and any(manifest["params"].get(k) != v for k, v in asdict(settings).items()):
