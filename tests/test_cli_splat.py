@@ -252,15 +252,14 @@ def test_degenerate_scenes_are_refused(exported, tmp_path):
     same_centre = tmp_path / "same_centre"
     shutil.copytree(exported / "export", same_centre)
     rotations = model.cameras.rotations
-    translations = np.tile(model.cameras.translations[:1], (len(rotations), 1))
     from cubecloud_cli.cameras import PinholeCameras
 
-    cameras = PinholeCameras(rotations, -np.einsum("nij,j->ni", rotations, model.cameras.centres()[0]), 32, 32, model.cameras.focal)
+    # Every camera at the world origin: no spread and no distance to stand in for one.
+    cameras = PinholeCameras(rotations, np.zeros((len(rotations), 3)), 32, 32, model.cameras.focal)
     for path in (same_centre / "sparse" / "0").glob("*.bin"):
         path.unlink()
     write_colmap_model(same_centre / "sparse" / "0", cameras, model.image_names, model.xyz, model.rgb, binary=False)
-    assert_one_line_error(invoke("splat", tmp_path / "w1", "--scene", same_centre, *QUICK), r"share one centre")
-    del translations
+    assert_one_line_error(invoke("splat", tmp_path / "w1", "--scene", same_centre, *QUICK), r"sit together at the world origin")
     nan_points = tmp_path / "nan_points"
     shutil.copytree(exported / "export", nan_points)
     from cubecloud_cli.scene import read_point_cloud_ply, write_point_cloud_ply

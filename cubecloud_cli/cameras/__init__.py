@@ -1,6 +1,8 @@
-"""Pinhole cameras in the OpenCV / COLMAP convention (DESIGN §2) and the orbit that `export` uses."""
+"""Pinhole cameras in the OpenCV / COLMAP convention (DESIGN §2), the orbit that `export` uses, and the
+single-pose slice stack of the paper's 3DGS baseline."""
 
 from cubecloud_cli.cameras.orbit import ORBIT_AXES, OrbitSpec, orbit_cameras
 from cubecloud_cli.cameras.pinhole import PinholeCameras
+from cubecloud_cli.cameras.stack import stack_cameras, stack_offsets
 
-__all__ = ["ORBIT_AXES", "OrbitSpec", "PinholeCameras", "orbit_cameras"]
+__all__ = ["ORBIT_AXES", "OrbitSpec", "PinholeCameras", "orbit_cameras", "stack_cameras", "stack_offsets"]

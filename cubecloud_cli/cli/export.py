@@ -41,6 +41,11 @@ class View(str, Enum):
     mip = "mip"
 
 
+class CameraPath(str, Enum):
+    orbit = "orbit"
+    stack = "stack"
+
+
 class RenderFrom(str, Enum):
     grid = "grid"
     field = "field"
@@ -55,6 +60,7 @@ CubeOption = Annotated[int, typer.Option("--cube", help="Cube side in voxels for
 PointsPerCubeOption = Annotated[Optional[int], unset_option("--points-per-cube", "Points drawn uniformly in each cube. (preset fast/balanced 512, paper 64)")]
 MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", "Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. (fast 100000, balanced 200000, paper 0)")]
 AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
+CamerasOption = Annotated[CameraPath, typer.Option("--cameras", help="orbit: --views cameras around --axis (DESIGN §2). stack: the paper's 3DGS baseline, --views parallel slices across --axis (lr: sagittal) all seen from one camera pose; needs --view slice.")]
 ViewsOption = Annotated[Optional[int], unset_option("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
 AxisOption = Annotated[Optional[Axis], unset_option("--axis", "Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. (fast/balanced si, paper ap)")]
 RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
@@ -89,6 +95,7 @@ def export_command(
     points_per_cube: PointsPerCubeOption = None,
     max_points: MaxPointsOption = None,
     air_threshold: AirOption = 0.02,
+    cameras: CamerasOption = CameraPath.orbit,
     views: ViewsOption = None,
     axis: AxisOption = None,
     radius: RadiusOption = 4.0,
@@ -121,13 +128,15 @@ def export_command(
 
       cubecloud export work --view slice --axis ap --name paper-slices   # the paper's images
 
+      cubecloud export work --cameras stack --view slice --axis lr --name sagittal-stack   # the paper's 3DGS baseline
+
       cubecloud export work --transfer bone --elevation 20 --resolution 256
     """
     configure_logging(quiet)
     settings = export_settings(
         preset.value,
         cube=cube, points_per_cube=points_per_cube, max_points=max_points, air_threshold=air_threshold,
-        views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
+        cameras=cameras.value, views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
         elevation=elevation, view=view.value if view else None, transfer=transfer.value, tf_low=tf_low, tf_high=tf_high,
         tf_density=tf_density, step=step, render_from=render_from.value, bake_size=bake_size, seed=seed,
     )

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from cubecloud_cli.cameras import OrbitSpec
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, stack_cameras, stack_offsets
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
 from cubecloud_cli.render import IMAGE_MODELS
 
 RENDER_SOURCES = ("grid", "field")
+# orbit: DESIGN §2. stack: the paper's 3DGS baseline, parallel slices seen from one pose.
+CAMERA_PATHS = ("orbit", "stack")
 MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
 
 
@@ -20,7 +22,8 @@ class ExportSettings:
     points_per_cube: int = 512
     max_points: int = 100_000  # 0: keep every non-air point
     air_threshold: float = 0.02
-    # The orbit (DESIGN §2).
+    # The orbit (DESIGN §2), or the paper baseline's stack of slices across ``axis``.
+    cameras: str = "orbit"
     views: int = 60
     axis: str = "si"
     radius: float = 4.0
@@ -41,8 +44,21 @@ class ExportSettings:
     def orbit(self) -> OrbitSpec:
         return OrbitSpec(self.views, self.axis, self.radius, self.resolution, self.elevation, self.fov)
 
+    def camera_set(self) -> PinholeCameras:
+        return stack_cameras(self.orbit()) if self.cameras == "stack" else orbit_cameras(self.orbit())
+
+    def slice_offsets(self) -> tuple[float, ...]:
+        """Per-view slice planes: across the volume for a stack, through the origin otherwise."""
+        return tuple(float(d) for d in stack_offsets(self.views)) if self.cameras == "stack" else ()
+
     def validate(self, volume_size: int | None = None) -> None:
         self.orbit().validate()
+        if self.cameras not in CAMERA_PATHS:
+            raise CubecloudError(f"--cameras {self.cameras!r} must be one of {', '.join(CAMERA_PATHS)}")
+        if self.cameras == "stack" and self.view != "slice":
+            raise CubecloudError(f"--cameras stack shows parallel slices from one pose and needs --view slice (got --view {self.view})")
+        if self.cameras == "stack" and self.elevation != 0.0:
+            raise CubecloudError("--elevation tilts the orbit and has no meaning with --cameras stack: leave it out")
         if self.resolution > MAX_RESOLUTION:
             raise CubecloudError(f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512")
         if self.cube < 1:

@@ -26,7 +26,7 @@ import torch
 
 from cubecloud_cli import __version__
 from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, require_stage, stage_dir_name
-from cubecloud_cli.cameras import PinholeCameras, orbit_cameras
+from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
@@ -77,11 +77,11 @@ def export_scene(
             f"{work / stage_dir_name('cunerf', cunerf_name)} was trained on an earlier preprocess/ volume: "
             f"rerun `cubecloud cunerf {work} --force`"
         )
-    cameras = orbit_cameras(settings.orbit())
+    cameras = settings.camera_set()
     device = runtime.apply()
     check_export_memory(settings, size)
     transfer = resolve_transfer(settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density)
-    image_model = ImageModel(settings.view, transfer, step=settings.step * 2.0 / size)
+    image_model = ImageModel(settings.view, transfer, step=settings.step * 2.0 / size, slice_offsets=settings.slice_offsets())
     try:
         image_model.validate()
     except ValueError as exc:

@@ -7,6 +7,7 @@ marching model is one accumulator class and one entry in :data:`ACCUMULATORS`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -50,13 +51,21 @@ class ImageModel:
     # A dvr ray stops once less than this much light could still reach it: the error it
     # leaves is below this bound (the reference 3DGS rasterizer stops at 1e-4 too).
     termination: float = 1e-4
+    # slice: the plane of view i lies this far (world units) from the origin along the camera's
+    # optical axis; empty puts every plane through the origin (the orbit's slices).
+    slice_offsets: tuple[float, ...] = ()
 
     def validate(self) -> None:
         if self.kind not in IMAGE_MODELS:
             raise ValueError(f"unknown image model {self.kind!r}; choose one of {', '.join(IMAGE_MODELS)}")
         if not (self.step > 0.0 and self.step < 2.0):
             raise ValueError(f"ray step must be within (0, 2) world units, got {self.step}")
+        if self.slice_offsets and (self.kind != "slice" or not all(math.isfinite(d) for d in self.slice_offsets)):
+            raise ValueError("slice offsets need the slice image model and finite values")
         self.transfer.validate()
+
+    def slice_offset(self, index: int) -> float:
+        return float(self.slice_offsets[index]) if self.slice_offsets else 0.0
 
     @property
     def support_threshold(self) -> float:

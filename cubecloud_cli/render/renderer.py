@@ -22,13 +22,14 @@ RAYS_PER_CHUNK = 1 << 14
 STEPS_PER_BLOCK = 32
 
 
-def slice_plane_values(field: ScalarField, origin: torch.Tensor, directions: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """The field where each ray meets the plane through the origin with this normal."""
+def slice_plane_values(field: ScalarField, origin: torch.Tensor, directions: torch.Tensor, normal: torch.Tensor,
+                       offset: float = 0.0) -> torch.Tensor:
+    """The field where each ray meets the plane {p : p·normal = offset} (unit normal)."""
     facing = directions @ normal
     # Rays inside the field of view have facing = cos(angle to the optical axis) > 0; the guard
     # keeps a grazing ray finite (it lands far outside the cube, where the field is 0).
     facing = torch.where(facing.abs() < 1e-12, torch.full_like(facing, 1e-12), facing)
-    t = -(origin @ normal) / facing
+    t = (offset - origin @ normal) / facing
     return field(origin + t[:, None] * directions)
 
 
@@ -73,7 +74,7 @@ def render_view(
     if model.kind == "slice":
         normal = torch.as_tensor(cameras.rotations[index][2], dtype=torch.float32, device=device)
         values = torch.cat([
-            slice_plane_values(field, origin, directions[s : s + RAYS_PER_CHUNK], normal)
+            slice_plane_values(field, origin, directions[s : s + RAYS_PER_CHUNK], normal, model.slice_offset(index))
             for s in range(0, directions.shape[0], RAYS_PER_CHUNK)
         ])
         return values.view(cameras.height, cameras.width)

@@ -8,6 +8,7 @@ else ``sparse/0/test.txt`` (recent 3DGS), else every 8th image by name (the refe
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +19,10 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
 
+log = logging.getLogger("cubecloud")
+
 HOLDOUT_EVERY = 8
+SAME_CENTRE = 1e-9  # world units within which camera centres count as one
 
 
 @dataclass
@@ -32,11 +36,24 @@ class TrainingScene:
     points: tuple[np.ndarray, np.ndarray] | None  # xyz (P, 3), colours (P, 3) in [0, 1]
 
     @property
+    def single_centre(self) -> bool:
+        centres = self.cameras.centres()[self.train]
+        return not float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) > SAME_CENTRE
+
+    @property
     def extent(self) -> float:
         """1.1 × the largest distance of a training camera from their mean (the reference's
-        scene extent, which scales learning rates and size thresholds)."""
+        scene extent, which scales learning rates and size thresholds).
+
+        Cameras that share one centre (the paper's baseline) would give the reference an extent
+        of 0, which freezes every mean; they get 1.1 × their distance from the world origin
+        instead, what an orbit about the origin at that distance would give.
+        """
         centres = self.cameras.centres()[self.train]
-        return 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+        spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+        if spread > SAME_CENTRE:
+            return 1.1 * spread
+        return 1.1 * float(np.linalg.norm(centres.mean(axis=0)))
 
 
 def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarray:
@@ -112,6 +129,9 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
     if points is not None and not np.isfinite(points[0]).all():
         raise CubecloudError(f"the point cloud of {directory} holds NaN or Inf coordinates: fix it, or use --init random")
     scene = TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)
-    if not scene.extent > 1e-9:
-        raise CubecloudError(f"the training cameras of {directory} share one centre, so the scene has no extent: 3DGS needs views from different places")
+    if not scene.extent > SAME_CENTRE:
+        raise CubecloudError(f"the training cameras of {directory} sit together at the world origin, so the scene has no extent: 3DGS needs views from different places")
+    if scene.single_centre:
+        log.warning(f"every training camera of {directory} sits in one place: 3DGS cannot tell their images apart "
+                    f"(the paper's baseline); the scene extent is taken as {scene.extent:.3g}, from the camera's distance to the origin")
     return scene
