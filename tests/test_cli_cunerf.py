@@ -234,8 +234,12 @@ def test_help_shows_the_preset_values():
         return " ".join(re.sub("[│╭╮╰╯─]", " ", invoke(command, "--help").output).split())
 
     help_text = words("cunerf")
-    assert "fast 4000, balanced 6000" in help_text and "isotropic volume rendering" in help_text
-    assert "balanced 256" in words("preprocess")
+    from cubecloud_cli.presets import CUNERF_PRESETS, PRESETS
+
+    assert f"fast 4000, balanced {CUNERF_PRESETS['balanced']['fast']['iterations']}" in help_text
+    assert "isotropic volume rendering" in help_text
+    assert f"balanced {PRESETS['preprocess']['balanced']['size']}," in words("preprocess")
+    assert f"balanced {PRESETS['splat']['balanced']['max_gaussians']}," in words("splat")
 
 
 def test_a_second_ctrl_c_before_any_checkpoint_leaves_nothing_to_resume(preprocessed, tmp_path, monkeypatch):

@@ -23,7 +23,7 @@ from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
 from cubecloud_cli.cunerf import Runtime
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.export.transfer import TRANSFER_PRESETS
-from cubecloud_cli.presets import PRESETS, resolve
+from cubecloud_cli.presets import PRESETS, preset_note, resolve
 from cubecloud_cli.progress import ProgressBar
 
 log = logging.getLogger("cubecloud")
@@ -57,17 +57,17 @@ _PRESET_HELP = "; ".join(f"{name}: {preset.description}" for name, preset in TRA
 
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ and cunerf/.")]
 CubeOption = Annotated[int, typer.Option("--cube", help="Cube side in voxels for point sampling (the paper: 16).")]
-PointsPerCubeOption = Annotated[Optional[int], unset_option("--points-per-cube", "Points drawn uniformly in each cube. (preset fast/balanced 512, paper 64)")]
-MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", "Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. (fast 100000, balanced 200000, paper 0)")]
+PointsPerCubeOption = Annotated[Optional[int], unset_option("--points-per-cube", f"Points drawn uniformly in each cube. {preset_note('export', 'points_per_cube')}")]
+MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", f"Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. {preset_note('export', 'max_points')}")]
 AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
 CamerasOption = Annotated[CameraPath, typer.Option("--cameras", help="orbit: --views cameras around --axis (DESIGN §2). stack: the paper's 3DGS baseline, --views parallel slices across --axis (lr: sagittal) all seen from one camera pose; needs --view slice.")]
 ViewsOption = Annotated[Optional[int], unset_option("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
-AxisOption = Annotated[Optional[Axis], unset_option("--axis", "Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. (fast/balanced si, paper ap)")]
+AxisOption = Annotated[Optional[Axis], unset_option("--axis", f"Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. {preset_note('export', 'axis')}")]
 RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
 FovOption = Annotated[Optional[float], unset_option("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
-ResolutionOption = Annotated[Optional[int], unset_option("--resolution", "Image width and height in pixels. (fast 128, balanced 256, paper 512)")]
+ResolutionOption = Annotated[Optional[int], unset_option("--resolution", f"Image width and height in pixels. {preset_note('export', 'resolution')}")]
 ElevationOption = Annotated[float, typer.Option("--elevation", help="Degrees the orbit is raised out of its plane (all views alike).")]
-ViewOption = Annotated[Optional[View], unset_option("--view", "Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). (fast/balanced dvr, paper slice)")]
+ViewOption = Annotated[Optional[View], unset_option("--view", "Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). {preset_note('export', 'view')}")]
 TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
 TfLowOption = Annotated[Optional[float], unset_option("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
 TfHighOption = Annotated[Optional[float], unset_option("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]

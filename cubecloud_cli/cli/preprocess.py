@@ -24,7 +24,7 @@ from cubecloud_cli.cli.common import (
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.preprocess.stage import PHASES
 from cubecloud_cli.progress import ProgressBar
-from cubecloud_cli.presets import resolve
+from cubecloud_cli.presets import preset_note, resolve
 from cubecloud_cli.sample_data import SAMPLE_CT_ATTRIBUTION, sample_ct_path
 from cubecloud_cli.volume.intensity import WINDOW_NAMES
 
@@ -49,7 +49,7 @@ class Interpolation(str, Enum):
     nearest = "nearest"
 
 
-SizeOption = Annotated[Optional[int], typer.Option("--size", help="Cube side S in voxels (paper: 512). (preset: fast 128, balanced 256, paper 512)", show_default=False)]
+SizeOption = Annotated[Optional[int], typer.Option("--size", help=f"Cube side S in voxels (paper: 512). {preset_note('preprocess', 'size')}", show_default=False)]
 FitOption = Annotated[Optional[Fit], typer.Option("--fit", help="pad: keep the physical aspect ratio, pad with air. stretch: resize each axis to S (the paper). (preset: pad; paper stretch)", show_default=False)]
 WindowOption = Annotated[Optional[Window], typer.Option("--window", help="CT window, W/L in HU: abdomen 400/40, soft-tissue 350/50, liver 150/90, lung 1500/-600, bone 2500/480, brain 80/40; full = the scan's min..max (the paper). (preset: abdomen; paper full)", show_default=False)]  # type: ignore[valid-type]
 HuMinOption = Annotated[Optional[float], typer.Option("--hu-min", help="Lower end of a custom HU window (with --hu-max); replaces --window.", show_default=False)]

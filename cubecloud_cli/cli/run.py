@@ -20,7 +20,7 @@ from cubecloud_cli.cli.preprocess import run_preprocess_with_progress, scan_comm
 from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
 from cubecloud_cli.preprocess import PreprocessSettings
-from cubecloud_cli.presets import resolve_cunerf
+from cubecloud_cli.presets import preset_note, resolve_cunerf
 from cubecloud_cli.progress import PipelineProgress
 
 log = logging.getLogger("cubecloud")
@@ -31,11 +31,11 @@ def _option(name: str, annotation, default) -> inspect.Parameter:
 
 
 RUN_OPTIONS = [
-    _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help="Training iterations of the cunerf stage. (preset: fast 4000, balanced 6000, paper 200000)", show_default=False)], None),
-    _option("splat_iterations", Annotated[Optional[int], typer.Option("--splat-iterations", help="Training iterations of the splat stage. (preset: fast 2000, balanced 7000, paper 30000)", show_default=False)], None),
+    _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help=f"Training iterations of the cunerf stage. {preset_note('cunerf', 'iterations')}", show_default=False)], None),
+    _option("splat_iterations", Annotated[Optional[int], typer.Option("--splat-iterations", help=f"Training iterations of the splat stage. {preset_note('splat', 'iterations')}", show_default=False)], None),
     _option("views", Annotated[Optional[int], typer.Option("--views", help="Orbit views of the export stage (the paper: 60). (preset: 60)", show_default=False)], None),
-    _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help="Width and height of the exported images. (preset: fast 128, balanced 256, paper 512)", show_default=False)], None),
-    _option("view", Annotated[Optional[View], typer.Option("--view", help="Image model of the exported views: dvr, slice (the paper's) or mip. (preset: fast/balanced dvr, paper slice)", show_default=False)], None),
+    _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help=f"Width and height of the exported images. {preset_note('export', 'resolution')}", show_default=False)], None),
+    _option("view", Annotated[Optional[View], typer.Option("--view", help=f"Image model of the exported views: dvr, slice (the paper's) or mip. {preset_note('export', 'view')}", show_default=False)], None),
     _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for cunerf and export.")], Device.auto),
     _option("threads", Annotated[Optional[int], typer.Option("--threads", help="CPU threads for torch (default: torch's choice).", show_default=False)], None),
 ]

@@ -20,7 +20,7 @@ from cubecloud_cli.cli.common import (
     unset_option,
 )
 from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
-from cubecloud_cli.presets import PRESETS, resolve
+from cubecloud_cli.presets import PRESETS, preset_note, resolve
 from cubecloud_cli.progress import ProgressBar
 from cubecloud_cli.runtime import Runtime
 from cubecloud_cli.splat.settings import SplatSettings
@@ -38,10 +38,10 @@ WorkArgument = Annotated[Path, typer.Argument(help="Work directory; its export/ 
 SceneOption = Annotated[Optional[Path], unset_option("--scene", "Train on this COLMAP scene folder instead (sparse/0 + images/, PINHOLE or SIMPLE_PINHOLE).")]
 InitOption = Annotated[Init, typer.Option("--init", help="cloud: the scene's points (Cube-Cloud). random: uniform points in the volume's cube (the paper's baseline).")]
 RandomPointsOption = Annotated[int, typer.Option("--random-points", help="Points for --init random.")]
-IterationsOption = Annotated[Optional[int], unset_option("--iterations", "Training iterations, one view each. (preset fast 2000, balanced 7000, paper 30000)")]
+IterationsOption = Annotated[Optional[int], unset_option("--iterations", f"Training iterations, one view each. {preset_note('splat', 'iterations')}")]
 ChannelsOption = Annotated[int, typer.Option("--channels", help="Colour channels: 1 for CT (grey), 3 for RGB scenes.")]
 ShDegreeOption = Annotated[int, typer.Option("--sh-degree", help="Spherical-harmonics degree; dvr and slice images are view-independent, so 0.")]
-MaxGaussiansOption = Annotated[Optional[int], unset_option("--max-gaussians", "Gaussian budget; densification stops growing at it. (fast 200000, balanced 500000, paper none)")]
+MaxGaussiansOption = Annotated[Optional[int], unset_option("--max-gaussians", f"Gaussian budget; densification stops growing at it. {preset_note('splat', 'max_gaussians')}")]
 DssimOption = Annotated[float, typer.Option("--dssim-weight", help="λ of (1-λ)·L1 + λ·D-SSIM (the paper: 0.2).")]
 RefineOption = Annotated[bool, typer.Option("--refine/--no-refine", help="Densify, prune and reset opacity on the reference schedule (scaled to --iterations).")]
 EvalEveryOption = Annotated[int, typer.Option("--eval-every", help="Score the test views every K iterations.")]
