@@ -1,7 +1,7 @@
 """Time–PSNR curves of the two cunerf models, seconds per 1000 iterations and peak memory.
 
 Each model trains in a fresh Python process (so its peak RSS is its own) on the bundled abdomen
-CT preprocessed to 128³ (the `fast` preset), with the preset's settings for that model. At
+CT preprocessed to --size³ (128³ by default), with a preset's settings for that model (--preset). At
 intervals of training time it pauses the clock and scores the field on a fixed random sample
 of voxels (3D PSNR estimated over all voxels and over the body), so the curve costs the same
 to draw for both models; the grid model is also scored on the whole volume at the end.
@@ -10,6 +10,7 @@ to draw for both models; the grid model is also scored on the whole volume at th
     python bench/cunerf.py --models fast --size 64
     python bench/cunerf.py --models cunerf --seconds 1800 --device cuda
     python bench/cunerf.py --models fast --train-scale 2    # zero-shot ×2 super-resolution
+    python bench/cunerf.py --models cunerf --preset paper --size 512 --seconds 120   # the paper's rate
 """
 
 from __future__ import annotations
@@ -33,14 +34,14 @@ from cubecloud_cli.runtime import resolve_device
 from cubecloud_cli.metrics import psnr, volume_metrics
 from cubecloud_cli.presets import resolve_cunerf
 
-volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale = sys.argv[1:9]
+volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale, preset = sys.argv[1:10]
 train_scale = int(train_scale)
 device = resolve_device(device_name)
 volume = np.load(volume_path)
 size = volume.shape[0]
 overrides = {"iterations": int(iterations)} if int(iterations) > 0 else {}
 overrides["train_scale"] = train_scale
-settings = CunerfSettings(**resolve_cunerf("fast", model_name, overrides))
+settings = CunerfSettings(**resolve_cunerf(preset, model_name, overrides))
 torch.manual_seed(0)
 model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
 held = holdout_slices(volume, settings.holdout, train_scale)
@@ -104,6 +105,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--seconds", type=float, default=600.0, help="training-time budget per model")
     parser.add_argument("--iterations", type=int, default=0, help="override the preset's iterations")
+    parser.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"],
+                        help="whose cunerf settings each model trains with (the volume size is --size)")
     parser.add_argument("--points", type=int, default=32768, help="voxels scored at each curve point")
     parser.add_argument("--eval-every", type=float, default=20.0, help="seconds of training between points")
     parser.add_argument("--device", default="cpu")
@@ -118,10 +121,10 @@ def main() -> None:
         volume = preprocessed_volume(work, args.size)
         for model in args.models:
             command = [sys.executable, "-c", CHILD, str(volume), model, str(args.seconds), str(args.points),
-                       str(args.eval_every), args.device, str(args.iterations), str(args.train_scale)]
+                       str(args.eval_every), args.device, str(args.iterations), str(args.train_scale), args.preset]
             process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
             assert process.stdout is not None
-            print(f"\n== {model} on the bundled CT at {args.size}³ ({args.device}, train scale {args.train_scale}) ==")
+            print(f"\n== {model}, {args.preset} preset, on the bundled CT at {args.size}³ ({args.device}, train scale {args.train_scale}) ==")
             print(f"{'iteration':>9} {'train s':>8} {'loss':>10} {'PSNR est':>9} {'body':>7}")
             for line in process.stdout:
                 record = json.loads(line)
