@@ -32,9 +32,15 @@ class StageOutcome:
     seconds: float
 
 
+# Parameters added after stages were first written, with the value that older manifests implied,
+# so that `run` does not refuse a work directory made before they existed.
+ADDED_PARAMETERS = {"cameras": "orbit"}
+
+
 def _differences(recorded: dict, requested: dict) -> list[str]:
     # A JSON round trip makes tuples lists, as they are in the manifest.
     requested = json.loads(json.dumps(requested))
+    recorded = {**{k: v for k, v in ADDED_PARAMETERS.items() if k in requested}, **recorded}
     keys = sorted(set(recorded) | set(requested))
     return [f"{k}: {recorded.get(k)!r} -> {requested.get(k)!r}" for k in keys if recorded.get(k) != requested.get(k)]
 

@@ -41,7 +41,7 @@ RUNS = (
 # (stage directory, command after WORK); each runs unless its stage is already complete.
 STEPS = (
     ("cunerf", ["cunerf"]),
-    ("export", ["export"]),
+    ("export", ["export", "--view", "dvr", "--axis", "si"]),  # explicit: the paper preset's own default is slice
     ("splat", ["splat"]),
     ("splat-random", ["splat", "--init", "random", "--name", "random"]),
     ("export-slice", ["export", "--view", "slice", "--axis", "ap", "--name", "slice"]),
@@ -73,7 +73,8 @@ def run_study(args: argparse.Namespace) -> dict:
     for directory, command in STEPS:
         if not complete(work / directory):
             filled = [part.format(work=work) for part in command]
-            if filled[0] in ("cunerf", "splat") and (work / f".{directory}.partial").exists():
+            # A run killed before its first checkpoint leaves a partial folder with nothing to resume.
+            if filled[0] in ("cunerf", "splat") and (work / f".{directory}.partial" / "checkpoint.pt").is_file():
                 filled.append("--resume")
             cubecloud(filled[0], str(work), *filled[1:], *common, *extra.get(filled[0], []))
     cubecloud("eval", str(work), "--turntable-frames", "0", "--force", "-q")
@@ -100,13 +101,18 @@ def table(study: dict) -> tuple[str, list[dict]]:
         gaussians = f"{row['gaussians']:,}".replace(",", " ")
         lines.append(
             f"| {row['setting']} | {row['images']} | {row['cameras']} | {row['init']} | {row['iterations']} | "
-            f"{gaussians} | {row['test_views']} | {row['psnr']:.2f} ± {row['psnr_std']:.2f} | "
-            f"{row['ssim']:.4f} | {row['mse']:.5f} | {row['psnr_foreground']:.2f} |")
+            f"{gaussians} | {row['test_views']} | {_number(row['psnr'], 2)} ± {_number(row['psnr_std'], 2)} | "
+            f"{_number(row['ssim'], 4)} | {_number(row['mse'], 5)} | {_number(row['psnr_foreground'], 2)} |")
     for method, scores in paper.items():
         if isinstance(scores, dict) and "psnr" in scores:
             lines.append(f"| paper (KiTS23, 512³, 30 000 iterations) | | | {method} | 30000 | | | "
                          f"{scores['psnr']:.3f} | {scores['ssim']:.4f} | {scores['mse']:.4f} | |")
     return "\n".join(lines) + "\n", rows
+
+
+def _number(value, digits: int) -> str:
+    """A score as eval wrote it: a number, or "inf" / "nan" (strict JSON has no infinities), or absent."""
+    return f"{value:.{digits}f}" if isinstance(value, (int, float)) else str(value or "–")
 
 
 def main() -> None:

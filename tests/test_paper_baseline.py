@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from cli_helpers import assert_one_line_error, invoke
-from cubecloud_cli.cameras import OrbitSpec, stack_cameras, stack_offsets
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, stack_cameras, stack_offsets
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.render import GridField, ImageModel, render_views
 from cubecloud_cli.splat.data import TrainingScene
 
 
-@pytest.mark.parametrize("axis, looking", [("lr", (-1, 0, 0)), ("ap", (0, -1, 0)), ("si", (0, 0, 1))])
+@pytest.mark.parametrize("axis, looking", [("lr", (1, 0, 0)), ("ap", (0, -1, 0)), ("si", (0, 0, 1))])
 def test_one_pose_for_every_slice(axis, looking):
     cameras = stack_cameras(OrbitSpec(views=7, axis=axis, resolution=16))
     assert np.allclose(cameras.rotations, cameras.rotations[0]) and np.allclose(cameras.translations, cameras.translations[0])
@@ -34,8 +34,8 @@ def test_each_view_shows_its_own_slice():
     offsets = stack_offsets(6)
     images = render_views(GridField(volume), cameras, ImageModel("slice", slice_offsets=tuple(offsets)))
     centre = images[:, 8:16, 8:16]
-    # The camera at +x looks along −x, so the plane at offset d along its axis is x = −d.
-    expected = (1.0 - offsets) / 2.0
+    # The camera at −x (the patient's left) looks along +x, so the plane at offset d is x = d.
+    expected = (1.0 + offsets) / 2.0
     assert np.allclose(centre.min(axis=(1, 2)), expected, atol=1e-5) and np.allclose(centre.max(axis=(1, 2)), expected, atol=1e-5)
     through_origin = render_views(GridField(volume), cameras, ImageModel("slice"))
     assert np.allclose(through_origin[:, 8:16, 8:16], 0.5, atol=1e-5)
@@ -58,6 +58,27 @@ def test_one_camera_place_gets_the_orbit_extent():
     cameras = stack_cameras(OrbitSpec(views=4, axis="lr", radius=3.0, resolution=8))
     scene = TrainingScene(None, cameras, [str(i) for i in range(4)], None, [1, 2, 3], [0], None)
     assert scene.single_centre and scene.extent == pytest.approx(3.3)
+    # Poses that went through a text file differ by rounding: still one place.
+    jittered = PinholeCameras(cameras.rotations, cameras.translations + 1e-7 * np.arange(12).reshape(4, 3), 8, 8, cameras.focal)
+    scene = TrainingScene(None, jittered, [str(i) for i in range(4)], None, [1, 2, 3], [0], None)
+    assert scene.single_centre and scene.extent == pytest.approx(3.3, rel=1e-6)
+    orbit = orbit_cameras(OrbitSpec(views=4, radius=3.0, resolution=8))
+    assert not TrainingScene(None, orbit, [str(i) for i in range(4)], None, [1, 2, 3], [0], None).single_centre
+
+
+def test_a_stack_slices_sagittally_unless_told_otherwise():
+    from cubecloud_cli.cli.export import export_settings
+
+    assert export_settings("paper", cameras="stack", axis=None, view="slice").axis == "lr"  # the paper preset orbits ap
+    assert export_settings("paper", cameras="stack", axis="si", view="slice").axis == "si"
+    assert export_settings("paper", cameras="orbit", axis=None).axis == "ap"
+
+
+def test_run_accepts_exports_made_before_the_cameras_option():
+    from cubecloud_cli.pipeline import _differences
+
+    assert _differences({"views": 60}, {"views": 60, "cameras": "orbit"}) == []
+    assert _differences({"views": 60}, {"views": 60, "cameras": "stack"}) == ["cameras: 'orbit' -> 'stack'"]
 
 
 def test_the_paper_baseline_end_to_end(tmp_path):
@@ -67,7 +88,7 @@ def test_the_paper_baseline_end_to_end(tmp_path):
                  ["export", work, "--cameras", "stack", "--view", "slice", "--axis", "lr", "--resolution", "32",
                   "--views", "16", "--cube", "8", "--points-per-cube", "32", "--max-points", "800"],
                  ["splat", work, "--init", "random", "--random-points", "2000", "--iterations", "30", "--eval-every", "15"],
-                 ["eval", work, "--turntable-frames", "0"]):
+                 ["eval", work, "--turntable-frames", "4", "--turntable-resolution", "24"]):
         result = invoke(*args, "-q")
         assert result.exit_code == 0, result.output
     manifest = json.loads((work / "export" / "manifest.json").read_text())
@@ -79,6 +100,7 @@ def test_the_paper_baseline_end_to_end(tmp_path):
     assert np.abs(np.diff(reference, axis=0)).max() > 0.05  # one pose, different slices
     splat = json.loads((work / "eval" / "metrics.json").read_text())["results"]["splat"]
     assert np.isfinite(splat["psnr"]) and 0.0 < splat["psnr"] < 60.0
+    assert list((work / "eval").rglob("*.gif"))  # a turntable across the slice normal
 
 
 def test_a_stack_needs_slices_on_the_command_line(tmp_path):

@@ -34,3 +34,16 @@ def test_a_toy_table_one(tmp_path):
     again = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), *TOY], capture_output=True, text=True)
     assert again.returncode == 0, again.stderr[-2000:]
     assert "cubecloud splat" not in again.stdout and cunerf_model.stat().st_mtime_ns == before
+
+
+def test_the_table_reads_non_finite_scores():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("table_one", SCRIPT)
+    table_one = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(table_one)
+    scores = {"views": 8, "psnr": "inf", "psnr_std": "nan", "ssim": 1.0, "mse": 0.0, "psnr_foreground": "inf",
+              "iterations": 100, "gaussians": 1234}
+    study = {"metrics": {"results": {"splat": scores}, "paper": {"results": {"Cube-Cloud 3DGS": {"psnr": 28.104, "ssim": 0.7856, "mse": 0.0501}}}}}
+    markdown, rows = table_one.table(study)
+    assert "| inf ± nan | 1.0000 | 0.00000 | inf |" in markdown and "1 234" in markdown and "28.104" in markdown

@@ -15,10 +15,11 @@ from cubecloud_cli.cameras.orbit import OrbitSpec, fitting_focal, look_at_rotati
 from cubecloud_cli.cameras.pinhole import PinholeCameras
 
 # Where the one camera sits (a unit direction from the origin) and its image "up", per slice
-# normal, in RAS world coordinates: sagittal slices seen from the patient's left, coronal from
-# the front, axial from the feet (the radiological conventions).
+# normal, in RAS world coordinates (+x is the patient's right): sagittal slices seen from the
+# patient's left (anterior on the image left), coronal from the front and axial from the feet
+# (the patient's right on the image left), as radiology displays them.
 STACK_VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
-    "lr": ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    "lr": ((-1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
     "ap": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
     "si": ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
 }

@@ -20,7 +20,7 @@ from cubecloud_cli.cli.common import (
     unset_option,
 )
 from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
-from cubecloud_cli.presets import preset_note, resolve_cunerf
+from cubecloud_cli.presets import CUNERF_PRESETS, preset_note, resolve_cunerf
 from cubecloud_cli.progress import ProgressBar
 
 log = logging.getLogger("cubecloud")
@@ -49,7 +49,7 @@ class Device(str, Enum):
 
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ (from `cubecloud preprocess`).")]
 ModelOption = Annotated[Optional[Model], unset_option("--model", "fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional encoding, coarse + fine (GPU). (preset: fast, balanced -> fast; paper -> cunerf)")]
-IterationsOption = Annotated[Optional[int], unset_option("--iterations", f"Training iterations. {preset_note('cunerf', 'iterations')}")]
+IterationsOption = Annotated[Optional[int], unset_option("--iterations", f"Training iterations. {preset_note('cunerf', 'iterations')}, each with its preset's model; with --model cunerf, fast {CUNERF_PRESETS['fast']['cunerf']['iterations']} and balanced {CUNERF_PRESETS['balanced']['cunerf']['iterations']}")]
 BatchOption = Annotated[Optional[int], unset_option("--batch-size", "Cubes (voxels) per iteration. (fast model 4096-8192; cunerf 512-1024)")]
 LrOption = Annotated[Optional[float], unset_option("--lr", "Peak learning rate (Adam). (fast 0.05; cunerf 2e-3)")]
 LrFinalOption = Annotated[Optional[float], unset_option("--lr-final", "Learning rate at the last iteration, reached by log-linear decay. (fast 5e-4; cunerf 2e-5)")]

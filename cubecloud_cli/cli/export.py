@@ -62,12 +62,12 @@ MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", f"Point 
 AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
 CamerasOption = Annotated[CameraPath, typer.Option("--cameras", help="orbit: --views cameras around --axis (DESIGN §2). stack: the paper's 3DGS baseline, --views parallel slices across --axis (lr: sagittal) all seen from one camera pose; needs --view slice.")]
 ViewsOption = Annotated[Optional[int], unset_option("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
-AxisOption = Annotated[Optional[Axis], unset_option("--axis", f"Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. {preset_note('export', 'axis')}")]
+AxisOption = Annotated[Optional[Axis], unset_option("--axis", f"Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. With --cameras stack, the slice normal instead: lr sagittal (its default), ap coronal, si axial. {preset_note('export', 'axis')}")]
 RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
 FovOption = Annotated[Optional[float], unset_option("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
 ResolutionOption = Annotated[Optional[int], unset_option("--resolution", f"Image width and height in pixels. {preset_note('export', 'resolution')}")]
 ElevationOption = Annotated[float, typer.Option("--elevation", help="Degrees the orbit is raised out of its plane (all views alike).")]
-ViewOption = Annotated[Optional[View], unset_option("--view", "Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). {preset_note('export', 'view')}")]
+ViewOption = Annotated[Optional[View], unset_option("--view", f"Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). {preset_note('export', 'view')}")]
 TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
 TfLowOption = Annotated[Optional[float], unset_option("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
 TfHighOption = Annotated[Optional[float], unset_option("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]
@@ -82,6 +82,8 @@ NameOption = Annotated[Optional[str], unset_option("--name", "Write WORK/export-
 
 def export_settings(preset: str, **options) -> ExportSettings:
     """Preset values with every option that was given applied on top."""
+    if options.get("cameras") == "stack" and options.get("axis") is None:
+        options["axis"] = "lr"  # the paper's baseline: sagittal slices, whatever the preset's orbit axis
     preset_keys = PRESETS["export"][preset]
     values = resolve("export", preset, {k: v for k, v in options.items() if k in preset_keys})
     return ExportSettings(**values, **{k: v for k, v in options.items() if k not in preset_keys})

@@ -47,6 +47,7 @@ def describe_work(work: Path) -> dict:
         "views": params["export"].get("views"),
         "resolution": params["export"].get("resolution"),
         "image_model": params["export"].get("view"),
+        "cameras": _camera_setup(params["export"]),
         "points_per_cube": params["export"].get("points_per_cube"),
         "max_points": params["export"].get("max_points"),
     }
@@ -117,3 +118,11 @@ def _write_atomically(path: Path, text: str) -> None:
     temporary = path.with_name(f".{path.name}.partial")
     temporary.write_text(text)
     os.replace(temporary, path)
+
+
+def _camera_setup(export_params: dict) -> str | None:
+    if not export_params:
+        return None
+    if export_params.get("cameras", "orbit") == "stack":
+        return f"one-pose stack of slices across {export_params.get('axis')}"
+    return f"orbit about {export_params.get('axis')}"

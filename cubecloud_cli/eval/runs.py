@@ -204,6 +204,9 @@ def _downscaled(cameras: PinholeCameras, indices: np.ndarray, max_resolution: in
                           max(1, round(cameras.height * factor)), cameras.focal * factor)
 
 
+STACK_TURNTABLE_AXES = {"lr": "si", "ap": "si", "si": "ap"}  # slice normal -> an orbit axis across it
+
+
 def turntable_cameras(scored: ScoredScene, frames: int, max_resolution: int) -> PinholeCameras:
     """A dense orbit like the export's (same axis, radius, elevation and field of view), or, for a
     foreign scene, ``frames`` of its own cameras in order; at most ``max_resolution`` pixels."""
@@ -214,6 +217,11 @@ def turntable_cameras(scored: ScoredScene, frames: int, max_resolution: int) -> 
         return _downscaled(cameras, indices, max_resolution)
     params = manifest.get("params", {})
     resolution = min(int(manifest["cameras"]["width"]), max_resolution)
+    if params.get("cameras") == "stack":
+        # One pose: turn about an axis across the slice normal, so the trained view comes round,
+        # with a field of view that fits the cube from every side.
+        axis = STACK_TURNTABLE_AXES.get(params.get("axis"), "si")
+        return orbit_cameras(OrbitSpec(views=frames, axis=axis, radius=float(params.get("radius", 4.0)), resolution=resolution))
     return orbit_cameras(OrbitSpec(views=frames, axis=params.get("axis", "si"), radius=float(params.get("radius", 4.0)),
                                    resolution=resolution, elevation=float(params.get("elevation", 0.0)),
                                    fov=float(manifest["cameras"]["fov_deg"])))

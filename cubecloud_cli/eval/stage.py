@@ -58,7 +58,7 @@ def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:
         "reference": ("renders of the preprocessed volume (export/reference.npy), with the export's image model"
                       if scored.reference_kind == "volume" else
                       "the scene's own images (it has no reference.npy: a foreign COLMAP scene)"),
-        "views": "the scene's held-out test views (split.json: every 8th view of the orbit), never trained on",
+        "views": "the scene's held-out test views (split.json: every 8th view), never trained on",
         "metrics": "DESIGN §5: PSNR with data range 1, SSIM (Gaussian window σ = 1.5, 11 taps, no sample-covariance "
                    "correction, as scikit-image), MSE on [0, 1]; per view, then mean and population std over views; "
                    "colour renders are scored on their grey mean, as the references are grey",

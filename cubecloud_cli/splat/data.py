@@ -22,7 +22,9 @@ from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point
 log = logging.getLogger("cubecloud")
 
 HOLDOUT_EVERY = 8
-SAME_CENTRE = 1e-9  # world units within which camera centres count as one
+# Cameras within this fraction of their distance from the origin (or 1e-9 world units) of their
+# mean count as one place: poses written once and read back differ by rounding.
+SAME_CENTRE = 1e-6
 
 
 @dataclass
@@ -38,7 +40,8 @@ class TrainingScene:
     @property
     def single_centre(self) -> bool:
         centres = self.cameras.centres()[self.train]
-        return not float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) > SAME_CENTRE
+        spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+        return not spread > max(1e-9, SAME_CENTRE * float(np.linalg.norm(centres.mean(axis=0))))
 
     @property
     def extent(self) -> float:
@@ -50,9 +53,8 @@ class TrainingScene:
         instead, what an orbit about the origin at that distance would give.
         """
         centres = self.cameras.centres()[self.train]
-        spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
-        if spread > SAME_CENTRE:
-            return 1.1 * spread
+        if not self.single_centre:
+            return 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
         return 1.1 * float(np.linalg.norm(centres.mean(axis=0)))
 
 
@@ -129,7 +131,7 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
     if points is not None and not np.isfinite(points[0]).all():
         raise CubecloudError(f"the point cloud of {directory} holds NaN or Inf coordinates: fix it, or use --init random")
     scene = TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)
-    if not scene.extent > SAME_CENTRE:
+    if not scene.extent > 1e-9:
         raise CubecloudError(f"the training cameras of {directory} sit together at the world origin, so the scene has no extent: 3DGS needs views from different places")
     if scene.single_centre:
         log.warning(f"every training camera of {directory} sits in one place: 3DGS cannot tell their images apart "
