@@ -102,7 +102,7 @@ def table(study: dict) -> tuple[str, list[dict]]:
         lines.append(
             f"| {row['setting']} | {row['images']} | {row['cameras']} | {row['init']} | {row['iterations']} | "
             f"{gaussians} | {row['test_views']} | {_number(row['psnr'], 2)} ± {_number(row['psnr_std'], 2)} | "
-            f"{_number(row['ssim'], 4)} | {_number(row['mse'], 5)} | {_number(row['psnr_foreground'], 2)} |")
+            f"{_number(row['ssim'], 4)} | {_number(row['mse'], 2, 'e')} | {_number(row['psnr_foreground'], 2)} |")
     for method, scores in paper.items():
         if isinstance(scores, dict) and "psnr" in scores:
             lines.append(f"| paper (KiTS23, 512³, 30 000 iterations) | | | {method} | 30000 | | | "
@@ -110,9 +110,9 @@ def table(study: dict) -> tuple[str, list[dict]]:
     return "\n".join(lines) + "\n", rows
 
 
-def _number(value, digits: int) -> str:
+def _number(value, digits: int, style: str = "f") -> str:
     """A score as eval wrote it: a number, or "inf" / "nan" (strict JSON has no infinities), or absent."""
-    return f"{value:.{digits}f}" if isinstance(value, (int, float)) else str(value or "–")
+    return f"{value:.{digits}{style}}" if isinstance(value, (int, float)) else str(value or "–")
 
 
 def main() -> None:

@@ -46,4 +46,4 @@ def test_the_table_reads_non_finite_scores():
               "iterations": 100, "gaussians": 1234}
     study = {"metrics": {"results": {"splat": scores}, "paper": {"results": {"Cube-Cloud 3DGS": {"psnr": 28.104, "ssim": 0.7856, "mse": 0.0501}}}}}
     markdown, rows = table_one.table(study)
-    assert "| inf ± nan | 1.0000 | 0.00000 | inf |" in markdown and "1 234" in markdown and "28.104" in markdown
+    assert "| inf ± nan | 1.0000 | 0.00e+00 | inf |" in markdown and "1 234" in markdown and "28.104" in markdown
