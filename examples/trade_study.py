@@ -4,6 +4,7 @@ each run through the whole pipeline, with every stage's wall time and the held-o
     python examples/trade_study.py --out trade                        # bundled CT, every knob
     python examples/trade_study.py --scan ../shared/data/ct_chest_5mm_pyradiomics_lung1.nii.gz --window lung --out trade-chest
     python examples/trade_study.py --knobs iterations,budget --out quick   # only the splat knobs
+    cubecloud run -o trade/balanced --preset balanced && python examples/trade_study.py --out trade --include balanced=trade/balanced
     python examples/trade_study.py --knobs iterations --values iterations=500,1000 \
         --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
 
@@ -156,6 +157,9 @@ def main() -> None:
                         help="values of a knob instead of its defaults, e.g. iterations=500,1000 (repeatable)")
     parser.add_argument("--stage-options", action="append", default=[], metavar="STAGE=OPTIONS",
                         help='options every configuration passes to a stage, e.g. "cunerf=--iterations 1000"')
+    parser.add_argument("--include", action="append", default=[], metavar="NAME=WORK",
+                        help="add a finished `cubecloud run` work directory as a configuration, e.g. "
+                             "balanced=work-balanced from `cubecloud run -o work-balanced --preset balanced` (repeatable)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     knobs = [k.strip() for k in args.knobs.split(",") if k.strip()]
@@ -177,6 +181,12 @@ def main() -> None:
         keys = chain_keys(stage_commands(args.scan, Path("WORK"), args.preset, args.window, overrides, extra))
         run_configuration(name, commands, keys, work, done)
         rows += collect(name, work)
+    for item in args.include:
+        name, _, directory = item.partition("=")
+        missing = [stage for stage in STAGES if not (Path(directory) / stage / "manifest.json").is_file()]
+        if not name or missing:
+            parser.error(f"--include {item}: needs NAME=WORK with every stage complete (missing: {', '.join(missing) or '-'})")
+        rows += collect(name, Path(directory))
 
     with open(args.out / "trade.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))

@@ -40,3 +40,12 @@ def test_a_toy_trade_study(tmp_path):
     assert changed.returncode == 0, changed.stderr[-2000:]
     ran = [line for line in changed.stdout.splitlines() if ": cubecloud " in line]
     assert ran and all(line.strip().startswith("iterations=30:") for line in ran)
+    # A finished work directory from elsewhere (e.g. `cubecloud run --preset balanced`) joins as a line.
+    included = subprocess.run([*command, "--include", f"other={preset}"], capture_output=True, text=True)
+    assert included.returncode == 0, included.stderr[-2000:]
+    with open(out / "trade.csv", newline="") as handle:
+        other = [r for r in csv.DictReader(handle) if r["config"] == "other"]
+    assert [r["method"] for r in other] == ["Cube-Cloud 3DGS", "3DGS, random init"]
+    assert float(other[0]["psnr"]) == float(rows[0]["psnr"])
+    refused = subprocess.run([*command, "--include", f"broken={tmp_path}"], capture_output=True, text=True)
+    assert refused.returncode == 2 and "every stage complete" in refused.stderr
