@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import nibabel as nib
@@ -9,6 +10,18 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CUBECLOUD_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(autouse=True, scope="session")
+def ctrl_c_is_delivered():
+    """The interrupt tests send themselves a real SIGINT. A shell that starts pytest in the
+    background (`&`, nohup, some CI runners) leaves SIGINT ignored, and cubecloud rightly keeps it
+    ignored, so the tests' Ctrl-C would vanish; give the session Python's own handler instead."""
+    previous = signal.getsignal(signal.SIGINT)
+    if previous == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
 
 
 def shared_scan(name: str) -> Path:
