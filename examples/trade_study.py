@@ -8,7 +8,9 @@ each run through the whole pipeline, with every stage's wall time and the held-o
     python examples/trade_study.py --knobs iterations --values iterations=500,1000 \
         --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
 
-Knobs (each varied alone around the preset; ``--preset`` fast by default):
+Knobs (each varied alone around the preset; ``--preset`` fast by default). Unless ``--values``
+says otherwise, each takes two values relative to the preset's own: volume ×0.75 and ×1.5, views
+×0.5 and ×2, points per cube ×0.25 and ×4, iterations ×0.5 and ×2, budget ×1/8 and ×1/4.
 
     volume           preprocess --size
     views            export --views
@@ -41,12 +43,12 @@ from pathlib import Path
 from cubecloud_cli.eval.figures import line_plot_svg
 
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
-KNOBS = {  # knob: (stage, option, values around the fast preset)
-    "volume": ("preprocess", "--size", [96, 128, 192]),
-    "views": ("export", "--views", [30, 60, 120]),
-    "points_per_cube": ("export", "--points-per-cube", [128, 512, 2048]),
-    "iterations": ("splat", "--iterations", [1000, 2000, 4000]),
-    "budget": ("splat", "--max-gaussians", [25_000, 50_000, 200_000]),
+KNOBS = {  # knob: (stage, option, default values as multiples of the preset's own value)
+    "volume": ("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
+    "views": ("export", "--views", (0.5, 2.0)),  # fast: 30, 120
+    "points_per_cube": ("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048
+    "iterations": ("splat", "--iterations", (0.5, 2.0)),  # fast: 1000, 4000
+    "budget": ("splat", "--max-gaussians", (0.125, 0.25)),  # fast: 25 000, 50 000 (smaller budgets)
 }
 
 
@@ -83,11 +85,18 @@ def stage_commands(scan: str | None, work: Path, preset: str, window: str | None
     }
 
 
+def default_values(knob: str, base: int | None) -> list[int]:
+    """The knob's values around the preset's ``base``; none for a budget the preset leaves open."""
+    if base is None:
+        return []
+    return [max(1, round(base * factor)) for factor in KNOBS[knob][2]]
+
+
 def configurations(knobs: list[str], base: dict, values: dict[str, list[int]] | None = None) -> list[tuple[str, dict]]:
     configs = [("preset", {})]
     for knob in knobs:
-        stage, option, defaults = KNOBS[knob]
-        for value in dict.fromkeys((values or {}).get(knob, defaults)):  # in order, once each
+        stage, option, _ = KNOBS[knob]
+        for value in dict.fromkeys((values or {}).get(knob) or default_values(knob, base[knob])):  # in order, once each
             if value != base[knob]:
                 configs.append((f"{knob}={value}", {stage: [option, str(value)]}))
     return configs

@@ -49,3 +49,17 @@ def test_a_toy_trade_study(tmp_path):
     assert float(other[0]["psnr"]) == float(rows[0]["psnr"])
     refused = subprocess.run([*command, "--include", f"broken={tmp_path}"], capture_output=True, text=True)
     assert refused.returncode == 2 and "every stage complete" in refused.stderr
+
+
+def test_default_knob_values_follow_the_preset():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("trade_study", SCRIPT)
+    trade = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(trade)
+    names = lambda preset: [name for name, _ in trade.configurations(list(trade.KNOBS), trade.preset_values(preset, {}))]
+    assert names("fast") == ["preset", "volume=96", "volume=192", "views=30", "views=120", "points_per_cube=128",
+                             "points_per_cube=2048", "iterations=1000", "iterations=4000", "budget=25000", "budget=50000"]
+    balanced = names("balanced")
+    assert "volume=144" in balanced and "iterations=14000" in balanced and "budget=37500" in balanced
+    assert not [name for name in names("paper") if name.startswith("budget")]  # the paper sets no budget to vary
