@@ -37,11 +37,17 @@ class TrainingScene:
     test: list[int]
     points: tuple[np.ndarray, np.ndarray] | None  # xyz (P, 3), colours (P, 3) in [0, 1]
 
+    def _centre_spread(self) -> tuple[float, float]:
+        """The largest distance of a training camera from their mean, and that mean's distance
+        from the world origin."""
+        centres = self.cameras.centres()[self.train]
+        mean = centres.mean(axis=0)
+        return float(np.linalg.norm(centres - mean, axis=1).max()), float(np.linalg.norm(mean))
+
     @property
     def single_centre(self) -> bool:
-        centres = self.cameras.centres()[self.train]
-        spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
-        return not spread > max(1e-9, SAME_CENTRE * float(np.linalg.norm(centres.mean(axis=0))))
+        spread, distance = self._centre_spread()
+        return not spread > max(1e-9, SAME_CENTRE * distance)
 
     @property
     def extent(self) -> float:
@@ -52,10 +58,8 @@ class TrainingScene:
         of 0, which freezes every mean; they get 1.1 × their distance from the world origin
         instead, what an orbit about the origin at that distance would give.
         """
-        centres = self.cameras.centres()[self.train]
-        if not self.single_centre:
-            return 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
-        return 1.1 * float(np.linalg.norm(centres.mean(axis=0)))
+        spread, distance = self._centre_spread()
+        return 1.1 * (distance if self.single_centre else spread)
 
 
 def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarray:
