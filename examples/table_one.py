@@ -30,6 +30,8 @@ import sys
 import time
 from pathlib import Path
 
+from cubecloud_cli.artifacts import is_complete as complete
+
 # (run name in eval, setting, images, cameras, initialisation)
 RUNS = (
     ("splat", "dvr", "dvr", "orbit about si", "Cube-Cloud (CuNeRF points)"),
@@ -55,10 +57,6 @@ STEPS = (
 def cubecloud(*args: str) -> None:
     print("  cubecloud " + " ".join(args), flush=True)
     subprocess.run([sys.executable, "-m", "cubecloud_cli", *args], check=True)
-
-
-def complete(stage: Path) -> bool:
-    return (stage / "manifest.json").is_file()
 
 
 def run_study(args: argparse.Namespace) -> dict:

@@ -97,11 +97,14 @@ def fitting_focal(rotations: np.ndarray, translations: np.ndarray, resolution: i
     return resolution / (2.0 * tangent * FOV_MARGIN)
 
 
+def spec_focal(spec: OrbitSpec, rotations: np.ndarray, translations: np.ndarray) -> float:
+    """The focal length (pixels) of ``spec.fov``, or the one that fits the cube in every pose."""
+    if spec.fov is None:
+        return fitting_focal(rotations, translations, spec.resolution)
+    return spec.resolution / (2.0 * math.tan(math.radians(spec.fov) / 2.0))
+
+
 def orbit_cameras(spec: OrbitSpec) -> PinholeCameras:
     spec.validate()
     rotations, translations = orbit_poses(spec)
-    if spec.fov is None:
-        focal = fitting_focal(rotations, translations, spec.resolution)
-    else:
-        focal = spec.resolution / (2.0 * math.tan(math.radians(spec.fov) / 2.0))
-    return PinholeCameras(rotations, translations, spec.resolution, spec.resolution, focal)
+    return PinholeCameras(rotations, translations, spec.resolution, spec.resolution, spec_focal(spec, rotations, translations))

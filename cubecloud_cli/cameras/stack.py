@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cubecloud_cli.cameras.orbit import OrbitSpec, fitting_focal, look_at_rotation
+from cubecloud_cli.cameras.orbit import OrbitSpec, look_at_rotation, spec_focal
 from cubecloud_cli.cameras.pinhole import PinholeCameras
 
 # Where the one camera sits (a unit direction from the origin) and its image "up", per slice
@@ -39,8 +39,5 @@ def stack_cameras(spec: OrbitSpec) -> PinholeCameras:
     rotation = look_at_rotation(centre, up)
     rotations = np.repeat(rotation[None], spec.views, axis=0)
     translations = np.repeat((-rotation @ centre)[None], spec.views, axis=0)
-    if spec.fov is None:
-        focal = fitting_focal(rotations[:1], translations[:1], spec.resolution)
-    else:
-        focal = spec.resolution / (2.0 * np.tan(np.radians(spec.fov) / 2.0))
+    focal = spec_focal(spec, rotations[:1], translations[:1])
     return PinholeCameras(rotations, translations, spec.resolution, spec.resolution, float(focal))
