@@ -8,7 +8,6 @@ else ``sparse/0/test.txt`` (recent 3DGS), else every 8th image by name (the refe
 from __future__ import annotations
 
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +18,6 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
 
-log = logging.getLogger("cubecloud")
 
 HOLDOUT_EVERY = 8
 # Cameras within this fraction of their distance from the origin (or 1e-9 world units) of their
@@ -137,7 +135,4 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
     scene = TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)
     if not scene.extent > 1e-9:
         raise CubecloudError(f"the training cameras of {directory} sit together at the world origin, so the scene has no extent: 3DGS needs views from different places")
-    if scene.single_centre:
-        log.warning(f"every training camera of {directory} sits in one place: 3DGS cannot tell their images apart "
-                    f"(the paper's baseline); the scene extent is taken as {scene.extent:.3g}, from the camera's distance to the origin")
     return scene

@@ -98,6 +98,9 @@ def train_splat(
         numba.set_num_threads(min(runtime.threads, numba.config.NUMBA_NUM_THREADS))
     reset_peak_memory(device)
     scene = load_scene(scene_dir, settings.channels)
+    if scene.single_centre:  # said here, not in load_scene, so that eval does not repeat it
+        log.warning(f"every training camera of {scene_dir} sits in one place: 3DGS cannot tell their images apart "
+                    f"(the paper's baseline); the scene extent is taken as {scene.extent:.3g}, from the camera's distance to the origin")
     writer = StageWriter(work, "splat", {**settings.as_dict(), "scene": str(scene_dir)}, force=force, name=name,
                          keep_partial=True, transient=(CHECKPOINT_FILE,))
     writer.check_can_start()
