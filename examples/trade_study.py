@@ -40,6 +40,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from cubecloud_cli.artifacts import is_complete
 from cubecloud_cli.eval.figures import line_plot_svg
 
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
@@ -112,7 +113,7 @@ def run_configuration(name: str, commands: dict[str, list[str]], keys: dict[str,
     stale = False
     for stage in STAGES:
         key, marker = keys[stage], record / f"{stage}.json"
-        here = (work / stage / "manifest.json").is_file() and marker.is_file() and json.loads(marker.read_text()) == list(map(list, key))
+        here = is_complete(work / stage) and marker.is_file() and json.loads(marker.read_text()) == list(map(list, key))
         if here and not stale:
             done.setdefault(key, work / stage)
             continue
@@ -192,7 +193,7 @@ def main() -> None:
         rows += collect(name, work)
     for item in args.include:
         name, _, directory = item.partition("=")
-        missing = [stage for stage in STAGES if not (Path(directory) / stage / "manifest.json").is_file()]
+        missing = [stage for stage in STAGES if not is_complete(Path(directory) / stage)]
         if not name or missing:
             parser.error(f"--include {item}: needs NAME=WORK with every stage complete (missing: {', '.join(missing) or '-'})")
         rows += collect(name, Path(directory))

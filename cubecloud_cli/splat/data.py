@@ -44,8 +44,7 @@ class TrainingScene:
 
     @property
     def single_centre(self) -> bool:
-        spread, distance = self._centre_spread()
-        return not spread > max(1e-9, SAME_CENTRE * distance)
+        return _one_place(*self._centre_spread())
 
     @property
     def extent(self) -> float:
@@ -57,7 +56,11 @@ class TrainingScene:
         instead, what an orbit about the origin at that distance would give.
         """
         spread, distance = self._centre_spread()
-        return 1.1 * (distance if self.single_centre else spread)
+        return 1.1 * (distance if _one_place(spread, distance) else spread)
+
+
+def _one_place(spread: float, distance: float) -> bool:
+    return not spread > max(1e-9, SAME_CENTRE * distance)
 
 
 def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarray:
