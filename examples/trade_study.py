@@ -5,6 +5,7 @@ each run through the whole pipeline, with every stage's wall time and the held-o
     python examples/trade_study.py --scan ../shared/data/ct_chest_5mm_pyradiomics_lung1.nii.gz --window lung --out trade-chest
     python examples/trade_study.py --knobs iterations,budget --out quick   # only the splat knobs
     cubecloud run -o trade/balanced --preset balanced && python examples/trade_study.py --out trade --include balanced=trade/balanced
+    cubecloud run -o work-bal --preset balanced && python examples/trade_study.py --preset balanced --base work-bal --out trade-bal
     python examples/trade_study.py --knobs iterations --values iterations=500,1000 \
         --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
 
@@ -131,6 +132,44 @@ def run_configuration(name: str, commands: dict[str, list[str]], keys: dict[str,
         done[key] = work / stage
 
 
+def base_mismatches(base: Path, scan: str | None, preset: str, window: str | None) -> list[str]:
+    """Why a finished `cubecloud run` work directory is not the study's base configuration
+    (none: it is). It must hold every stage, run on the same scan with the preset's parameters."""
+    from cubecloud_cli.artifacts import read_manifest, sha256_of_path
+    from cubecloud_cli.presets import PRESETS, resolve_cunerf
+    from cubecloud_cli.sample_data import sample_ct_path
+
+    missing = [stage for stage in STAGES if not is_complete(base / stage)]
+    if missing:
+        return [f"stages not complete: {', '.join(missing)}"]
+    manifests = {stage: read_manifest(base / stage) for stage in STAGES}
+    wanted = {stage: dict(PRESETS[key][preset]) for stage, key in
+              (("preprocess", "preprocess"), ("export", "export"), ("splat", "splat"), ("splat-random", "splat"))}
+    wanted["cunerf"] = resolve_cunerf(preset, None, {})
+    if window:
+        wanted["preprocess"]["window"] = window
+    wanted["splat"]["init"], wanted["splat-random"]["init"] = "cloud", "random"
+    problems = [f"{stage} {key} is {manifests[stage]['params'].get(key)!r}, the preset's is {value!r}"
+                for stage, params in wanted.items() for key, value in params.items()
+                if manifests[stage]["params"].get(key) != value]
+    scan_sha = sha256_of_path(Path(scan) if scan else sample_ct_path())
+    if scan_sha not in manifests["preprocess"]["inputs"].values():
+        problems.append(f"preprocess ran on another scan ({', '.join(manifests['preprocess']['inputs'])})")
+    return problems
+
+
+def seed_from_base(base: Path, work: Path, keys: dict[str, tuple]) -> None:
+    """Hard-link a finished run's stages into the base configuration's work directory and mark
+    them done, so the study keeps them (and their recorded wall times) instead of rerunning."""
+    record = work / ".trade"
+    record.mkdir(parents=True, exist_ok=True)
+    for stage in STAGES:
+        if (work / stage).exists():
+            shutil.rmtree(work / stage)
+        shutil.copytree(base / stage, work / stage, copy_function=os.link)
+        (record / f"{stage}.json").write_text(json.dumps(list(map(list, keys[stage]))))
+
+
 def chain_keys(commands: dict[str, list[str]]) -> dict[str, tuple]:
     """Per stage, the commands of it and every stage before it: equal keys, equal outputs."""
     keys, chain = {}, ()
@@ -170,6 +209,9 @@ def main() -> None:
     parser.add_argument("--include", action="append", default=[], metavar="NAME=WORK",
                         help="add a finished `cubecloud run` work directory as a configuration, e.g. "
                              "balanced=work-balanced from `cubecloud run -o work-balanced --preset balanced` (repeatable)")
+    parser.add_argument("--base", type=Path, metavar="WORK",
+                        help="a finished `cubecloud run -o WORK --preset PRESET` on the same scan: its stages become "
+                             "the preset configuration (hard-linked, times kept) instead of being rerun")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     knobs = [k.strip() for k in args.knobs.split(",") if k.strip()]
@@ -181,6 +223,11 @@ def main() -> None:
     if unknown or set(extra) - set(STAGES):
         parser.error(f"unknown knobs or stages: {', '.join(sorted(unknown | (set(extra) - set(STAGES))))}")
 
+    if args.base and extra:
+        parser.error("--base with --stage-options: the base run has the preset's own options; drop one of them")
+    if args.base and (problems := base_mismatches(args.base, args.scan, args.preset, args.window)):
+        parser.error(f"--base {args.base} is not a `--preset {args.preset}` run of this scan: {'; '.join(problems)}")
+
     args.out.mkdir(parents=True, exist_ok=True)
     done: dict[tuple, Path] = {}
     rows = []
@@ -189,6 +236,8 @@ def main() -> None:
         work = args.out / name.replace("=", "-")
         commands = stage_commands(args.scan, work, args.preset, args.window, overrides, extra)
         keys = chain_keys(stage_commands(args.scan, Path("WORK"), args.preset, args.window, overrides, extra))
+        if name == "preset" and args.base:
+            seed_from_base(args.base, work, keys)
         run_configuration(name, commands, keys, work, done)
         rows += collect(name, work)
     for item in args.include:

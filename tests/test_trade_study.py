@@ -10,7 +10,7 @@ from pathlib import Path
 SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "trade_study.py"
 
 
-def test_a_toy_trade_study(tmp_path):
+def test_a_toy_trade_study(tmp_path, monkeypatch, capsys):
     out = tmp_path / "trade"
     command = [sys.executable, str(SCRIPT), "--knobs", "iterations", "--values", "iterations=12,24", "--out", str(out),
                "--stage-options", "preprocess=--size 16", "--stage-options", "cunerf=--iterations 20 --batch-size 512",
@@ -49,14 +49,58 @@ def test_a_toy_trade_study(tmp_path):
     assert float(other[0]["psnr"]) == float(rows[0]["psnr"])
     refused = subprocess.run([*command, "--include", f"broken={tmp_path}"], capture_output=True, text=True)
     assert refused.returncode == 2 and "every stage complete" in refused.stderr
+    _a_finished_run_seeds_the_base(preset, tmp_path, monkeypatch, capsys)
 
 
-def test_default_knob_values_follow_the_preset():
+def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys):
+    """--base WORK: a run with the preset's parameters becomes the preset line, hard-linked and
+    not rerun; one with other parameters, another scan or extra stage options is refused."""
+    base = [sys.executable, str(SCRIPT), "--knobs", "iterations", "--values", "iterations=12", "--out", str(tmp_path / "b")]
+    with_options = subprocess.run([*base, "--base", str(finished), "--stage-options", "preprocess=--size 16"],
+                                  capture_output=True, text=True)
+    assert with_options.returncode == 2 and "--base with --stage-options" in with_options.stderr
+    # The toy run is not a `--preset fast` run: the refusal names what differs.
+    other = subprocess.run([*base, "--base", str(finished)], capture_output=True, text=True)
+    assert other.returncode == 2 and "preprocess size is 16, the preset's is 128" in other.stderr
+    assert not (tmp_path / "b").exists()
+
+    from cubecloud_cli import presets
+
+    trade = _load_script()
+    # Make the toy's options the preset's own, so the toy run is a run of the preset.
+    monkeypatch.setitem(presets.PRESETS["preprocess"]["fast"], "size", 16)
+    for key, value in {"views": 4, "resolution": 16, "points_per_cube": 32}.items():
+        monkeypatch.setitem(presets.PRESETS["export"]["fast"], key, value)
+    monkeypatch.setitem(presets.PRESETS["splat"]["fast"], "iterations", 6)
+    model = presets.CUNERF_DEFAULT_MODEL["fast"]
+    for key, value in {"iterations": 20, "batch_size": 512}.items():
+        monkeypatch.setitem(presets.CUNERF_PRESETS["fast"][model], key, value)
+    assert trade.base_mismatches(finished, None, "fast", None) == []
+    (tmp_path / "scan.nii.gz").write_bytes(b"another scan")
+    assert any("another scan" in p for p in trade.base_mismatches(finished, str(tmp_path / "scan.nii.gz"), "fast", None))
+    assert trade.base_mismatches(finished, None, "fast", "lung") == ["preprocess window is 'abdomen', the preset's is 'lung'"]
+
+    work = tmp_path / "seeded" / "preset"
+    keys = trade.chain_keys(trade.stage_commands(None, Path("WORK"), "fast", None, {}))
+    trade.seed_from_base(finished, work, keys)
+    capsys.readouterr()
+    trade.run_configuration("preset", trade.stage_commands(None, work, "fast", None, {}), keys, work, {})
+    assert "cubecloud" not in capsys.readouterr().out  # every stage kept, none rerun
+    for stage in trade.STAGES:
+        assert (work / stage / "manifest.json").stat().st_ino == (finished / stage / "manifest.json").stat().st_ino
+
+
+def _load_script():
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("trade_study", SCRIPT)
     trade = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(trade)
+    return trade
+
+
+def test_default_knob_values_follow_the_preset():
+    trade = _load_script()
     names = lambda preset: [name for name, _ in trade.configurations(list(trade.KNOBS), trade.preset_values(preset, {}))]
     assert names("fast") == ["preset", "volume=96", "volume=192", "views=30", "views=120", "points_per_cube=128",
                              "points_per_cube=2048", "iterations=1000", "iterations=4000", "budget=25000", "budget=50000"]
