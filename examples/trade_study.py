@@ -119,17 +119,27 @@ def run_configuration(name: str, commands: dict[str, list[str]], keys: dict[str,
             done.setdefault(key, work / stage)
             continue
         stale = True
-        if (work / stage).exists():
-            shutil.rmtree(work / stage)
         if stage != "eval" and key in done:
-            shutil.copytree(done[key], work / stage, copy_function=os.link)
+            link_stage(done[key], work, stage, key)
             print(f"  {name}: {stage} reused from {done[key].parent.name}", flush=True)
         else:
+            if (work / stage).exists():
+                shutil.rmtree(work / stage)
             print(f"  {name}: cubecloud {' '.join(commands[stage])}", flush=True)
             # --force: a run interrupted earlier restarts, so its recorded time is whole.
             subprocess.run([sys.executable, "-m", "cubecloud_cli", *commands[stage], "--force", "-q"], check=True)
-        marker.write_text(json.dumps(list(map(list, key))))
+            marker.write_text(json.dumps(list(map(list, key))))
         done[key] = work / stage
+
+
+def link_stage(source: Path, work: Path, stage: str, key: tuple) -> None:
+    """Hard-link a finished stage into ``work`` (replacing what is there) and mark it as made by
+    the command chain ``key``, so later runs of the study keep it."""
+    if (work / stage).exists():
+        shutil.rmtree(work / stage)
+    shutil.copytree(source, work / stage, copy_function=os.link)
+    (work / ".trade").mkdir(parents=True, exist_ok=True)
+    (work / ".trade" / f"{stage}.json").write_text(json.dumps(list(map(list, key))))
 
 
 def base_mismatches(base: Path, scan: str | None, preset: str, window: str | None) -> list[str]:
@@ -161,13 +171,8 @@ def base_mismatches(base: Path, scan: str | None, preset: str, window: str | Non
 def seed_from_base(base: Path, work: Path, keys: dict[str, tuple]) -> None:
     """Hard-link a finished run's stages into the base configuration's work directory and mark
     them done, so the study keeps them (and their recorded wall times) instead of rerunning."""
-    record = work / ".trade"
-    record.mkdir(parents=True, exist_ok=True)
     for stage in STAGES:
-        if (work / stage).exists():
-            shutil.rmtree(work / stage)
-        shutil.copytree(base / stage, work / stage, copy_function=os.link)
-        (record / f"{stage}.json").write_text(json.dumps(list(map(list, keys[stage]))))
+        link_stage(base / stage, work, stage, keys[stage])
 
 
 def chain_keys(commands: dict[str, list[str]]) -> dict[str, tuple]:
