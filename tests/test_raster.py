@@ -188,13 +188,14 @@ def test_gradients_match_finite_differences():
     assert torch.autograd.gradcheck(loss, inputs, eps=1e-7, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize("antialias", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("seed", [0, 3, 7])
-def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype):
+def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype, antialias):
     """The whole numba path (projection and compositing) against the PyTorch path: forward and
     every gradient within 1e-4 relative, on scenes with the extremes: tiny and huge scales,
     opacity near 0 and 1, identical Gaussians, one off screen, one at the near plane, one behind
-    the camera and a zero quaternion."""
+    the camera and a zero quaternion; plain and through the 2D Mip filter."""
     means, log_scales, quaternions, opacities, colours = (t.to(dtype) for t in scene(count=60, seed=seed))
     cameras, rotation, translation = camera(0, dtype)
     forward = torch.tensor(cameras.rotations[0][2], dtype=dtype)
@@ -208,7 +209,7 @@ def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
         rendered = backend.render(inputs[0], torch.exp(inputs[1]), inputs[2], inputs[3], inputs[4], rotation, translation,
                                   float(cameras.focal), W, H, background=torch.tensor([0.1, 0.3], dtype=dtype),
-                                  retain_screen_grad=True)
+                                  retain_screen_grad=True, antialias=antialias)
         (rendered.image * weights).sum().backward()
         results[backend.name] = (rendered.image.detach(), rendered.screen_gradient(), [t.grad for t in inputs])
     tolerance = 1e-4 if dtype == torch.float64 else 2e-3
@@ -234,3 +235,40 @@ def test_radix_depth_order_is_a_stable_sort(depths):
     depths = np.asarray(depths, dtype=np.float64)
     candidates = np.arange(depths.size, dtype=np.int64)
     np.testing.assert_array_equal(stable_depth_order(candidates, depths), np.argsort(depths, kind="stable"))
+
+
+def test_the_mip_filter_replaces_the_dilation_and_plain_3dgs_is_untouched():
+    """Off, the projection is the reference's (0.3 px² added, no opacity factor); on, 0.1 px² is
+    added and the opacity factor is √(det Σ₂ / det(Σ₂ + 0.1 I)) of the undilated footprint."""
+    means, log_scales, quaternions, opacities, colours = scene(count=30, seed=2)
+    cameras, rotation, translation = camera(0)
+    args = (means, torch.exp(log_scales), quaternions, rotation, translation, float(cameras.focal), W, H)
+    plain, mip = project(*args), project(*args, antialias=True)
+    assert plain.compensations is None and torch.equal(plain.effective_opacities(opacities), opacities)
+    footprint = plain.covariances2d - torch.tensor([0.3, 0.0, 0.3], dtype=torch.float64)
+    torch.testing.assert_close(mip.covariances2d, footprint + torch.tensor([0.1, 0.0, 0.1], dtype=torch.float64))
+    a, b, c = footprint.unbind(1)
+    expected = torch.sqrt(((a * c - b * b) / ((a + 0.1) * (c + 0.1) - b * b)).clamp_min(0.005**2))
+    torch.testing.assert_close(mip.compensations, expected, rtol=1e-9, atol=1e-12)
+    assert bool(((mip.compensations > 0) & (mip.compensations <= 1)).all())
+    # A splat of a hundred pixels keeps its opacity; one far below a pixel fades to the floor.
+    assert float(mip.compensations[1]) > 0.999 and float(mip.compensations[0]) == pytest.approx(0.005)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-12, 3), st.floats(1e-3, 1e3), st.floats(0.0, 1.0))
+def test_the_mip_filter_conserves_a_splats_mass_and_never_brightens(log_scale, anisotropy, opacity):
+    """ρ·√det(Σ₂ + vI) = √det Σ₂ (the filter spreads a splat, it adds no mass) until ρ reaches its
+    floor, and the opacity never grows: a zoomed-out splat cannot outshine what it was."""
+    scales = torch.tensor([[10.0 ** log_scale, 10.0 ** log_scale * anisotropy, 10.0 ** log_scale]], dtype=torch.float64)
+    cameras, rotation, translation = camera(1)
+    projected = project(torch.zeros(1, 3, dtype=torch.float64), scales, torch.tensor([[1.0, 0.2, -0.3, 0.1]], dtype=torch.float64),
+                        rotation, translation, float(cameras.focal), W, H, antialias=True)
+    rho = float(projected.compensations[0])
+    a, b, c = (float(v) for v in projected.covariances2d[0])
+    raw = (a - 0.1) * (c - 0.1) - b * b
+    assert math.isfinite(rho) and 0.005 <= rho <= 1.0
+    if rho > 0.005 * (1 + 1e-9):
+        assert rho * math.sqrt(a * c - b * b) == pytest.approx(math.sqrt(max(raw, 0.0)), rel=1e-6, abs=1e-12)
+    effective = float(projected.effective_opacities(torch.tensor([opacity], dtype=torch.float64))[0])
+    assert 0.0 <= effective <= opacity

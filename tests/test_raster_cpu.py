@@ -38,16 +38,23 @@ def gaussians(count, seed, dtype=torch.float64):
     return means, scales, quaternions
 
 
-def compare_projection(means, scales, quaternions, view=1):
-    """Forward fields equal; gradients through means2d and conics equal to autograd's."""
+def compare_projection(means, scales, quaternions, view=1, antialias=False):
+    """Forward fields equal; gradients through means2d, conics (and, anti-aliased, the Mip
+    filter's opacity factors) equal to autograd's."""
     rotation, translation = pose(view)
     outputs, grads = [], []
     grad_means2d = torch.randn(means.shape[0], 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     grad_conics = torch.randn(means.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    grad_compensations = torch.randn(means.shape[0], dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     for projector in (project, project_cpu):
         inputs = [t.clone().requires_grad_(True) for t in (means, scales, quaternions)]
-        projected = projector(*inputs, rotation, translation, float(CAMERAS.focal), W, H)
-        ((projected.means2d * grad_means2d).sum() + (projected.conics * grad_conics).sum()).backward()
+        projected = projector(*inputs, rotation, translation, float(CAMERAS.focal), W, H, antialias=antialias)
+        loss = (projected.means2d * grad_means2d).sum() + (projected.conics * grad_conics).sum()
+        if antialias:
+            loss = loss + (projected.compensations * grad_compensations).sum()
+        else:
+            assert projected.compensations is None
+        loss.backward()
         outputs.append(projected)
         grads.append([t.grad for t in inputs])
     reference, fast = outputs
@@ -56,19 +63,21 @@ def compare_projection(means, scales, quaternions, view=1):
     # ceil(3·sqrt(λ)) with λ from mid² − det: huge splats round differently by a few pixels
     assert bool(((fast.radii - reference.radii).abs() <= 1 + 1e-6 * reference.radii).all())
     torch.testing.assert_close(fast.depths, reference.depths.detach())
-    for name in ("means2d", "conics", "covariances2d"):
+    for name in ("means2d", "conics", "covariances2d") + (("compensations",) if antialias else ()):
         torch.testing.assert_close(getattr(fast, name)[drawn].detach(), getattr(reference, name)[drawn].detach(), rtol=1e-9, atol=1e-9)
+    tolerance = 1e-7
     for oracle, kernel in zip(*grads):
         rows = drawn & torch.isfinite(oracle).all(dim=1)
         scale = oracle[rows].abs().amax(dim=1, keepdim=True).clamp_min(1e-12)
         if rows.any():
-            assert float(((kernel[rows] - oracle[rows]).abs() / scale).max()) < 1e-7
+            assert float(((kernel[rows] - oracle[rows]).abs() / scale).max()) < tolerance
         assert torch.isfinite(kernel).all()
 
 
+@pytest.mark.parametrize("antialias", [False, True])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_projection_kernels_match_autograd(seed):
-    compare_projection(*gaussians(400, seed))
+def test_projection_kernels_match_autograd(seed, antialias):
+    compare_projection(*gaussians(400, seed), antialias=antialias)
 
 
 @settings(max_examples=60, deadline=None)
@@ -77,13 +86,15 @@ def test_projection_kernels_match_autograd(seed):
     st.floats(-14, 4),  # log10 of the scales: from a point to far larger than the scene
     st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)),
     st.floats(1e-3, 1e3),
+    st.booleans(),
 )
-def test_projection_kernels_at_the_extremes(mean, log_scale, quaternion, anisotropy):
+def test_projection_kernels_at_the_extremes(mean, log_scale, quaternion, anisotropy, antialias):
     """One Gaussian anywhere (behind the camera, at the near plane, off screen), of any size and
-    shape, with any quaternion including zero: the kernels agree with autograd and stay finite."""
+    shape, with any quaternion including zero, with or without the Mip filter (a point-sized
+    splat sits at the compensation's floor): the kernels agree with autograd and stay finite."""
     means = torch.tensor([mean], dtype=torch.float64)
     scales = torch.tensor([[10.0 ** log_scale, 10.0 ** log_scale * anisotropy, 10.0 ** log_scale]], dtype=torch.float64)
-    compare_projection(means, scales, torch.tensor([quaternion], dtype=torch.float64))
+    compare_projection(means, scales, torch.tensor([quaternion], dtype=torch.float64), antialias=antialias)
 
 
 def test_the_exp_table_is_accurate_wherever_a_pair_is_kept():
@@ -139,18 +150,30 @@ def test_the_backend_follows_the_device(monkeypatch):
     assert rasterizer_for(torch.device("mps")) is TORCH
 
 
-def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch):
+@pytest.mark.parametrize("antialias", [False, True])
+def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch, antialias):
     """A stand-in for gsplat.rasterization decodes its viewmats and Ks back into our pose and
-    renders with our PyTorch path: if the adapter got a convention wrong, the images differ."""
+    renders with our PyTorch path, reading eps2d and the antialiased mode as gsplat documents
+    them (eps2d added to the 2D covariance; antialiased: opacity × √(det Σ / det(Σ + eps2d·I))):
+    if the adapter got a convention wrong, the images differ."""
     calls = {}
 
     def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, eps2d,
                       packed, rasterize_mode, backgrounds):
-        calls.update(near_plane=near_plane, eps2d=eps2d, viewmats=viewmats.shape, Ks=Ks.shape)
+        calls.update(near_plane=near_plane, eps2d=eps2d, mode=rasterize_mode, viewmats=viewmats.shape, Ks=Ks.shape)
         rotation, translation = viewmats[0, :3, :3], viewmats[0, :3, 3]
         focal, cx, cy = float(Ks[0, 0, 0]), float(Ks[0, 0, 2]), float(Ks[0, 1, 2])
         assert (cx, cy) == (width / 2, height / 2) and float(Ks[0, 1, 1]) == focal
-        projected = project(means, scales, quats, rotation, translation, focal, width, height)
+        plain = project(means, scales, quats, rotation, translation, focal, width, height)
+        covariance = plain.covariances2d - 0.3  # the reference dilation taken off the diagonal...
+        covariance[:, 1] += 0.3
+        a, b, c = covariance[:, 0] + eps2d, covariance[:, 1], covariance[:, 2] + eps2d  # ... and eps2d put on
+        determinant = a * c - b * b
+        conics = torch.stack((c / determinant, -b / determinant, a / determinant), dim=-1)
+        projected = type(plain)(plain.means2d, conics, plain.depths, plain.radii, torch.stack((a, b, c), dim=-1))
+        if rasterize_mode == "antialiased":
+            raw = covariance[:, 0] * covariance[:, 2] - b * b
+            opacities = opacities * torch.sqrt((raw / determinant).clamp_min(0.005**2))
         from cubecloud_cli.raster.pairs import composite
 
         image, alpha = composite(projected, colors, opacities, width, height, None if backgrounds is None else backgrounds[0])
@@ -163,11 +186,13 @@ def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch):
     opacities = torch.full((50,), 0.6, dtype=torch.float64)
     rotation, translation = pose(2)
     args = (means, scales, quaternions, opacities, colours, rotation, translation, float(CAMERAS.focal), W, H)
-    ours = TORCH.render(*args)
-    theirs = GSPLAT.render(*args)
+    ours = TORCH.render(*args, antialias=antialias)
+    theirs = GSPLAT.render(*args, antialias=antialias)
     torch.testing.assert_close(theirs.image, ours.image)
-    assert torch.equal(theirs.radii, ours.radii)
-    assert calls == {"near_plane": 0.2, "eps2d": 0.3, "viewmats": (1, 4, 4), "Ks": (1, 3, 3)}
+    drawn = ours.radii > 0  # radii from the stand-in's plain projection: the same splats are drawn
+    assert torch.equal(theirs.radii > 0, drawn)
+    assert calls == {"near_plane": 0.2, "eps2d": 0.1 if antialias else 0.3, "mode": "antialiased" if antialias else "classic",
+                     "viewmats": (1, 4, 4), "Ks": (1, 3, 3)}
     viewmats, _ = gsplat_inputs(rotation, translation, float(CAMERAS.focal), W, H)
     assert torch.equal(viewmats[0, 3], torch.tensor([0, 0, 0, 1.0], dtype=torch.float64))
 

@@ -44,6 +44,7 @@ ShDegreeOption = Annotated[int, typer.Option("--sh-degree", help="Spherical-harm
 MaxGaussiansOption = Annotated[Optional[int], unset_option("--max-gaussians", f"Gaussian budget; densification stops growing at it. {preset_note('splat', 'max_gaussians')}")]
 DssimOption = Annotated[float, typer.Option("--dssim-weight", help="λ of (1-λ)·L1 + λ·D-SSIM (the paper: 0.2).")]
 RefineOption = Annotated[bool, typer.Option("--refine/--no-refine", help="Densify, prune and reset opacity on the reference schedule (scaled to --iterations).")]
+AntialiasOption = Annotated[Optional[bool], unset_option("--antialias/--no-antialias", f"Mip-Splatting's anti-aliasing: a 3D smoothing filter tied to the training views' sampling rate (baked into point_cloud.ply) and a 2D Mip filter instead of the 0.3 px dilation, so the scene holds when the view zooms. --no-antialias is the paper's plain 3DGS. {preset_note('splat', 'antialias')}")]
 EvalEveryOption = Annotated[int, typer.Option("--eval-every", help="Score the test views every K iterations.")]
 CheckpointEveryOption = Annotated[int, typer.Option("--checkpoint-every", help="Save a checkpoint every K iterations (and on Ctrl-C).")]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed of the view order, random points and splits.")]
@@ -70,6 +71,7 @@ def splat_command(
     max_gaussians: MaxGaussiansOption = None,
     dssim_weight: DssimOption = 0.2,
     refine: RefineOption = True,
+    antialias: AntialiasOption = None,
     eval_every: EvalEveryOption = 500,
     checkpoint_every: CheckpointEveryOption = 500,
     seed: SeedOption = 0,
@@ -82,7 +84,7 @@ def splat_command(
 ) -> None:
     """Train 3D Gaussian Splatting on the exported scene, initialised from the Cube-Cloud points.
 
-    One view per iteration with the paper's loss (0.8·L1 + 0.2·D-SSIM), Adam with the reference learning rates, and the reference's densification, pruning and opacity reset scaled to --iterations. On the CPU the rasterizer is cubecloud's numba kernel. Writes WORK/splat/: point_cloud.ply (reference 3DGS layout, opens in splat viewers), preview.png, log.csv and manifest.json with the test views' PSNR.
+    One view per iteration with the paper's loss (0.8·L1 + 0.2·D-SSIM), Adam with the reference learning rates, and the reference's densification, pruning and opacity reset scaled to --iterations; anti-aliased as Mip-Splatting unless --no-antialias. On the CPU the rasterizer is cubecloud's numba kernel. Writes WORK/splat/: point_cloud.ply (reference 3DGS layout, opens in splat viewers), preview.png, log.csv and manifest.json with the test views' PSNR.
 
     Ctrl-C saves a checkpoint; the same command with --resume continues it.
 
@@ -97,7 +99,7 @@ def splat_command(
     configure_logging(quiet)
     settings = splat_settings(
         preset.value, iterations=iterations, max_gaussians=max_gaussians, init=init.value, random_points=random_points,
-        channels=channels, sh_degree=sh_degree, dssim_weight=dssim_weight, refine=refine, eval_every=eval_every,
+        channels=channels, sh_degree=sh_degree, dssim_weight=dssim_weight, refine=refine, antialias=antialias, eval_every=eval_every,
         checkpoint_every=checkpoint_every, seed=seed,
     )
     manifest = train_splat_with_progress(work, settings, scene, force, resume, Runtime(device.value, threads), name)

@@ -42,6 +42,12 @@ class SplatRun:
         return {"cloud": "Cube-Cloud 3DGS", "random": "3DGS, random init"}.get(init, f"3DGS ({init})")
 
     @property
+    def antialias(self) -> bool:
+        """Whether it trained with the 2D Mip filter, which its renders then need too (its 3D filter
+        is baked into the PLY). Runs made before the option were plain 3DGS."""
+        return bool(self.manifest.get("params", {}).get("antialias", False))
+
+    @property
     def size_mb(self) -> float:
         return (self.directory / SPLAT_PLY).stat().st_size / 1e6
 
@@ -178,17 +184,17 @@ def load_scored_scene(directory: Path, channels: int = 1) -> ScoredScene:
 
 @torch.no_grad()
 def render_views(gaussians: Gaussians, cameras: PinholeCameras, views: list[int], rasterizer: Rasterizer,
-                 on_frame=lambda: None) -> tuple[np.ndarray, float]:
+                 on_frame=lambda: None, antialias: bool = False) -> tuple[np.ndarray, float]:
     """(V, H, W) grey renders in [0, 1] of ``views``, and the median milliseconds per frame (the
     first frame, which may compile kernels, is rendered twice and timed the second time)."""
     frames, times = [], []
     for index, view in enumerate(views):
         if index == 0:
-            render_camera(gaussians, cameras, view, gaussians.sh_degree, rasterizer)
+            render_camera(gaussians, cameras, view, gaussians.sh_degree, rasterizer, antialias=antialias)
             if gaussians.means.is_cuda:
                 torch.cuda.synchronize()
         started = time.perf_counter()
-        image = render_camera(gaussians, cameras, view, gaussians.sh_degree, rasterizer).image
+        image = render_camera(gaussians, cameras, view, gaussians.sh_degree, rasterizer, antialias=antialias).image
         if image.is_cuda:
             torch.cuda.synchronize()
         times.append(1000.0 * (time.perf_counter() - started))

@@ -198,7 +198,7 @@ def evaluate_work(
                 scored = scenes[scene_of[run.name]]
                 test, names = scored.scene.test, [scored.scene.names[i] for i in scored.scene.test]
                 gaussians = run.gaussians()
-                renders, ms = render_views(gaussians, scored.scene.cameras, test, rasterizer, tick)
+                renders, ms = render_views(gaussians, scored.scene.cameras, test, rasterizer, tick, run.antialias)
                 if not np.isfinite(renders).all():
                     raise CubecloudError(f"{run.name} renders NaN or Inf (its point_cloud.ply holds non-finite values): "
                                          f"retrain it with `{run.retrain}`")
@@ -214,7 +214,7 @@ def evaluate_work(
                         renders_by_view.setdefault(name, {})[run.name] = render
                 if turntables[run.name] is not None:
                     frames, _ = render_views(gaussians, turntables[run.name], list(range(len(turntables[run.name]))),
-                                             rasterizer, tick)
+                                             rasterizer, tick, run.antialias)
                     relative = f"turntable_{run.name}.gif"
                     write_turntable(writer.directory / relative, frames)
                     pictures["turntables"].append(relative)

@@ -7,7 +7,7 @@
 All three take the same Gaussians and pinhole pose (OpenCV/COLMAP world-to-camera, principal point
 at the image centre, pixel centres at +0.5). ``numba`` and ``torch`` follow the reference 3DGS
 rules exactly (0.3 px² dilation, α ≤ 0.99, α < 1/255 skipped, stop before T < 1e-4) and agree to
-rounding. gsplat differs in small ways of its own: α is capped at 0.999, a pixel stops at
+rounding; with ``antialias`` all three apply Mip-Splatting's 2D filter (``projection.py``). gsplat differs in small ways of its own: α is capped at 0.999, a pixel stops at
 T ≤ 1e-4, and from version 1.5 boxes are opacity-aware (up to 3.33σ) and Gaussians with opacity
 below 1/255 are culled; a model trained with one renders nearly, not exactly, the same with it.
 Training reads the screen-space gradient of the means for densification, in pixels on every
@@ -23,7 +23,7 @@ from typing import Callable
 import torch
 
 from cubecloud_cli.raster.pairs import composite
-from cubecloud_cli.raster.projection import NEAR_PLANE, project
+from cubecloud_cli.raster.projection import NEAR_PLANE, dilation, project
 
 
 @dataclass
@@ -51,11 +51,11 @@ class Rasterizer:
 
 def _render_with(projector, compositor):
     def render(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height,
-               background=None, retain_screen_grad=False) -> Rasterized:
-        projected = projector(means, scales, quaternions, rotation, translation, focal, width, height)
+               background=None, retain_screen_grad=False, antialias=False) -> Rasterized:
+        projected = projector(means, scales, quaternions, rotation, translation, focal, width, height, antialias=antialias)
         if retain_screen_grad and projected.means2d.requires_grad:
             projected.means2d.retain_grad()
-        image, _ = compositor(projected, colours, opacities, width, height, background)
+        image, _ = compositor(projected, colours, projected.effective_opacities(opacities), width, height, background)
         return Rasterized(image, projected.radii, projected.means2d)
 
     return render
@@ -78,13 +78,15 @@ def gsplat_inputs(rotation: torch.Tensor, translation: torch.Tensor, focal: floa
 
 
 def _render_gsplat(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height,
-                   background=None, retain_screen_grad=False) -> Rasterized:
+                   background=None, retain_screen_grad=False, antialias=False) -> Rasterized:
     import gsplat
 
     viewmats, intrinsics = gsplat_inputs(rotation, translation, focal, width, height)
+    # gsplat's antialiased mode is the 2D Mip filter: eps2d added, opacity × √(det Σ / det(Σ + eps2d·I)).
     colours_out, _, meta = gsplat.rasterization(
         means, quaternions, scales, opacities, colours, viewmats, intrinsics, width, height,
-        near_plane=NEAR_PLANE, eps2d=0.3, packed=False, rasterize_mode="classic",
+        near_plane=NEAR_PLANE, eps2d=dilation(antialias), packed=False,
+        rasterize_mode="antialiased" if antialias else "classic",
         backgrounds=None if background is None else background[None])
     screen_means = meta["means2d"]
     if retain_screen_grad and screen_means.requires_grad:

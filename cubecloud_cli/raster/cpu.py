@@ -9,7 +9,7 @@ import torch
 from cubecloud_cli.raster import cpu_binning as binning
 from cubecloud_cli.raster import cpu_kernels as kernels
 from cubecloud_cli.raster import cpu_projection
-from cubecloud_cli.raster.projection import NEAR_PLANE, Projected
+from cubecloud_cli.raster.projection import NEAR_PLANE, Projected, dilation
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
@@ -23,23 +23,29 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, scales, quaternions, rotation, translation, focal, width, height, near):
+    def forward(ctx, means, scales, quaternions, rotation, translation, focal, width, height, near, antialias):
         inputs = (_numpy(means), _numpy(scales), _numpy(quaternions), _numpy(rotation), _numpy(translation))
-        outputs = cpu_projection.project_forward(*inputs, focal, width, height, near)
-        ctx.saved = (inputs, focal, width, height, near)
+        options = (focal, width, height, near, dilation(antialias), antialias)
+        outputs = cpu_projection.project_forward(*inputs, *options)
+        ctx.saved = (inputs, options)
         dtype = means.dtype
         means2d, conics, covariances2d, depths = (torch.from_numpy(a).to(dtype) for a in outputs[:4])
         radii = torch.from_numpy(outputs[4])
+        compensations = torch.from_numpy(outputs[5]).to(dtype)
         ctx.mark_non_differentiable(covariances2d, depths, radii)
-        return means2d, conics, covariances2d, depths, radii
+        if not antialias:
+            ctx.mark_non_differentiable(compensations)
+        return means2d, conics, covariances2d, depths, radii, compensations
 
     @staticmethod
-    def backward(ctx, grad_means2d, grad_conics, *_):
-        inputs, focal, width, height, near = ctx.saved
-        grads = cpu_projection.project_backward(*inputs, focal, width, height, near,
-                                                _numpy(grad_means2d), _numpy(grad_conics))
+    def backward(ctx, grad_means2d, grad_conics, _covariances, _depths, _radii, grad_compensations):
+        inputs, options = ctx.saved
+        if grad_compensations is None:
+            grad_compensations = torch.zeros(inputs[0].shape[0], dtype=grad_means2d.dtype)
+        grads = cpu_projection.project_backward(*inputs, *options, _numpy(grad_means2d), _numpy(grad_conics),
+                                                _numpy(grad_compensations))
         dtype = grad_means2d.dtype
-        return (*(torch.from_numpy(g).to(dtype) for g in grads), None, None, None, None, None, None)
+        return (*(torch.from_numpy(g).to(dtype) for g in grads), None, None, None, None, None, None, None)
 
 
 def project_cpu(
@@ -52,12 +58,15 @@ def project_cpu(
     width: int,
     height: int,
     near: float = NEAR_PLANE,
+    antialias: bool = False,
 ) -> Projected:
     """:func:`cubecloud_cli.raster.projection.project` computed by the numba kernels (CPU
     tensors; the pose takes no gradient)."""
-    means2d, conics, covariances2d, depths, radii = _Project.apply(
-        means, scales, quaternions, rotation.detach(), translation.detach(), float(focal), int(width), int(height), float(near))
-    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, covariances2d=covariances2d)
+    means2d, conics, covariances2d, depths, radii, compensations = _Project.apply(
+        means, scales, quaternions, rotation.detach(), translation.detach(), float(focal), int(width), int(height), float(near),
+        bool(antialias))
+    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, covariances2d=covariances2d,
+                     compensations=compensations if antialias else None)
 
 
 class _Composite(torch.autograd.Function):

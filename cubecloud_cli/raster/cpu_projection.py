@@ -4,8 +4,8 @@ The same arithmetic as :func:`cubecloud_cli.raster.projection.project` (which st
 reference and the path on other devices), in float64. Autograd through the PyTorch version costs
 about 8 ms for 50k Gaussians on two cores, more than compositing a 128² view; the kernels take
 well under a millisecond. The backward reproduces autograd's choices at the guards: no gradient
-through a clamped x/z or y/z, through the depth of a culled Gaussian, or through a clamped
-determinant.
+through a clamped x/z or y/z, through the depth of a culled Gaussian, through a clamped
+determinant, or through a Mip-filter compensation at its floor.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.raster.projection import DILATION, FRUSTUM_CLAMP, MIN_DETERMINANT
+from cubecloud_cli.raster.projection import FRUSTUM_CLAMP, MIN_COMPENSATION, MIN_DETERMINANT
 
 MIN_QUATERNION_NORM = 1e-12
 
@@ -60,15 +60,28 @@ def _footprint(rotation, s0, s1, s2, r, x_over_z, y_over_z, f_over_z):
     return t0, t1, u0, u1
 
 
+@njit(cache=True)
+def _compensation_ratio(a, b, c, variance):
+    """ρ² before its floor, det Σ₂ / det(Σ₂ + vI) = 1 − deficit, for the undilated footprint
+    (a, b, c); the deficit (v(a + c) + v²) / det(Σ₂ + vI); and det(Σ₂ + vI), clamped away from 0.
+    Written as ``projection.project`` writes it, so that both keep their digits when ρ ≈ 1."""
+    blurred = max((a + variance) * (c + variance) - b * b, MIN_DETERMINANT)
+    deficit = (variance * (a + c) + variance * variance) / blurred
+    return 1.0 - deficit, deficit, blurred
+
+
 @njit(parallel=True, cache=True)
-def project_forward(means, scales, quaternions, rotation, translation, focal, width, height, near):
-    """means2d (N, 2), conics (N, 3), covariances2d (N, 3), depths (N,), radii (N,) as ``project``."""
+def project_forward(means, scales, quaternions, rotation, translation, focal, width, height, near, variance, antialias):
+    """means2d (N, 2), conics (N, 3), covariances2d (N, 3), depths (N,), radii (N,) and the Mip
+    filter's opacity factors (N,) (ones without ``antialias``) as ``project``; ``variance`` is the
+    px² added to every footprint."""
     count = means.shape[0]
     means2d = np.empty((count, 2))
     conics = np.empty((count, 3))
     covariances2d = np.empty((count, 3))
     depths = np.empty(count)
     radii = np.zeros(count, dtype=np.int64)
+    compensations = np.ones(count)
     limit_x = FRUSTUM_CLAMP * (width / 2.0) / focal
     limit_y = FRUSTUM_CLAMP * (height / 2.0) / focal
     for i in prange(count):
@@ -81,9 +94,14 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         qw, qx, qy, qz, _ = _unit_quaternion(quaternions, i)
         r = _rotation(qw, qx, qy, qz)
         _, _, u0, u1 = _footprint(rotation, scales[i, 0], scales[i, 1], scales[i, 2], r, x_over_z, y_over_z, focal / z)
-        a = u0[0] * u0[0] + u0[1] * u0[1] + u0[2] * u0[2] + DILATION
+        a = u0[0] * u0[0] + u0[1] * u0[1] + u0[2] * u0[2]
         b = u0[0] * u1[0] + u0[1] * u1[1] + u0[2] * u1[2]
-        c = u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2] + DILATION
+        c = u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2]
+        if antialias:
+            ratio, _, _ = _compensation_ratio(a, b, c, variance)
+            compensations[i] = math.sqrt(max(ratio, MIN_COMPENSATION * MIN_COMPENSATION))
+        a += variance
+        c += variance
         determinant = max(a * c - b * b, MIN_DETERMINANT)
         conics[i, 0], conics[i, 1], conics[i, 2] = c / determinant, -b / determinant, a / determinant
         covariances2d[i, 0], covariances2d[i, 1], covariances2d[i, 2] = a, b, c
@@ -99,12 +117,12 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         radius = math.ceil(3.0 * math.sqrt(largest))
         if u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height:
             radii[i] = np.int64(radius)
-    return means2d, conics, covariances2d, depths, radii
+    return means2d, conics, covariances2d, depths, radii, compensations
 
 
 @njit(parallel=True, cache=True)
-def project_backward(means, scales, quaternions, rotation, translation, focal, width, height, near,
-                     grad_means2d, grad_conics):
+def project_backward(means, scales, quaternions, rotation, translation, focal, width, height, near, variance, antialias,
+                     grad_means2d, grad_conics, grad_compensations):
     """Gradients with respect to means (N, 3), scales (N, 3) and quaternions (N, 4). Gaussians
     whose incoming gradients are all zero are skipped: in a dense scene, many are."""
     count = means.shape[0]
@@ -114,8 +132,9 @@ def project_backward(means, scales, quaternions, rotation, translation, focal, w
     limit_x = FRUSTUM_CLAMP * (width / 2.0) / focal
     limit_y = FRUSTUM_CLAMP * (height / 2.0) / focal
     for i in prange(count):
+        g_compensation = grad_compensations[i] if antialias else 0.0
         if (grad_means2d[i, 0] == 0.0 and grad_means2d[i, 1] == 0.0 and grad_conics[i, 0] == 0.0
-                and grad_conics[i, 1] == 0.0 and grad_conics[i, 2] == 0.0):
+                and grad_conics[i, 1] == 0.0 and grad_conics[i, 2] == 0.0 and g_compensation == 0.0):
             continue  # culled, hidden or off screen: nothing to propagate (and no 0·∞ to make NaN)
         cx, cy, depth = _camera(means, i, rotation, translation)
         in_front = depth > near
@@ -128,9 +147,10 @@ def project_backward(means, scales, quaternions, rotation, translation, focal, w
         r = _rotation(qw, qx, qy, qz)
         s = (scales[i, 0], scales[i, 1], scales[i, 2])
         t0, t1, u0, u1 = _footprint(rotation, s[0], s[1], s[2], r, x_over_z, y_over_z, f_over_z)
-        a = u0[0] * u0[0] + u0[1] * u0[1] + u0[2] * u0[2] + DILATION
+        a0 = u0[0] * u0[0] + u0[1] * u0[1] + u0[2] * u0[2]
         b = u0[0] * u1[0] + u0[1] * u1[1] + u0[2] * u1[2]
-        c = u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2] + DILATION
+        c0 = u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2]
+        a, c = a0 + variance, c0 + variance
         raw_determinant = a * c - b * b
         determinant = max(raw_determinant, MIN_DETERMINANT)
         # conics = (c, −b, a) / det
@@ -141,6 +161,15 @@ def project_backward(means, scales, quaternions, rotation, translation, focal, w
         g_a = g_conic_c / determinant + g_det * c
         g_b = -g_conic_b / determinant - 2.0 * g_det * b
         g_c = g_conic_a / determinant + g_det * a
+        if g_compensation != 0.0:
+            ratio, deficit, blurred = _compensation_ratio(a0, b, c0, variance)
+            if ratio > MIN_COMPENSATION * MIN_COMPENSATION:  # at the floor ρ is constant
+                # ρ = √(1 − deficit), deficit = (v(a0 + c0) + v²) / blurred, blurred = a·c − b²:
+                # d deficit / d a0 = (v − deficit·c) / blurred, likewise for c0; / d b = 2b·deficit / blurred.
+                g_deficit = -g_compensation / (2.0 * math.sqrt(ratio) * blurred)
+                g_a += g_deficit * (variance - deficit * c)
+                g_c += g_deficit * (variance - deficit * a)
+                g_b += g_deficit * 2.0 * b * deficit
         g_u0 = (2.0 * g_a * u0[0] + g_b * u1[0], 2.0 * g_a * u0[1] + g_b * u1[1], 2.0 * g_a * u0[2] + g_b * u1[2])
         g_u1 = (g_b * u0[0] + 2.0 * g_c * u1[0], g_b * u0[1] + 2.0 * g_c * u1[1], g_b * u0[2] + 2.0 * g_c * u1[2])
         for j in range(3):

@@ -9,6 +9,14 @@ Pure, differentiable PyTorch; the constants are those of the reference 3DGS rast
 * 0.3 px² is added to the 2D covariance (a low-pass filter: every splat covers about a pixel);
 * the splat's radius is ceil(3·sqrt(λ_max)), λ from mid ± sqrt(max(0.1, mid² − det)).
 
+With ``antialias`` the fixed dilation becomes Mip-Splatting's 2D Mip filter (Yu et al., CVPR
+2024): the footprint is convolved with a Gaussian of 0.1 px² (about one pixel's box filter), and
+its opacity is scaled by ρ = √(det Σ₂ / det(Σ₂ + 0.1·I)) so that the filter spreads a splat's
+energy instead of adding to it. A splat far smaller than a pixel then fades as it shrinks, rather
+than staying a 0.3 px² dot at full opacity, which is what makes plain 3DGS alias when zoomed out.
+ρ is floored at :data:`MIN_COMPENSATION` (a degenerate, flat splat keeps a trace rather than 0/0);
+gsplat's antialiased mode computes the same factor.
+
 Pixel coordinates follow DESIGN §2: the principal point is (W/2, H/2) and pixel (u, v) has its
 centre at (u + 0.5, v + 0.5).
 """
@@ -21,8 +29,15 @@ import torch
 
 NEAR_PLANE = 0.2
 DILATION = 0.3
+MIP_FILTER_VARIANCE = 0.1  # px², Mip-Splatting's 2D filter
+MIN_COMPENSATION = 0.005  # floor of ρ, as the antialiased 3DGS and gsplat's torch reference
 FRUSTUM_CLAMP = 1.3
 MIN_DETERMINANT = 1e-12
+
+
+def dilation(antialias: bool) -> float:
+    """The variance added to every 2D footprint: the Mip filter's, or the reference's fixed one."""
+    return MIP_FILTER_VARIANCE if antialias else DILATION
 
 
 def quaternion_to_rotation(quaternions: torch.Tensor) -> torch.Tensor:
@@ -52,6 +67,11 @@ class Projected:
     depths: torch.Tensor  # (N,) camera z
     radii: torch.Tensor  # (N,) int64, 0 where culled
     covariances2d: torch.Tensor  # (N, 3) (a, b, c) of the dilated 2D covariance
+    # (N,) the factor each opacity is multiplied by: ρ of the Mip filter, or 1 without it
+    compensations: torch.Tensor | None = None
+
+    def effective_opacities(self, opacities: torch.Tensor) -> torch.Tensor:
+        return opacities if self.compensations is None else opacities * self.compensations
 
 
 def project(
@@ -64,9 +84,10 @@ def project(
     width: int,
     height: int,
     near: float = NEAR_PLANE,
+    antialias: bool = False,
 ) -> Projected:
     """Project (N, 3) means with (N, 3) scales (not log) and (N, 4) w-first quaternions through
-    one world-to-camera pose.
+    one world-to-camera pose; with ``antialias``, through the 2D Mip filter (module docstring).
 
     Written element by element on (N,) columns rather than with batched 3×3 products: autograd
     then differentiates cheap vector operations, several times faster on a CPU.
@@ -102,8 +123,16 @@ def project(
         a = a + u0 * u0
         b = b + u0 * u1
         c = c + u1 * u1
-    a = a + DILATION
-    c = c + DILATION
+    filter_variance = dilation(antialias)
+    compensations = None
+    if antialias:
+        # ρ² = det Σ₂ / det(Σ₂ + vI) = 1 − (v(a + c) + v²) / det(Σ₂ + vI): the second form keeps its
+        # digits (and its gradient) when the splat is far above a pixel and ρ ≈ 1.
+        blurred = ((a + filter_variance) * (c + filter_variance) - b * b).clamp_min(MIN_DETERMINANT)
+        deficit = (filter_variance * (a + c) + filter_variance**2) / blurred
+        compensations = torch.sqrt((1.0 - deficit).clamp_min(MIN_COMPENSATION**2))
+    a = a + filter_variance
+    c = c + filter_variance
     determinant = (a * c - b * b).clamp_min(MIN_DETERMINANT)
     conics = torch.stack((c / determinant, -b / determinant, a / determinant), dim=-1)
     means2d = torch.stack((focal * cx / z + width / 2.0, focal * cy / z + height / 2.0), dim=-1)
@@ -117,4 +146,4 @@ def project(
         )
         finite = torch.isfinite(means2d).all(dim=1) & torch.isfinite(conics).all(dim=1) & torch.isfinite(largest)
         radii = torch.where(in_front & on_screen & finite, torch.nan_to_num(radii.float()).long(), torch.zeros_like(radii))
-    return Projected(means2d, conics, depth, radii, torch.stack((a, b, c), dim=-1))
+    return Projected(means2d, conics, depth, radii, torch.stack((a, b, c), dim=-1), compensations)

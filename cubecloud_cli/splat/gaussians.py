@@ -4,6 +4,9 @@ means (N, 3) world units; log scales (N, 3); quaternions (N, 4), w first, normal
 opacity logits (N,); SH coefficients split as the reference does, the constant term sh_dc
 (N, 1, C) and the rest (N, (degree+1)² − 1, C), with C = 1 for CT (grey, DESIGN §4) or 3 (they
 train at different rates). Activations: exp, normalise, sigmoid, and :func:`sh_to_colour`.
+``smoothing`` is the variance of Mip-Splatting's 3D filter per Gaussian (``smoothing.py``), a
+property of the training cameras rather than a trained parameter; the scales and opacities the
+rasterizer sees include it.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cubecloud_cli.splat.smoothing import smoothed_scales, smoothing_attenuation
 from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE, coefficient_count, rgb_to_sh, sh_to_colour
 
 INITIAL_OPACITY = 0.1  # the reference initialisation
@@ -20,6 +24,8 @@ INITIAL_OPACITY = 0.1  # the reference initialisation
 # finite in float32 whatever the optimizer does; e¹⁰ is 22 000 world units, far past any scene.
 LOG_SCALE_LIMIT = 10.0
 MIN_NEIGHBOUR_DISTANCE_SQUARED = 1e-7  # the reference clamp, for duplicated points
+# Baked opacities stay this far inside (0, 1), so that their logits are finite in float32.
+MIN_BAKED_OPACITY = 1e-7
 
 
 @dataclass
@@ -30,6 +36,7 @@ class Gaussians:
     opacity_logits: torch.Tensor
     sh_dc: torch.Tensor  # (N, 1, C)
     sh_rest: torch.Tensor  # (N, K − 1, C)
+    smoothing: torch.Tensor | None = None  # (N,) 3D filter variance, world units²; None: no filter
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -47,11 +54,33 @@ class Gaussians:
     def sh_degree(self) -> int:
         return int(round((self.sh_rest.shape[1] + 1) ** 0.5)) - 1
 
+    def _log_scales(self) -> torch.Tensor:
+        return self.log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT)
+
     def scales(self) -> torch.Tensor:
-        return torch.exp(self.log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT))
+        """The axis scales as rendered (with the 3D filter, when there is one)."""
+        if self.smoothing is None:
+            return torch.exp(self._log_scales())
+        return smoothed_scales(self._log_scales(), self.smoothing)
 
     def opacities(self) -> torch.Tensor:
-        return torch.sigmoid(self.opacity_logits)
+        """The opacities as rendered (with the 3D filter's attenuation, when there is one)."""
+        if self.smoothing is None:
+            return torch.sigmoid(self.opacity_logits)
+        return torch.sigmoid(self.opacity_logits) * smoothing_attenuation(self._log_scales(), self.smoothing)
+
+    def baked(self) -> "Gaussians":
+        """The same rendered Gaussians with the 3D filter folded into their scales and opacities,
+        for files that viewers open without knowing of the filter."""
+        if self.smoothing is None:
+            return self
+        with torch.no_grad():
+            scales = self.scales().double()
+            opacities = self.opacities().double().clamp(MIN_BAKED_OPACITY, 1.0 - MIN_BAKED_OPACITY)
+            logits = torch.log(opacities) - torch.log1p(-opacities)
+        dtype = self.log_scales.dtype
+        return Gaussians(self.means.detach(), torch.log(scales).to(dtype), self.quaternions.detach(), logits.to(dtype),
+                         self.sh_dc.detach(), self.sh_rest.detach())
 
     def colours(self, camera_centre: torch.Tensor | None = None, degree: int | None = None) -> torch.Tensor:
         """(N, C) colours seen from ``camera_centre`` (needed only above degree 0)."""

@@ -30,6 +30,9 @@ class SplatSettings:
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01
     refine: bool = True
+    # Mip-Splatting's 3D smoothing and 2D Mip filters (DESIGN §4), so the scene holds when the view
+    # zooms; False is the paper's plain 3DGS (0.3 px² dilation).
+    antialias: bool = True
     seed: int = 0
     eval_every: int = 500
     checkpoint_every: int = 500

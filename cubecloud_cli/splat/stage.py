@@ -36,7 +36,7 @@ from cubecloud_cli.splat.data import TrainingScene, load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
 from cubecloud_cli.splat.ply import write_gaussians_ply
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.splat.training import SplatTrainer, render
+from cubecloud_cli.splat.training import SplatTrainer
 
 log = logging.getLogger("cubecloud")
 
@@ -126,7 +126,8 @@ def train_splat(
                 _train(trainer, checkpoint, on_progress)
             with writer.phase("write"):
                 on_progress("write", 0, 1, {})
-                write_gaussians_ply(writer.directory / PLY_FILE, trainer.gaussians)
+                # The 3D filter baked in: a viewer shows what eval scores.
+                write_gaussians_ply(writer.directory / PLY_FILE, trainer.gaussians.baked())
                 write_csv_log(writer.directory / "log.csv", LOG_COLUMNS, trainer.history)
                 _write_preview(trainer, writer.directory / "preview.png")
             final = trainer.evaluate(scene.test)
@@ -147,6 +148,10 @@ def train_splat(
                           "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
                           "height": scene.cameras.height, "extent": scene.extent},
                 "rasterizer": trainer.rasterizer.description,
+                "antialias": ({"3d_filter": "Mip-Splatting, variance 0.2 × (depth / focal)² of the nearest training camera; "
+                                            "baked into point_cloud.ply", "2d_filter": "Mip-Splatting, 0.1 px², opacity "
+                                            "compensated; a renderer applies it (eval does)"}
+                              if settings.antialias else {"dilation_px2": 0.3}),
                 "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
                             "kernel_threads": _kernel_threads() if device.type == "cpu" else None},
             })
@@ -198,8 +203,7 @@ def _write_preview(trainer: SplatTrainer, path: Path) -> None:
 
     views = (trainer.scene.test or trainer.scene.train)[:4]
     targets = [trainer.images[v].cpu().numpy() for v in views]
-    renders = [render(trainer.gaussians, trainer.scene, v, trainer.sh_degree, trainer.rasterizer).image.clamp(0, 1).cpu().numpy()
-               for v in views]
+    renders = [trainer.render(v).image.clamp(0, 1).cpu().numpy() for v in views]
     rows = [np.concatenate(targets, axis=1), np.concatenate(renders, axis=1)]
     grid = to_uint8(np.concatenate(rows, axis=0))
     Image.fromarray(grid[..., 0] if grid.shape[2] == 1 else grid).save(path)

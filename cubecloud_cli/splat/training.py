@@ -18,25 +18,27 @@ from cubecloud_cli.splat.densify import DensifySettings, GradientStats, apply_pl
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
 
 PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 
 
 def render_camera(gaussians: Gaussians, cameras: PinholeCameras, view: int, sh_degree: int, rasterizer: Rasterizer,
-                  retain: bool = False) -> Rasterized:
-    """Render ``gaussians`` from camera ``view`` of ``cameras`` (any orbit, not only the scene's)."""
+                  retain: bool = False, antialias: bool = False) -> Rasterized:
+    """Render ``gaussians`` from camera ``view`` of ``cameras`` (any orbit, not only the scene's);
+    ``antialias``: through the 2D Mip filter (the 3D filter, if any, is part of ``gaussians``)."""
     device = gaussians.means.device
     rotation = torch.as_tensor(cameras.rotations[view], dtype=torch.float32, device=device)
     translation = torch.as_tensor(cameras.translations[view], dtype=torch.float32, device=device)
     centre = torch.as_tensor(cameras.centres()[view], dtype=torch.float32, device=device)
     return rasterizer.render(gaussians.means, gaussians.scales(), gaussians.quaternions, gaussians.opacities(),
                              gaussians.colours(centre, sh_degree), rotation, translation, float(cameras.focal),
-                             cameras.width, cameras.height, retain_screen_grad=retain)
+                             cameras.width, cameras.height, retain_screen_grad=retain, antialias=antialias)
 
 
 def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int, rasterizer: Rasterizer,
-           retain: bool = False) -> Rasterized:
-    return render_camera(gaussians, scene.cameras, view, sh_degree, rasterizer, retain)
+           retain: bool = False, antialias: bool = False) -> Rasterized:
+    return render_camera(gaussians, scene.cameras, view, sh_degree, rasterizer, retain, antialias)
 
 
 class SplatTrainer:
@@ -70,6 +72,17 @@ class SplatTrainer:
         self._queue: list[int] = []
         self.images = scene.images.to(device)
         self.identity: dict | None = None  # the scene, as the stage describes it in checkpoints
+        self.training_cameras = scene.cameras.subset(scene.train)
+        self._update_smoothing()
+
+    def _update_smoothing(self) -> None:
+        """The 3D filter for the Gaussians as they are now (Mip-Splatting's, from the training views)."""
+        if self.settings.antialias:
+            self.gaussians.smoothing = filter_variances(self.gaussians.means.detach(), self.training_cameras)
+
+    def render(self, view: int, retain: bool = False) -> Rasterized:
+        return render_camera(self.gaussians, self.scene.cameras, view, self.sh_degree, self.rasterizer, retain,
+                             self.settings.antialias)
 
     # -- one iteration --------------------------------------------------------------------
 
@@ -94,7 +107,7 @@ class SplatTrainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.means_lr()
-        rendered = render(self.gaussians, self.scene, view, self.sh_degree, self.rasterizer, retain=True)
+        rendered = self.render(view, retain=True)
         loss = photometric_loss(rendered.image, self.images[view], self.settings.dssim_weight)
         loss.backward()
         self.iteration += 1
@@ -113,6 +126,8 @@ class SplatTrainer:
             self._densify(prune_large=self.iteration > schedule["reset_every"])
         if refining and self.iteration % schedule["reset_every"] == 0:
             self._reset_opacity()
+        if not refining and self.iteration % RECOMPUTE_EVERY == 0:
+            self._update_smoothing()  # the means still move a little once densification stops
         self.elapsed_s += time.perf_counter() - started
         return float(loss.detach())
 
@@ -136,6 +151,7 @@ class SplatTrainer:
                 self.optimizer.state[new] = state
             setattr(g, name, new)
         self.stats = GradientStats(len(g), self.device)
+        self._update_smoothing()
 
     def _reset_opacity(self) -> None:
         group = next(group for group in self.optimizer.param_groups if group["name"] == "opacity_logits")
@@ -159,7 +175,7 @@ class SplatTrainer:
             return {}
         scores, errors = [], []
         for view in views:
-            image = render(self.gaussians, self.scene, view, self.sh_degree, self.rasterizer).image.clamp(0.0, 1.0)
+            image = self.render(view).image.clamp(0.0, 1.0)
             target = self.images[view]
             scores.append(psnr_from_mse(float(((image - target) ** 2).mean())))
             errors.append(float((image - target).abs().mean()))
@@ -171,6 +187,7 @@ class SplatTrainer:
             "elapsed_s": self.elapsed_s,
             "history": self.history,
             "gaussians": {name: getattr(self.gaussians, name).detach().cpu() for name in PARAMETERS},
+            "smoothing": None if self.gaussians.smoothing is None else self.gaussians.smoothing.cpu(),
             "optimizer": self.optimizer.state_dict(),
             "stats": (self.stats.total.cpu(), self.stats.views.cpu()),
             "generator": self.generator.get_state(),
@@ -190,6 +207,8 @@ class SplatTrainer:
             value = state["gaussians"][name].to(self.device).requires_grad_(True)
             group["params"][0] = value
             setattr(self.gaussians, name, value)
+        smoothing = state.get("smoothing")
+        self.gaussians.smoothing = None if smoothing is None else smoothing.to(self.device)
         self.optimizer.state.clear()
         self.optimizer.load_state_dict(state["optimizer"])
         self.stats = GradientStats(len(self.gaussians), self.device)
