@@ -34,7 +34,7 @@ class StageOutcome:
 
 # Parameters added after stages were first written, with the value that older manifests implied,
 # so that `run` does not refuse a work directory made before they existed.
-ADDED_PARAMETERS = {"cameras": "orbit", "antialias": False}
+ADDED_PARAMETERS = {"cameras": "orbit", "novel_directions": 0, "antialias": False}
 
 
 def _differences(recorded: dict, requested: dict) -> list[str]:

@@ -10,14 +10,21 @@ each run through the whole pipeline, with every stage's wall time and the held-o
         --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
 
 Knobs (each varied alone around the preset; ``--preset`` fast by default). Unless ``--values``
-says otherwise, each takes two values relative to the preset's own: volume ×0.75 and ×1.5, views
-×0.5 and ×2, points per cube ×0.25 and ×4, iterations ×0.5 and ×2, budget ×1/8 and ×1/4.
+says otherwise, a numeric knob takes values relative to the preset's own: volume ×0.75 and ×1.5,
+CuNeRF iterations ×0.125, ×0.25 and ×0.5, views ×0.5 and ×2, points per cube ×0.25 and ×4,
+iterations ×0.5 and ×2, budget ×1/8 and ×1/4; a choice takes every value but the preset's.
 
-    volume           preprocess --size
-    views            export --views
-    points_per_cube  export --points-per-cube
-    iterations       splat --iterations (both runs)
-    budget           splat --max-gaussians (both runs)
+    volume             preprocess --size
+    cunerf_iterations  cunerf --iterations
+    cameras            export --cameras (orbit, sphere)
+    views              export --views
+    points_per_cube    export --points-per-cube
+    iterations         splat --iterations (both runs)
+    budget             splat --max-gaussians (both runs)
+    antialias          splat --antialias / --no-antialias (both runs: on, off)
+
+Scores: the novel-view headline (mean over 0.75–1.33×, DESIGN §5), its 0.5× and 2× means, and
+the held-out views, all against renders of the preprocessed volume.
 
 Each configuration gets a work directory OUT/<config>/. Stages whose options and inputs match an
 earlier configuration's are hard-linked from it rather than rerun, and keep that run's recorded
@@ -39,32 +46,61 @@ import os
 import shutil
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from cubecloud_cli.artifacts import is_complete
 from cubecloud_cli.eval.figures import line_plot_svg
 
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
-KNOBS = {  # knob: (stage, option, default values as multiples of the preset's own value)
-    "volume": ("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
-    "views": ("export", "--views", (0.5, 2.0)),  # fast: 30, 120
-    "points_per_cube": ("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048
-    "iterations": ("splat", "--iterations", (0.5, 2.0)),  # fast: 1000, 4000
-    "budget": ("splat", "--max-gaussians", (0.125, 0.25)),  # fast: 25 000, 50 000 (smaller budgets)
+
+
+@dataclass(frozen=True)
+class Knob:
+    stage: str
+    option: str  # for an on/off knob, the flag that turns it on ("--no-" + name turns it off)
+    factors: tuple[float, ...] = ()  # default values as multiples of the preset's own
+    choices: tuple[str, ...] = ()  # or: the values of a choice
+
+    def arguments(self, value) -> list[str]:
+        if self.choices == ("on", "off"):
+            return [self.option if value == "on" else self.option.replace("--", "--no-", 1)]
+        return [self.option, str(value)]
+
+    def parse(self, text: str):
+        return text if self.choices else int(text)
+
+
+KNOBS = {
+    "volume": Knob("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
+    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # fast: 500, 1000, 2000
+    "cameras": Knob("export", "--cameras", choices=("orbit", "sphere")),
+    "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 30, 120
+    "points_per_cube": Knob("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048
+    "iterations": Knob("splat", "--iterations", (0.5, 2.0)),  # fast: 1000, 4000
+    "budget": Knob("splat", "--max-gaussians", (0.125, 0.25)),  # fast: 25 000, 50 000 (smaller budgets)
+    "antialias": Knob("splat", "--antialias", choices=("on", "off")),
 }
 
 
-def preset_values(preset: str, extra: dict[str, list[str]]) -> dict[str, int | None]:
+def preset_values(preset: str, extra: dict[str, list[str]]) -> dict:
     """Each knob's value in the base configuration: the preset's, or the --stage-options one."""
-    from cubecloud_cli.presets import PRESETS
+    from cubecloud_cli.presets import PRESETS, resolve_cunerf
 
     values = {"volume": PRESETS["preprocess"][preset]["size"], "views": PRESETS["export"][preset]["views"],
+              "cunerf_iterations": resolve_cunerf(preset, None, {})["iterations"],
+              "cameras": PRESETS["export"][preset]["cameras"],
               "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
-              "iterations": PRESETS["splat"][preset]["iterations"], "budget": PRESETS["splat"][preset]["max_gaussians"]}
-    for knob, (stage, option, _) in KNOBS.items():
-        options = extra.get(stage, [])
-        if option in options and options.index(option) + 1 < len(options):  # the last one given wins, as on the CLI
-            values[knob] = int(options[len(options) - 1 - options[::-1].index(option) + 1])
+              "iterations": PRESETS["splat"][preset]["iterations"], "budget": PRESETS["splat"][preset]["max_gaussians"],
+              "antialias": "on" if PRESETS["splat"][preset]["antialias"] else "off"}
+    for name, knob in KNOBS.items():
+        options = extra.get(knob.stage, [])
+        if knob.choices == ("on", "off"):  # the last flag given wins, as on the CLI
+            flags = [o for o in options if o in (knob.option, knob.option.replace("--", "--no-", 1))]
+            if flags:
+                values[name] = "on" if flags[-1] == knob.option else "off"
+        elif knob.option in options and options.index(knob.option) + 1 < len(options):
+            values[name] = knob.parse(options[len(options) - 1 - options[::-1].index(knob.option) + 1])
     return values
 
 
@@ -79,7 +115,7 @@ def stage_commands(scan: str | None, work: Path, preset: str, window: str | None
     return {
         "preprocess": ["preprocess", *scan_args, "-o", str(work), "--preset", preset, *window_args,
                        *extra.get("preprocess", []), *overrides.get("preprocess", [])],
-        "cunerf": ["cunerf", str(work), "--preset", preset, *extra.get("cunerf", [])],
+        "cunerf": ["cunerf", str(work), "--preset", preset, *extra.get("cunerf", []), *overrides.get("cunerf", [])],
         "export": ["export", str(work), "--preset", preset, *extra.get("export", []), *overrides.get("export", [])],
         "splat": ["splat", str(work), *splat],
         "splat-random": ["splat", str(work), *splat, "--init", "random", "--name", "random"],
@@ -87,20 +123,23 @@ def stage_commands(scan: str | None, work: Path, preset: str, window: str | None
     }
 
 
-def default_values(knob: str, base: int | None) -> list[int]:
-    """The knob's values around the preset's ``base``; none for a budget the preset leaves open."""
+def default_values(knob: str, base) -> list:
+    """The knob's values around the preset's ``base``: every other choice, or multiples of a number
+    (none for a budget the preset leaves open)."""
+    if KNOBS[knob].choices:
+        return [choice for choice in KNOBS[knob].choices if choice != base]
     if base is None:
         return []
-    return [max(1, round(base * factor)) for factor in KNOBS[knob][2]]
+    return [max(1, round(base * factor)) for factor in KNOBS[knob].factors]
 
 
-def configurations(knobs: list[str], base: dict, values: dict[str, list[int]] | None = None) -> list[tuple[str, dict]]:
+def configurations(knobs: list[str], base: dict, values: dict[str, list] | None = None) -> list[tuple[str, dict]]:
     configs = [("preset", {})]
-    for knob in knobs:
-        stage, option, _ = KNOBS[knob]
-        for value in dict.fromkeys((values or {}).get(knob) or default_values(knob, base[knob])):  # in order, once each
-            if value != base[knob]:
-                configs.append((f"{knob}={value}", {stage: [option, str(value)]}))
+    for name in knobs:
+        knob = KNOBS[name]
+        for value in dict.fromkeys((values or {}).get(name) or default_values(name, base[name])):  # in order, once each
+            if value != base[name]:
+                configs.append((f"{name}={value}", {knob.stage: knob.arguments(value)}))
     return configs
 
 
@@ -190,8 +229,13 @@ def collect(name: str, work: Path) -> list[dict]:
     rows = []
     for run in ("splat", "splat-random"):
         result = results[run]
+        by_magnification = (result.get("novel") or {}).get("by_magnification", {})
         rows.append({
-            "config": name, "method": result["method_name"], "psnr": result["psnr"], "ssim": result["ssim"],
+            "config": name, "method": result["method_name"],
+            "novel_psnr": result.get("novel_psnr"), "novel_ssim": result.get("novel_ssim"),
+            "novel_psnr_0.5x": by_magnification.get("0.5", {}).get("psnr"),
+            "novel_psnr_2x": by_magnification.get("2", {}).get("psnr"),
+            "psnr": result["psnr"], "ssim": result["ssim"],
             "psnr_foreground": result["psnr_foreground"], "gaussians": result["gaussians"],
             **{f"{stage}_s": round(seconds[stage], 1) for stage in ("preprocess", "cunerf", "export")},
             "splat_s": round(seconds[run], 1),
@@ -220,13 +264,20 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     knobs = [k.strip() for k in args.knobs.split(",") if k.strip()]
-    values = {key: [int(v) for v in text.split(",")] for key, text in (item.split("=", 1) for item in args.values)}
+    values = {key: text.split(",") for key, text in (item.split("=", 1) for item in args.values)}
     extra = {stage: text.split() for stage, text in (item.split("=", 1) for item in args.stage_options)}
     unknown = (set(knobs) | set(values)) - set(KNOBS)
     if set(values) - set(knobs):
         parser.error(f"--values for knobs not in --knobs: {', '.join(sorted(set(values) - set(knobs)))}")
     if unknown or set(extra) - set(STAGES):
         parser.error(f"unknown knobs or stages: {', '.join(sorted(unknown | (set(extra) - set(STAGES))))}")
+    try:
+        values = {key: [KNOBS[key].parse(v) for v in texts] for key, texts in values.items()}
+    except ValueError as exc:
+        parser.error(f"--values: {exc}")
+    wrong = [f"{key}={v}" for key, texts in values.items() for v in texts if KNOBS[key].choices and v not in KNOBS[key].choices]
+    if wrong:
+        parser.error(f"--values not among the knob's choices: {', '.join(wrong)}")
 
     if args.base and extra:
         parser.error("--base with --stage-options: the base run has the preset's own options; drop one of them")
@@ -257,21 +308,28 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(rows)
     (args.out / "trade.json").write_text(json.dumps(rows, indent=2))
-    lines = ["| config | method | pipeline s | cunerf s | export s | splat s | PSNR | SSIM | PSNR fg | Gaussians |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| config | method | pipeline s | cunerf s | export s | splat s | novel PSNR | novel SSIM | novel 0.5× | "
+             "novel 2× | held-out PSNR | held-out SSIM | Gaussians |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['config']} | {r['method']} | {r['pipeline_s']:.0f} | {r['cunerf_s']:.0f} | {r['export_s']:.0f} | "
-              f"{r['splat_s']:.0f} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['psnr_foreground']:.2f} | {r['gaussians']} |" for r in rows]
+              f"{r['splat_s']:.0f} | {_number(r['novel_psnr'])} | {_number(r['novel_ssim'], 4)} | {_number(r['novel_psnr_0.5x'])} | "
+              f"{_number(r['novel_psnr_2x'])} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['gaussians']} |" for r in rows]
     (args.out / "trade.md").write_text("\n".join(lines) + "\n")
+    scored = [r for r in rows if isinstance(r["novel_psnr"], (int, float))]
     series = []
     labels = {}
-    for method in dict.fromkeys(r["method"] for r in rows):
-        mine = [r for r in rows if r["method"] == method]
-        series.append((method, [r["pipeline_s"] for r in mine], [r["psnr"] for r in mine]))
-        labels[method] = [r["config"] if method == rows[0]["method"] else "" for r in mine]
-    (args.out / "time_vs_psnr.svg").write_text(line_plot_svg(
-        series, "held-out PSNR against pipeline time", "pipeline time from the scan (s)", "PSNR vs the volume's renders (dB)",
-        markers_only=True, point_labels=labels))
+    for method in dict.fromkeys(r["method"] for r in scored):
+        mine = [r for r in scored if r["method"] == method]
+        series.append((method, [r["pipeline_s"] for r in mine], [r["novel_psnr"] for r in mine]))
+        labels[method] = [r["config"] if method == scored[0]["method"] else "" for r in mine]
+    if series:
+        (args.out / "time_vs_psnr.svg").write_text(line_plot_svg(
+            series, "novel-view PSNR (0.75–1.33×) against pipeline time", "pipeline time from the scan (s)",
+            "novel-view PSNR vs the volume's renders (dB)", markers_only=True, point_labels=labels))
     print("\n".join(lines))
+
+
+def _number(value, digits: int = 2) -> str:
+    return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "–"
 
 
 if __name__ == "__main__":

@@ -1,5 +1,7 @@
-"""Orbit cameras (DESIGN §2): geometry, the fitted field of view, projection and its guards."""
+"""Orbit and sphere cameras (DESIGN §2): geometry, the fitted field of view, projection and its
+guards; the novel-view set."""
 
+import json
 import math
 
 import numpy as np
@@ -7,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras
 from cubecloud_cli.errors import CubecloudError
 
 CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
@@ -154,3 +156,118 @@ def test_extreme_fields_of_view(fov):
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=16, fov=fov))
     assert math.degrees(cameras.fov_x) == pytest.approx(fov)
     assert np.isfinite(cameras.pixel_directions(1)).all()
+
+
+# -- the sphere (DESIGN §2) --------------------------------------------------------------------
+
+def angles_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.arccos(np.clip(a @ b.T, -1.0, 1.0))
+
+
+@pytest.mark.parametrize("views", [2, 3, 8, 60, 120, 333])
+def test_the_sphere_is_even(views):
+    """No two cameras closer than 0.8 × the spacing of N equal cells, √(4π/N), and no direction
+    farther than 0.85 × that spacing from its nearest camera (a ring leaves the poles 90° away)."""
+    cameras = sphere_cameras(OrbitSpec(views=views, radius=4.0, resolution=32))
+    directions = cameras.centres() / 4.0
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, rtol=1e-12)
+    spacing = math.sqrt(4 * math.pi / views)
+    pairwise = angles_between(directions, directions)
+    np.fill_diagonal(pairwise, np.inf)
+    assert pairwise.min() >= 0.8 * spacing
+    probes = np.random.default_rng(views).normal(size=(4000, 3))
+    probes /= np.linalg.norm(probes, axis=1, keepdims=True)
+    assert angles_between(probes, directions).min(axis=1).max() <= 0.85 * spacing
+
+
+@pytest.mark.parametrize("axis", ["si", "ap", "lr"])
+@pytest.mark.parametrize("radius", [1.8, 4.0, 50.0])
+def test_every_sphere_camera_sees_the_whole_cube_and_looks_at_its_centre(axis, radius):
+    cameras = sphere_cameras(OrbitSpec(views=30, axis=axis, radius=radius, resolution=64))
+    extremes = []
+    for k in range(len(cameras)):
+        rotation = cameras.rotations[k]
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rotation) == pytest.approx(1.0)
+        np.testing.assert_allclose(cameras.project(k, np.zeros((1, 3)))[0][0], [32.0, 32.0], atol=1e-9)
+        pixels, depth = cameras.project(k, CORNERS)
+        assert (depth > 0).all() and (pixels >= 0).all() and (pixels <= 64).all()
+        extremes.append(np.abs(pixels - 32).max())
+    assert max(extremes) == pytest.approx(32 / 1.02, rel=1e-9)
+
+
+def test_the_sphere_keeps_superior_up_and_anterior_up_at_the_poles():
+    cameras = sphere_cameras(OrbitSpec(views=60, axis="si", resolution=64))
+    directions = cameras.centres() / 4.0
+    polar = np.degrees(np.arccos(np.abs(directions[:, 2])))
+    assert polar.min() < 20.0  # the lattice does reach into the pole caps
+    for k in range(len(cameras)):
+        probe = np.array([[0.0, 0.0, 0.5]]) if polar[k] > 20.0 else np.array([[0.0, 0.5, 0.0]])
+        pixel, _ = cameras.project(k, probe)
+        # Outside the caps the head is up; inside them (looking down the long axis) the front is up.
+        assert pixel[0, 1] < 32.0 - 1.0 and abs(pixel[0, 0] - 32.0) < 1e-6
+
+
+def test_a_camera_exactly_on_a_pole_has_a_proper_pose():
+    from cubecloud_cli.cameras.sphere import POLE_UP, poses_looking_at_origin
+
+    for direction in ([0.0, 0.0, 1.0], [0.0, 0.0, -1.0]):
+        rotations, translations = poses_looking_at_origin(np.array([direction]), 4.0, np.array([0.0, 0.0, 1.0]),
+                                                          np.asarray(POLE_UP["si"]))
+        assert np.isfinite(rotations).all() and np.linalg.det(rotations[0]) == pytest.approx(1.0)
+        np.testing.assert_allclose(rotations[0][1], [0.0, -1.0, 0.0], atol=1e-12)  # image down = posterior
+
+
+def test_elevation_is_refused_off_the_orbit():
+    from cubecloud_cli.export.settings import ExportSettings
+
+    with pytest.raises(CubecloudError, match="--elevation"):
+        ExportSettings(cameras="sphere", elevation=10.0).validate()
+
+
+# -- the novel-view test ------------------------------------------------------------------------
+
+def test_novel_directions_are_fixed_and_start_at_the_poles():
+    from cubecloud_cli.cameras.novel import novel_directions
+
+    first, again = novel_directions(16), novel_directions(16)
+    np.testing.assert_array_equal(first, again)  # the same set in every export
+    np.testing.assert_allclose(np.linalg.norm(first, axis=1), 1.0, rtol=1e-12)
+    np.testing.assert_array_equal(first[:2], [[0, 0, 1.0], [0, 0, -1.0]])
+    np.testing.assert_array_equal(novel_directions(5), first[:5])  # a smaller set is a prefix
+    assert novel_directions(0).shape == (0, 3)
+
+
+@pytest.mark.parametrize("cameras, views", [("sphere", 60), ("sphere", 30), ("sphere", 120), ("orbit", 60), ("orbit", 120),
+                                            ("orbit", 30), ("sphere", 240)])
+def test_no_novel_view_is_a_training_view(cameras, views):
+    from cubecloud_cli.cameras.novel import nearest_angles_deg, novel_directions
+    from cubecloud_cli.export.settings import ExportSettings
+
+    training = ExportSettings(cameras=cameras, views=views).camera_set()
+    assert nearest_angles_deg(novel_directions(16), training.centres()).min() > 1.0
+
+
+def test_the_novel_set_fits_the_cube_at_magnification_one_and_round_trips():
+    from cubecloud_cli.cameras.novel import NovelViewSet
+
+    novel = NovelViewSet.build(16, 4.0, 64)
+    assert len(novel) == 80 and novel.entries()[17] == ("novel_m0.75_d01", 1, 0.75)
+    unit = novel.cameras(1.0)
+    extremes = [np.abs(unit.project(k, CORNERS)[0] - 32).max() for k in range(16)]
+    assert max(extremes) == pytest.approx(32 / 1.02, rel=1e-9)
+    assert novel.cameras(2.0).focal == pytest.approx(2 * unit.focal)
+    again = NovelViewSet.from_json(json.loads(json.dumps(novel.as_json())))
+    for m in novel.magnifications:
+        a, b = novel.cameras(m), again.cameras(m)
+        np.testing.assert_allclose(a.rotations, b.rotations, atol=1e-15)
+        np.testing.assert_allclose(a.translations, b.translations, atol=1e-15)
+        assert a.focal == b.focal
+
+
+def test_nearest_angles_ignore_cameras_at_the_origin():
+    from cubecloud_cli.cameras.novel import nearest_angles_deg
+
+    angles = nearest_angles_deg(np.array([[1.0, 0, 0], [0, 1.0, 0]]), np.array([[0.0, 0, 0], [3.0, 0, 0]]))
+    np.testing.assert_allclose(angles, [0.0, 90.0], atol=1e-9)
+    assert np.isnan(nearest_angles_deg(np.array([[1.0, 0, 0]]), np.zeros((2, 3)))).all()

@@ -18,7 +18,8 @@ def work(tmp_path_factory):
     work = tmp_path_factory.mktemp("eval") / "work"
     for args in (["preprocess", "-o", work, "--size", "32"],
                  ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
-                 ["export", work, "--resolution", "32", "--views", "12", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500"],
+                 ["export", work, "--resolution", "32", "--views", "12", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500",
+                  "--novel-directions", "3"],
                  ["splat", work, *QUICK],
                  ["splat", work, *QUICK, "--init", "random", "--random-points", "500", "--name", "random"]):
         result = invoke(*args, "-q")
@@ -46,13 +47,25 @@ def test_a_report_from_a_tiny_run(work):
     assert "reference" in metrics["protocol"] and metrics["paper"]["results"]["Cube-Cloud 3DGS"]["psnr"] == 28.104
     with open(eval_dir / "per_view.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
-    assert len(rows) == 2 + 2 + 2 + 10 and {r["row"] for r in rows} == set(results)
+    assert len(rows) == 2 + 2 + 2 + 10 + 2 * 15 and {r["row"] for r in rows} == set(results)  # 3 novel directions × 5
+    novel_rows = [r for r in rows if r["set"] == "novel"]
+    assert {r["magnification"] for r in novel_rows} == {"0.5", "0.75", "1", "1.33", "2"}
+    assert all(0 <= float(r["angle_deg"]) <= 180 and r["angle_bin"] for r in novel_rows)
     report = (eval_dir / "report.md").read_text()
     for picture in ("views/view_000.png", "views/view_008.png", "turntable_splat.gif", "turntable_splat-random.gif",
-                    "psnr_vs_iteration.svg"):
+                    "psnr_vs_iteration.svg", "views/novel_m1_d00.png", "views/novel_m1_d01.png", "views/novel_m2_d02.png",
+                    "views/novel_m0.5_d02.png"):
         assert f"]({picture})" in report and (eval_dir / picture).is_file()
-    assert "| paper | Cube-Cloud 3DGS | KiTS23, their protocol | – | 28.104 |" in report and "the paper's own numbers" in report
-    assert "| `splat` | Cube-Cloud 3DGS | volume | 2 |" in report
+    assert "| paper | Cube-Cloud 3DGS | KiTS23, their protocol | – | – | – | 28.104 |" in report and "the paper's own numbers" in report
+    assert "| `splat` | Cube-Cloud 3DGS | volume | " in report and "| angle from nearest training camera |" in report
+    for row in ("splat", "splat-random"):
+        novel = results[row]["novel"]
+        # The headline is the mean over the 0.75–1.33× views, 3 directions each.
+        headline = [float(r["psnr"]) for r in novel_rows if r["row"] == row and r["magnification"] in ("0.75", "1", "1.33")]
+        assert results[row]["novel_views"] == 9 and results[row]["novel_psnr"] == pytest.approx(np.mean(headline), rel=1e-5)
+        assert sum(cell["views"] for cell in novel["cells"]) == 15 and set(novel["by_magnification"]) == {"0.5", "0.75", "1", "1.33", "2"}
+    for row in ("cunerf", "cunerf-training-views"):
+        assert "novel_psnr" not in results[row]
 
 
 def test_renders_are_scored_against_the_reference_not_the_training_images(work, tmp_path):

@@ -13,6 +13,7 @@ from plyfile import PlyData
 from cli_helpers import assert_one_line_error, invoke
 from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.metrics import psnr
+from cubecloud_cli.scene import read_point_cloud_ply
 
 SMALL = ["--resolution", "32", "--views", "9", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500"]
 NAMES = [f"view_{i:03d}.png" for i in range(9)]
@@ -64,7 +65,15 @@ def test_stage_writes_the_scene(exported):
     assert manifest["split"] == {"train": split["train"], "test": split["test"]}
     transforms = json.loads((exported / "transforms.json").read_text())
     assert [f["file_path"] for f in transforms["frames"]] == [f"images/{n}" for n in NAMES]
-    assert transforms["ply_file_path"] == "points3D.ply"
+    assert transforms["ply_file_path"] == "sparse_pc.ply"
+    from test_scene_interop import opensplat_fast_ply
+
+    # nerfstudio-format readers (OpenSplat) get the cloud in the plain layout, our stages the extras.
+    plain_xyz, plain_rgb = opensplat_fast_ply(exported / "sparse_pc.ply")
+    ours_xyz, ours_rgb, extras = read_point_cloud_ply(exported / "points3D.ply")
+    np.testing.assert_array_equal(plain_xyz, ours_xyz.astype(np.float32))
+    np.testing.assert_array_equal(plain_rgb, ours_rgb)
+    assert sorted(extras) == ["density", "intensity"]
     for name in ("contact_sheet.png", "contact_sheet_reference.png"):
         assert Image.open(exported / name).size[0] > 32
     assert set(manifest["timings_s"]) >= {"load", "bake", "render_images", "render_reference", "point_cloud", "write"}
@@ -201,14 +210,14 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
     monkeypatch.setattr(stage, "render_view", interrupted_render)
     result = invoke("export", work, *SMALL)
     assert result.exit_code == 130
-    assert "11 of 18 views are saved" in result.stderr and "run the same command to continue" in result.stderr
+    assert "11 of 98 views are saved" in result.stderr and "run the same command to continue" in result.stderr
     assert not (work / "export").exists() and (work / ".export.partial" / "progress" / "bake.npy").is_file()
 
     calls.clear()
     resumed = invoke("export", work, *SMALL)
     assert resumed.exit_code == 0, resumed.output
-    assert "11 of 18 views are already rendered" in resumed.stderr and len(calls) == 7
-    for name in ("images.npy", "reference.npy"):
+    assert "11 of 98 views are already rendered" in resumed.stderr and len(calls) == 7  # training and reference views
+    for name in ("images.npy", "reference.npy", "novel/reference.npy"):
         np.testing.assert_array_equal(np.load(work / "export" / name), np.load(exported / name))
     assert not (work / "export" / "progress").exists() and not (work / ".export.partial").exists()
     assert "progress" not in json.dumps(json.loads((work / "export" / "manifest.json").read_text())["files"])

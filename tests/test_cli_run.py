@@ -101,7 +101,7 @@ def test_run_continues_an_interrupted_export(tmp_path, phantom_nifti, monkeypatc
     monkeypatch.setattr(stage, "render_view", interrupted_render)
     options = ("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
     interrupted = invoke(*options)
-    assert interrupted.exit_code == 130 and "5 of 8 views are saved" in interrupted.stderr
+    assert interrupted.exit_code == 130 and "5 of 88 views are saved" in interrupted.stderr  # 8 + 16 novel directions × 5
     calls.clear()
     resumed = invoke(*options)
     assert resumed.exit_code == 0, resumed.output

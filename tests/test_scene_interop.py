@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from plyfile import PlyData
 
-from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.scene import (
     opengl_camera_to_world,
@@ -36,13 +36,16 @@ from cubecloud_cli.scene import (
 )
 
 TEXT_FILES = ("cameras.txt", "images.txt", "points3D.txt")
-# (axis, elevation °, width): every orbit axis, raised cameras, and one non-square image so that
-# a swapped cx/cy or width/height cannot pass unnoticed.
-SCENES = [("si", 0.0, 32), ("si", 25.0, 32), ("ap", -30.0, 32), ("lr", 40.0, 40)]
+# (axis, elevation °, width): every orbit axis, raised cameras, cameras over the sphere (poles
+# included), and non-square images so that a swapped cx/cy or width/height cannot pass unnoticed.
+SCENES = [("si", 0.0, 32), ("si", 25.0, 32), ("ap", -30.0, 32), ("lr", 40.0, 40), ("sphere", 0.0, 32), ("sphere", 0.0, 40)]
 
 
 def make_scene(axis: str, elevation: float, width: int, points: int = 300, seed: int = 0):
-    orbit = orbit_cameras(OrbitSpec(views=8, axis=axis, resolution=32, elevation=elevation))
+    if axis == "sphere":
+        orbit = sphere_cameras(OrbitSpec(views=12, axis="si", resolution=32))
+    else:
+        orbit = orbit_cameras(OrbitSpec(views=8, axis=axis, resolution=32, elevation=elevation))
     cameras = PinholeCameras(orbit.rotations, orbit.translations, width, 32, orbit.focal)
     rng = np.random.default_rng(seed)
     xyz = rng.uniform(-1.0, 1.0, (points, 3))
@@ -394,6 +397,44 @@ def test_point_cloud_ply_has_what_3dgs_reads(tmp_path):
     assert sorted(extras) == ["density", "intensity"]
     for name, values in extra.items():
         np.testing.assert_array_equal(extras[name], values.astype(np.float32))
+
+
+def opensplat_fast_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """OpenSplat 1.1.5's binary PLY reader (point_io.cpp, fastPlyReadPointSet), which reads the
+    file that transforms.json's ply_file_path names: x y z first, then by position alone 3 float
+    normals if any property is called nx, 3 uchar colours if any is called red, a uchar if any is
+    called views. Any other property shifts every point after the first, so this re-implementation
+    refuses a record size other than the one it assumes, instead of misreading."""
+    data = path.read_bytes()
+    header_end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:header_end].decode("ascii").splitlines()
+    assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
+    rest = [line for line in lines[2:] if not line.startswith(("comment", "obj_info"))]
+    assert rest[0].startswith("element vertex ")
+    count = int(rest[0].split()[2])
+    properties = [line.split() for line in rest[1:] if line.startswith("property")]
+    assert [p[-1] for p in properties[:3]] == ["x", "y", "z"]  # checkHeader
+    names = [p[-1] for p in properties]
+    normals, colours, views = "nx" in names, "red" in names, "views" in names
+    assumed = 12 + 12 * normals + 3 * colours + 1 * views
+    sizes = {"float": 4, "float32": 4, "uchar": 1, "uint8": 1, "double": 8, "int": 4, "int32": 4}
+    actual = sum(sizes[p[1]] for p in properties)
+    assert actual == assumed, f"OpenSplat reads {assumed}-byte points, the file has {actual}-byte ones"
+    record = np.dtype([("xyz", "<f4", 3)] + ([("normal", "<f4", 3)] if normals else [])
+                      + ([("rgb", "u1", 3)] if colours else []) + ([("views", "u1")] if views else []))
+    points = np.frombuffer(data, dtype=record, count=count, offset=header_end)
+    return points["xyz"], points["rgb"] if colours else None
+
+
+def test_the_plain_point_cloud_opens_in_opensplat_and_ours_with_extras_would_not(tmp_path):
+    _, _, xyz, rgb = make_scene("si", 0.0, 32)
+    plain = write_point_cloud_ply(tmp_path / "sparse_pc.ply", xyz, rgb)
+    read_xyz, read_rgb = opensplat_fast_ply(plain)
+    np.testing.assert_array_equal(read_xyz, xyz.astype(np.float32))
+    np.testing.assert_array_equal(read_rgb, rgb)
+    extras = write_point_cloud_ply(tmp_path / "points3D.ply", xyz, rgb, {"intensity": np.zeros(len(xyz))})
+    with pytest.raises(AssertionError, match="OpenSplat reads 27-byte points"):
+        opensplat_fast_ply(extras)
 
 
 def test_point_cloud_ply_errors(tmp_path):

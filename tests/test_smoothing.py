@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras
 from cubecloud_cli.raster.backends import NUMBA, TORCH
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
@@ -35,6 +35,14 @@ def test_the_interval_is_that_of_the_nearest_camera_that_sees_the_point():
     torch.testing.assert_close(intervals[:3], torch.tensor([4.0, 3.0, 8.0], dtype=torch.float64) / 100.0)
     assert float(intervals[3]) == pytest.approx(8.0 / 100.0)  # the largest interval of those seen
     torch.testing.assert_close(filter_variances(means, cameras), FILTER_SCALE * intervals**2)
+
+
+def test_a_sphere_of_cameras_sees_every_point_of_the_cube_at_about_its_distance():
+    cameras = sphere_cameras(OrbitSpec(views=40, radius=4.0, resolution=64))
+    points = torch.rand(500, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    depth = sampling_intervals(points, cameras) * cameras.focal
+    # The nearest camera is at most 4 − (distance of the point towards it) away, at least 4 − √3.
+    assert bool((depth >= 4.0 - math.sqrt(3.0) - 1e-9).all()) and bool((depth <= 4.0 + 1e-9).all())
 
 
 def test_no_cameras_in_view_falls_back_to_their_distance():

@@ -25,6 +25,7 @@ def test_a_toy_trade_study(tmp_path, monkeypatch, capsys):
         for method in ("Cube-Cloud 3DGS", "3DGS, random init")]
     for row in rows:
         assert float(row["pipeline_s"]) > float(row["splat_s"]) > 0 and 0 < float(row["psnr"]) < 100
+        assert 0 < float(row["novel_psnr"]) < 100 and 0 < float(row["novel_psnr_0.5x"]) < 100
     # The knob only touches splat: the upstream stages are the preset's, hard-linked, not rerun.
     preset, varied = out / "preset", out / "iterations-12"
     for stage in ("preprocess", "cunerf", "export"):
@@ -95,6 +96,7 @@ def _load_script():
 
     spec = importlib.util.spec_from_file_location("trade_study", SCRIPT)
     trade = importlib.util.module_from_spec(spec)
+    sys.modules["trade_study"] = trade  # its dataclasses look their module up there
     spec.loader.exec_module(trade)
     return trade
 
@@ -102,8 +104,34 @@ def _load_script():
 def test_default_knob_values_follow_the_preset():
     trade = _load_script()
     names = lambda preset: [name for name, _ in trade.configurations(list(trade.KNOBS), trade.preset_values(preset, {}))]
-    assert names("fast") == ["preset", "volume=96", "volume=192", "views=30", "views=120", "points_per_cube=128",
-                             "points_per_cube=2048", "iterations=1000", "iterations=4000", "budget=25000", "budget=50000"]
+    assert names("fast") == ["preset", "volume=96", "volume=192", "cunerf_iterations=500", "cunerf_iterations=1000",
+                             "cunerf_iterations=2000", "cameras=orbit", "views=30", "views=120", "points_per_cube=128",
+                             "points_per_cube=2048", "iterations=1000", "iterations=4000", "budget=25000", "budget=50000",
+                             "antialias=off"]
     balanced = names("balanced")
     assert "volume=144" in balanced and "iterations=14000" in balanced and "budget=37500" in balanced
     assert not [name for name in names("paper") if name.startswith("budget")]  # the paper sets no budget to vary
+
+
+def test_the_camera_antialias_and_cunerf_knobs():
+    """Choices take every value but the preset's; CuNeRF's iterations go down from the preset's;
+    a stage option given to every configuration moves the base, as on the command line."""
+    study = _load_script()
+    base = study.preset_values("fast", {})
+    assert (base["cameras"], base["antialias"], base["cunerf_iterations"]) == ("sphere", "on", 4000)
+    assert study.configurations(["cameras", "antialias", "cunerf_iterations"], base) == [
+        ("preset", {}), ("cameras=orbit", {"export": ["--cameras", "orbit"]}), ("antialias=off", {"splat": ["--no-antialias"]}),
+        ("cunerf_iterations=500", {"cunerf": ["--iterations", "500"]}), ("cunerf_iterations=1000", {"cunerf": ["--iterations", "1000"]}),
+        ("cunerf_iterations=2000", {"cunerf": ["--iterations", "2000"]})]
+    moved = study.preset_values("fast", {"splat": ["--antialias", "--no-antialias"], "export": ["--cameras", "orbit"]})
+    assert (moved["antialias"], moved["cameras"]) == ("off", "orbit")
+    assert study.configurations(["antialias"], moved) == [("preset", {}), ("antialias=on", {"splat": ["--antialias"]})]
+    assert study.preset_values("paper", {})["cameras"] == "orbit" and study.preset_values("paper", {})["antialias"] == "off"
+    commands = study.stage_commands(None, Path("W"), "fast", None, {"cunerf": ["--iterations", "500"]})
+    assert commands["cunerf"] == ["cunerf", "W", "--preset", "fast", "--iterations", "500"]
+
+
+def test_a_value_outside_a_knobs_choices_is_refused(tmp_path):
+    result = subprocess.run([sys.executable, str(SCRIPT), "--knobs", "cameras", "--values", "cameras=cube", "--out",
+                             str(tmp_path / "t")], capture_output=True, text=True)
+    assert result.returncode == 2 and "cameras=cube" in result.stderr

@@ -91,10 +91,11 @@ class PinholeCameras:
         pixels[~in_front] = np.nan
         return pixels, depth
 
-    def pixel_directions(self, index: int) -> np.ndarray:
-        """Unit world-space directions through every pixel centre, (H·W, 3), row-major (v, u)."""
-        u = (np.arange(self.width) + 0.5 - self.cx) / self.focal
-        v = (np.arange(self.height) + 0.5 - self.cy) / self.focal
+    def pixel_directions(self, index: int, subpixel: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
+        """Unit world-space directions through the same point of every pixel, (H·W, 3), row-major
+        (v, u): its centre by default, (u + subpixel[0], v + subpixel[1]) in general."""
+        u = (np.arange(self.width) + subpixel[0] - self.cx) / self.focal
+        v = (np.arange(self.height) + subpixel[1] - self.cy) / self.focal
         uu, vv = np.meshgrid(u, v, indexing="xy")
         camera_dirs = np.stack((uu, vv, np.ones_like(uu)), axis=-1).reshape(-1, 3)
         camera_dirs /= np.linalg.norm(camera_dirs, axis=1, keepdims=True)  # ≥ 1 by construction

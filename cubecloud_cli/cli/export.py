@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from cubecloud_cli.artifacts import stage_dir_name
+from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, MAGNIFICATIONS
 from cubecloud_cli.cli.common import (
     DEFAULT_PRESET_VALUE,
     ForceOption,
@@ -42,6 +43,7 @@ class View(str, Enum):
 
 
 class CameraPath(str, Enum):
+    sphere = "sphere"
     orbit = "orbit"
     stack = "stack"
 
@@ -60,13 +62,13 @@ CubeOption = Annotated[int, typer.Option("--cube", help="Cube side in voxels for
 PointsPerCubeOption = Annotated[Optional[int], unset_option("--points-per-cube", f"Points drawn uniformly in each cube. {preset_note('export', 'points_per_cube')}")]
 MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", f"Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. {preset_note('export', 'max_points')}")]
 AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
-CamerasOption = Annotated[CameraPath, typer.Option("--cameras", help="orbit: --views cameras around --axis (DESIGN §2). stack: the paper's 3DGS baseline, --views parallel slices across --axis (lr: sagittal) all seen from one camera pose; needs --view slice.")]
-ViewsOption = Annotated[Optional[int], unset_option("--views", "Cameras on the orbit (the paper: 60); every 8th is held out for testing.")]
-AxisOption = Annotated[Optional[Axis], unset_option("--axis", f"Orbit axis: si (long axis, head up), ap (the paper's sagittal axis), lr. With --cameras stack, the slice normal instead: lr sagittal (its default), ap coronal, si axial. {preset_note('export', 'axis')}")]
+CamerasOption = Annotated[Optional[CameraPath], unset_option("--cameras", f"sphere: --views cameras spread evenly over the whole sphere of directions, --axis up (DESIGN §2). orbit: --views cameras on a ring around --axis (the paper's). stack: the paper's 3DGS baseline, --views parallel slices across --axis (lr: sagittal) all seen from one camera pose; needs --view slice. {preset_note('export', 'cameras')}")]
+ViewsOption = Annotated[Optional[int], unset_option("--views", f"Training cameras (the paper: 60); every 8th is held out for testing. {preset_note('export', 'views')}")]
+AxisOption = Annotated[Optional[Axis], unset_option("--axis", f"Orbit axis, or the sphere's pole axis and image up: si (long axis, head up), ap (the paper's sagittal axis), lr. With --cameras stack, the slice normal instead: lr sagittal (its default), ap coronal, si axial. {preset_note('export', 'axis')}")]
 RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
 FovOption = Annotated[Optional[float], unset_option("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
 ResolutionOption = Annotated[Optional[int], unset_option("--resolution", f"Image width and height in pixels. {preset_note('export', 'resolution')}")]
-ElevationOption = Annotated[float, typer.Option("--elevation", help="Degrees the orbit is raised out of its plane (all views alike).")]
+ElevationOption = Annotated[float, typer.Option("--elevation", help="--cameras orbit: degrees the orbit is raised out of its plane (all views alike).")]
 ViewOption = Annotated[Optional[View], unset_option("--view", f"Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). {preset_note('export', 'view')}")]
 TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
 TfLowOption = Annotated[Optional[float], unset_option("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
@@ -76,6 +78,7 @@ StepOption = Annotated[float, typer.Option("--step", help="Ray-march step in vox
 RenderFromOption = Annotated[RenderFrom, typer.Option("--render-from", help="grid: bake CuNeRF to a grid once, then render (fast). field: query CuNeRF's cube renders at every ray sample (slow; exact).")]
 BakeSizeOption = Annotated[Optional[int], unset_option("--bake-size", "Grid side for --render-from grid (default: the volume's size).")]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed of the point sampling.")]
+NovelDirectionsOption = Annotated[int, typer.Option("--novel-directions", help="Directions of the novel-view test (from the head, from the feet, then fixed random ones), each rendered from the volume at magnifications 0.5, 0.75, 1, 1.33 and 2 with pixel-area references; eval scores every run on them. 0 for none.")]
 CunerfNameOption = Annotated[Optional[str], unset_option("--cunerf-name", "Export WORK/cunerf-NAME/ instead of WORK/cunerf/.")]
 NameOption = Annotated[Optional[str], unset_option("--name", "Write WORK/export-NAME/ instead of WORK/export/.")]
 
@@ -97,7 +100,7 @@ def export_command(
     points_per_cube: PointsPerCubeOption = None,
     max_points: MaxPointsOption = None,
     air_threshold: AirOption = 0.02,
-    cameras: CamerasOption = CameraPath.orbit,
+    cameras: CamerasOption = None,
     views: ViewsOption = None,
     axis: AxisOption = None,
     radius: RadiusOption = 4.0,
@@ -113,6 +116,7 @@ def export_command(
     render_from: RenderFromOption = RenderFrom.grid,
     bake_size: BakeSizeOption = None,
     seed: SeedOption = 0,
+    novel_directions: NovelDirectionsOption = DEFAULT_DIRECTIONS,
     device: DeviceOption = Device.auto,
     threads: ThreadsOption = None,
     cunerf_name: CunerfNameOption = None,
@@ -120,13 +124,15 @@ def export_command(
     force: ForceOption = False,
     quiet: QuietOption = False,
 ) -> None:
-    """Write the CuNeRF scene as a COLMAP scene: cube-sampled points, orbit cameras, rendered views.
+    """Write the CuNeRF scene as a COLMAP scene: cube-sampled points, cameras, rendered views.
 
-    Samples --points-per-cube points in every --cube³ block (the paper's Eq. 1-2) with CuNeRF's intensity and density, drops air, and keeps --max-points where the field has structure. Renders --views images around --axis from CuNeRF (WORK/export/images/, the training images) and from the preprocessed volume (WORK/export/reference/, the ground truth for eval), with the same cameras and image model. Writes sparse/0/ (COLMAP .bin and .txt), points3D.ply, transforms.json, split.json, contact sheets and manifest.json. 3DGS, gsplat, nerfstudio and pycolmap open the folder as it is.
+    Samples --points-per-cube points in every --cube³ block (the paper's Eq. 1-2) with CuNeRF's intensity and density, drops air, and keeps --max-points where the field has structure. Renders --views images from cameras over the sphere (or a ring about --axis) from CuNeRF (WORK/export/images/, the training images) and from the preprocessed volume (WORK/export/reference/, the ground truth for eval), with the same cameras and image model, and the novel-view test from the volume (WORK/export/novel/). Writes sparse/0/ (COLMAP .bin and .txt), points3D.ply, transforms.json, split.json, contact sheets and manifest.json. 3DGS, gsplat, nerfstudio, OpenSplat and pycolmap open the folder as it is.
 
     Examples:
 
-      cubecloud export work                                  # dvr, 60 views, 128 px (fast preset)
+      cubecloud export work                                  # dvr, 60 views over the sphere, 128 px (fast preset)
+
+      cubecloud export work --cameras orbit --elevation 20 --name ring   # one ring, raised 20°
 
       cubecloud export work --view slice --axis ap --name paper-slices   # the paper's images
 
@@ -138,9 +144,10 @@ def export_command(
     settings = export_settings(
         preset.value,
         cube=cube, points_per_cube=points_per_cube, max_points=max_points, air_threshold=air_threshold,
-        cameras=cameras.value, views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
+        cameras=cameras.value if cameras else None, views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
         elevation=elevation, view=view.value if view else None, transfer=transfer.value, tf_low=tf_low, tf_high=tf_high,
         tf_density=tf_density, step=step, render_from=render_from.value, bake_size=bake_size, seed=seed,
+        novel_directions=novel_directions,
     )
     manifest = export_with_progress(work, settings, force, Runtime(device.value, threads), name, cunerf_name)
     log.info(f"wrote {Path(work) / stage_dir_name('export', name)}: {describe_export(manifest)}")
@@ -158,14 +165,15 @@ def describe_export(manifest: dict) -> str:
 
 def export_with_progress(work: Path, settings: ExportSettings, force: bool, runtime: Runtime,
                          name: str | None = None, cunerf_name: str | None = None) -> dict:
-    """The stage with a bar over the rendered views (CuNeRF, then reference), with rate and ETA."""
+    """The stage with a bar over the rendered views (CuNeRF, reference, novel), with rate and ETA."""
     labels = {"bake": "export: baking CuNeRF", "images": "export: CuNeRF views", "reference": "export: reference views",
-              "points": "export: point cloud", "write": "export: writing"}
-    with ProgressBar(2 * settings.views, "export", unit="view") as bar:
+              "novel": "export: novel views", "points": "export: point cloud", "write": "export: writing"}
+    offsets = {"images": 0, "reference": settings.views, "novel": 2 * settings.views}
+    novel_views = settings.novel_directions * len(MAGNIFICATIONS)
+    with ProgressBar(2 * settings.views + novel_views, "export", unit="view") as bar:
         def on_progress(phase: str, done: int, total: int) -> None:
-            offset = settings.views if phase == "reference" else 0
-            if phase in ("images", "reference"):
-                bar.set_completed(offset + done, description=labels[phase])
+            if phase in offsets:
+                bar.set_completed(offsets[phase] + done, description=labels[phase])
             else:
                 bar.advance(0, description=labels[phase])
 

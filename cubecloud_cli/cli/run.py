@@ -33,7 +33,7 @@ def _option(name: str, annotation, default) -> inspect.Parameter:
 RUN_OPTIONS = [
     _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help=f"Training iterations of the cunerf stage. {preset_note('cunerf', 'iterations')}", show_default=False)], None),
     _option("splat_iterations", Annotated[Optional[int], typer.Option("--splat-iterations", help=f"Training iterations of the splat stage. {preset_note('splat', 'iterations')}", show_default=False)], None),
-    _option("views", Annotated[Optional[int], typer.Option("--views", help="Orbit views of the export stage (the paper: 60). (preset: 60)", show_default=False)], None),
+    _option("views", Annotated[Optional[int], typer.Option("--views", help=f"Training cameras of the export stage (the paper: 60). {preset_note('export', 'views')}", show_default=False)], None),
     _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help=f"Width and height of the exported images. {preset_note('export', 'resolution')}", show_default=False)], None),
     _option("view", Annotated[Optional[View], typer.Option("--view", help=f"Image model of the exported views: dvr, slice (the paper's) or mip. {preset_note('export', 'view')}", show_default=False)], None),
     _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for cunerf and export.")], Device.auto),
@@ -84,14 +84,14 @@ def _report(outcomes: list, output: Path) -> None:
     log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
     table = "\n".join(table_rows(results))
-    log.info(f"held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}")
+    log.info(f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}")
 
 
 run_command = scan_command(
     _run,
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the held-out table of eval/report.md.
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
 
     Examples:
 

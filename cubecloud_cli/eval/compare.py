@@ -62,6 +62,7 @@ def describe_work(work: Path) -> dict:
         rows[row] = {
             "method": result.get("method_name"),
             "scene": "this work's export" if on_own_export else result.get("scene"),
+            "novel_psnr": result.get("novel_psnr"), "novel_ssim": result.get("novel_ssim"),
             "psnr": result.get("psnr"), "ssim": result.get("ssim"), "mse": result.get("mse"),
             "psnr_foreground": result.get("psnr_foreground"),
             "gaussians": result.get("gaussians"),
@@ -86,16 +87,18 @@ def _cell(value, digits: int = 2) -> str:
 
 
 def comparison_markdown(records: list[dict]) -> str:
-    lines = ["| work | row | method | volume | views × res | pts/cube | iterations | budget | PSNR ↑ | SSIM ↑ | PSNR fg | "
-             "Gaussians | splat s | pipeline s |", "|" + "---|" * 14]
+    lines = ["| work | row | method | cameras | volume | views × res | pts/cube | iterations | budget | novel PSNR ↑ | "
+             "novel SSIM ↑ | held-out PSNR ↑ | SSIM ↑ | PSNR fg | Gaussians | splat s | pipeline s |", "|" + "---|" * 17]
     for record in records:
         setup = record["setup"]
         for row, values in record["rows"].items():
             own = values["scene"] == "this work's export"
             lines.append("| " + " | ".join([
-                f"`{record['work']}`", f"`{row}`", _cell(values["method"]), _cell(setup["volume"]) if own else "other scene",
+                f"`{record['work']}`", f"`{row}`", _cell(values["method"]), _cell(setup["cameras"]) if own else "–",
+                _cell(setup["volume"]) if own else "other scene",
                 f"{_cell(setup['views'])} × {_cell(setup['resolution'])}²" if own else "–", _cell(setup["points_per_cube"]) if own else "–",
-                _cell(values["iterations"]), _cell(values["max_gaussians"]), _cell(values["psnr"]), _cell(values["ssim"], 4),
+                _cell(values["iterations"]), _cell(values["max_gaussians"]), _cell(values.get("novel_psnr")),
+                _cell(values.get("novel_ssim"), 4), _cell(values["psnr"]), _cell(values["ssim"], 4),
                 _cell(values["psnr_foreground"]), _cell(values["gaussians"]), _cell(values["splat_seconds"], 0),
                 _cell(values["pipeline_seconds"], 0)]) + " |")
     return "\n".join(lines)
@@ -107,8 +110,9 @@ def compare_works(works: list[Path], output: Path) -> str:
     table = comparison_markdown(records)
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
-    header = ("# cubecloud comparison\n\nHeld-out scores (eval/metrics.json of each work directory) against the setup "
-              "and wall time of each stage. `pipeline s`: preprocess + cunerf + export + that row's splat.\n\n")
+    header = ("# cubecloud comparison\n\nNovel-view (0.75–1.33×) and held-out scores (eval/metrics.json of each work "
+              "directory) against the setup and wall time of each stage. `pipeline s`: preprocess + cunerf + export + "
+              "that row's splat.\n\n")
     _write_atomically(output / "comparison.md", header + table + "\n")
     _write_atomically(output / "comparison.json", json.dumps(to_jsonable(records), indent=2, allow_nan=False) + "\n")
     return table
@@ -123,6 +127,9 @@ def _write_atomically(path: Path, text: str) -> None:
 def _camera_setup(export_params: dict) -> str | None:
     if not export_params:
         return None
-    if export_params.get("cameras", "orbit") == "stack":
+    cameras = export_params.get("cameras", "orbit")
+    if cameras == "stack":
         return f"one-pose stack of slices across {export_params.get('axis')}"
+    if cameras == "sphere":
+        return f"sphere, {export_params.get('axis')} up"
     return f"orbit about {export_params.get('axis')}"

@@ -16,6 +16,7 @@ import torch
 from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, require_stage, sha256_of_path, verify_stage_files
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.eval.novel import NovelTest, load_novel_test
 from cubecloud_cli.raster.backends import Rasterizer
 from cubecloud_cli.scene import read_colmap_model
 from cubecloud_cli.splat.data import TrainingScene, load_scene
@@ -69,6 +70,7 @@ class ScoredScene:
     reference: np.ndarray  # (V, H, W) float32
     reference_kind: str  # "volume" (renders of the preprocessed volume) or "images" (the training images)
     export_manifest: dict | None
+    novel: NovelTest | None = None  # the export's novel views, when it has them
 
 
 def find_splat_runs(work: Path, report: bool = True) -> list[str]:
@@ -179,7 +181,8 @@ def load_scored_scene(directory: Path, channels: int = 1) -> ScoredScene:
         reference, kind = scene.images.numpy().mean(axis=-1), "images"
     if not np.isfinite(reference).all():
         raise CubecloudError(f"the reference images of {directory} hold NaN or Inf: re-export the scene")
-    return ScoredScene(scene, reference, kind, export_manifest if is_export else None)
+    novel = load_novel_test(directory, fix) if is_export else None
+    return ScoredScene(scene, reference, kind, export_manifest if is_export else None, novel)
 
 
 @torch.no_grad()

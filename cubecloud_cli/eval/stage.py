@@ -16,6 +16,7 @@ import numpy as np
 from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
+from cubecloud_cli.eval.novel import annotate, pictured_views, summarize_novel, view_angles
 from cubecloud_cli.eval.report import PAPER_TABLE_I, report_markdown, write_per_view_csv
 from cubecloud_cli.eval.runs import (
     MAX_TURNTABLE_FRAMES,
@@ -59,6 +60,13 @@ def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:
                       if scored.reference_kind == "volume" else
                       "the scene's own images (it has no reference.npy: a foreign COLMAP scene)"),
         "views": "the scene's held-out test views (split.json: every 8th view), never trained on",
+        "novel views": (f"{len(scored.novel.views.directions)} fixed directions (from the head, from the feet, then seeded "
+                        f"random ones) at magnifications {', '.join(f'{m:g}' for m in scored.novel.views.magnifications)}, "
+                        "rendered from the volume with pixel-area references (supersampled), the same for every camera "
+                        "setup; cells: angle from the nearest training camera × magnification; the headline `novel PSNR` "
+                        "is the mean over 0.75–1.33×" if scored.novel is not None else
+                        "none: the scene has no novel-view test (an export made before it, a foreign scene, or "
+                        "--novel-directions 0)"),
         "metrics": "DESIGN §5: PSNR with data range 1, SSIM (Gaussian window σ = 1.5, 11 taps, no sample-covariance "
                    "correction, as scikit-image), MSE on [0, 1]; per view, then mean and population std over views; "
                    "colour renders are scored on their grey mean, as the references are grey",
@@ -79,8 +87,8 @@ def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:
 def _score_row(reference: np.ndarray, estimate: np.ndarray, names: list[str], row: str, method: str,
                per_view: list[dict], scene: Path, against: str) -> dict:
     scores = score_views(reference, estimate)
-    per_view += [{"row": row, "method": method, "view": name, "scene": str(scene), "against": against, **score}
-                 for name, score in zip(names, scores)]
+    per_view += [{"row": row, "method": method, "set": "held-out", "view": name, "scene": str(scene), "against": against,
+                  **score} for name, score in zip(names, scores)]
     return {"method_name": method, **summarize(scores), "view_names": names, "scene": str(scene), "reference": against}
 
 
@@ -104,6 +112,27 @@ def _cunerf_rows(work: Path, scored: ScoredScene, per_view: list[dict]) -> dict[
         rows[row] = {**_score_row(scored.reference[views_of], images[views_of], names, row, method, per_view,
                                   scene.directory, "volume"), **extra}
     return rows
+
+
+def _score_novel(run: SplatRun, gaussians, scored: ScoredScene, rasterizer, tick, per_view: list[dict],
+                 result: dict) -> dict[int, np.ndarray]:
+    """Render ``run`` at the scene's novel views, score them, put the summary into ``result`` and
+    their rows into ``per_view``; returns the renders of the views the report pictures."""
+    test = scored.novel
+    count = len(test.views.directions)
+    renders = np.concatenate([render_views(gaussians, test.views.cameras(m), list(range(count)), rasterizer, tick,
+                                           run.antialias)[0] for m in test.views.magnifications])
+    if not np.isfinite(renders).all():
+        raise CubecloudError(f"{run.name} renders NaN or Inf at a novel view: retrain it with `{run.retrain}`")
+    angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
+    rows = annotate(score_views(test.reference, renders), test, angles)
+    per_view += [{"row": run.name, "method": run.method, "set": "novel", "scene": str(scored.scene.directory),
+                  "against": "volume, pixel area", **row} for row in rows]
+    novel = summarize_novel(rows)
+    headline = novel["headline"]
+    result.update({"novel_psnr": headline["psnr"], "novel_psnr_std": headline["psnr_std"], "novel_ssim": headline["ssim"],
+                   "novel_ssim_std": headline["ssim_std"], "novel_views": headline["views"], "novel": novel})
+    return {index: renders[index] for _, index in pictured_views(test)}
 
 
 def _training_curve(run: SplatRun) -> tuple[list[float], list[float]]:
@@ -181,6 +210,7 @@ def evaluate_work(
                                                       settings.turntable_resolution) if settings.turntable_frames else None
                           for run in runs}
         total = sum(len(scenes[scene_of[run.name]].scene.test) + (len(turntables[run.name]) if turntables[run.name] else 0)
+                    + (len(scenes[scene_of[run.name]].novel.views) if scenes[scene_of[run.name]].novel else 0)
                     for run in runs)
         done = 0
 
@@ -192,7 +222,8 @@ def evaluate_work(
         results: dict[str, dict] = {}
         per_view: list[dict] = []
         renders_by_view: dict[str, dict[str, np.ndarray]] = {}
-        pictures: dict[str, list[str]] = {"views": [], "turntables": [], "curves": []}
+        novel_renders: dict[int, dict[str, np.ndarray]] = {}  # pictured novel view -> run -> render
+        pictures: dict[str, list[str]] = {"views": [], "novel": [], "turntables": [], "curves": []}
         with writer.phase("score"):
             for run in runs:
                 scored = scenes[scene_of[run.name]]
@@ -209,6 +240,11 @@ def evaluate_work(
                     "size_mb": run.size_mb, "train_seconds": run.manifest.get("timings_s", {}).get("train"),
                     "iterations": run.manifest.get("metrics", {}).get("iterations"), "rasterizer": rasterizer.description,
                 }
+                if scored.novel is not None:
+                    pictured = _score_novel(run, gaussians, scored, rasterizer, tick, per_view, results[run.name])
+                    if scored is main_scene:
+                        for index, render in pictured.items():
+                            novel_renders.setdefault(index, {})[run.name] = render
                 if scored is main_scene:
                     for name, render in zip(names, renders):
                         renders_by_view.setdefault(name, {})[run.name] = render
@@ -234,6 +270,14 @@ def evaluate_work(
                     relative = f"views/{_picture_name(name)}.png"
                     error_grid(main_scene.reference[index], renders_by_view[name], f"held-out view {name}").save(writer.directory / relative)
                     pictures["views"].append(relative)
+            if main_scene.novel is not None:
+                for label, index in pictured_views(main_scene.novel):
+                    if index in novel_renders:
+                        name = main_scene.novel.views.entries()[index][0]
+                        relative = f"views/{name}.png"
+                        error_grid(main_scene.novel.reference[index], novel_renders[index], f"novel view {name}: {label}").save(
+                            writer.directory / relative)
+                        pictures["novel"].append(relative)
             curves = [(run.name, *_training_curve(run)) for run in runs]
             if any(xs for _, xs, _ in curves):
                 (writer.directory / "psnr_vs_iteration.svg").write_text(line_plot_svg(
@@ -245,7 +289,8 @@ def evaluate_work(
         (writer.directory / "metrics.json").write_text(json.dumps(to_jsonable(metrics), indent=2, allow_nan=False) + "\n")
         write_per_view_csv(writer.directory / "per_view.csv", per_view)
         (writer.directory / "report.md").write_text(report_markdown(f"cubecloud eval: {work}", protocol, results, pictures))
-        writer.metrics.update({row: {k: result.get(k) for k in ("psnr", "ssim", "mse")} for row, result in results.items()})
+        writer.metrics.update({row: {k: result.get(k) for k in ("novel_psnr", "novel_ssim", "psnr", "ssim", "mse")}
+                               for row, result in results.items()})
         writer.metrics.update(peak_memory_mb(device))
         writer.extra["rasterizer"] = rasterizer.description
     return read_manifest(work / "eval")

@@ -32,14 +32,15 @@ def write_views(images: np.ndarray, folder: Path, names: list[str]) -> None:
         Image.fromarray(np.repeat(grey[..., None], 3, axis=2), mode="RGB").save(folder / name)
 
 
-def write_contact_sheet(images: np.ndarray, path: Path, held_out: set[int], title: str) -> None:
-    """All views on one PNG, numbered in order; held-out (test) views are marked "test"."""
+def write_contact_sheet(images: np.ndarray, path: Path, held_out: set[int], title: str, columns: int | None = None) -> None:
+    """All views on one PNG, numbered in order; held-out (test) views are marked "test". Without
+    ``columns`` the sheet is about square."""
     from PIL import Image, ImageDraw
 
     count, height, width = images.shape
     scale = min(1.0, THUMBNAIL / max(height, width))
     thumb_h, thumb_w = max(1, round(height * scale)), max(1, round(width * scale))
-    columns = min(count, max(1, math.ceil(math.sqrt(count * thumb_h / thumb_w))))
+    columns = min(count, max(1, columns or math.ceil(math.sqrt(count * thumb_h / thumb_w))))
     rows = math.ceil(count / columns)
     gap, band = 2, 14
     sheet = Image.new("L", (columns * (thumb_w + gap) - gap, band + rows * (thumb_h + gap) - gap), 0)

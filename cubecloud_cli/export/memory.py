@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+from cubecloud_cli.cameras.novel import MAGNIFICATIONS, supersampling
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.settings import ExportSettings
 
@@ -15,8 +16,11 @@ BYTES_PER_RENDERED_PIXEL = 160
 def export_bytes(settings: ExportSettings, volume_size: int) -> int:
     """An upper estimate of the stage's peak memory in bytes."""
     pixels = settings.resolution * settings.resolution
-    stacks = 2 * settings.views * pixels * 4  # images.npy and reference.npy, float32, in memory
-    rendering = pixels * BYTES_PER_RENDERED_PIXEL
+    novel_views = settings.novel_directions * len(MAGNIFICATIONS)
+    stacks = (2 * settings.views + novel_views) * pixels * 4  # images, reference and novel stacks, float32
+    # A novel reference renders up to 4 × 4 sub-pixels per pixel.
+    largest = max(supersampling(m) for m in MAGNIFICATIONS) if novel_views else 1
+    rendering = pixels * largest * largest * BYTES_PER_RENDERED_PIXEL
     bake = settings.bake_resolution(volume_size)
     grids = 3 * 4 * (volume_size**3 + (bake**3 if settings.render_from == "grid" else 0))
     cubes = -(-volume_size // settings.cube) ** 3

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, stack_cameras, stack_offsets
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras, stack_cameras, stack_offsets
+from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, NovelViewSet
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
 from cubecloud_cli.render import IMAGE_MODELS
 
 RENDER_SOURCES = ("grid", "field")
-# orbit: DESIGN §2. stack: the paper's 3DGS baseline, parallel slices seen from one pose.
-CAMERA_PATHS = ("orbit", "stack")
+# sphere and orbit: DESIGN §2. stack: the paper's 3DGS baseline, parallel slices seen from one pose.
+CAMERA_PATHS = ("sphere", "orbit", "stack")
+CAMERA_BUILDERS = {"sphere": sphere_cameras, "orbit": orbit_cameras, "stack": stack_cameras}
+MAX_NOVEL_DIRECTIONS = 256
 MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
 
 
@@ -22,8 +25,9 @@ class ExportSettings:
     points_per_cube: int = 512
     max_points: int = 100_000  # 0: keep every non-air point
     air_threshold: float = 0.02
-    # The orbit (DESIGN §2), or the paper baseline's stack of slices across ``axis``.
-    cameras: str = "orbit"
+    # The training cameras (DESIGN §2): over the sphere, on a ring about ``axis``, or the paper
+    # baseline's stack of slices across ``axis``.
+    cameras: str = "sphere"
     views: int = 60
     axis: str = "si"
     radius: float = 4.0
@@ -40,12 +44,17 @@ class ExportSettings:
     render_from: str = "grid"
     bake_size: int | None = None  # None: the preprocessed volume's size
     seed: int = 0
+    # The novel-view test (DESIGN §2): directions, each at every magnification; 0 for none.
+    novel_directions: int = DEFAULT_DIRECTIONS
 
     def orbit(self) -> OrbitSpec:
         return OrbitSpec(self.views, self.axis, self.radius, self.resolution, self.elevation, self.fov)
 
     def camera_set(self) -> PinholeCameras:
-        return stack_cameras(self.orbit()) if self.cameras == "stack" else orbit_cameras(self.orbit())
+        return CAMERA_BUILDERS[self.cameras](self.orbit())
+
+    def novel_view_set(self) -> NovelViewSet:
+        return NovelViewSet.build(self.novel_directions, self.radius, self.resolution)
 
     def slice_offsets(self) -> tuple[float, ...]:
         """Per-view slice planes: across the volume for a stack, through the origin otherwise."""
@@ -57,8 +66,10 @@ class ExportSettings:
             raise CubecloudError(f"--cameras {self.cameras!r} must be one of {', '.join(CAMERA_PATHS)}")
         if self.cameras == "stack" and self.view != "slice":
             raise CubecloudError(f"--cameras stack shows parallel slices from one pose and needs --view slice (got --view {self.view})")
-        if self.cameras == "stack" and self.elevation != 0.0:
-            raise CubecloudError("--elevation tilts the orbit and has no meaning with --cameras stack: leave it out")
+        if self.cameras != "orbit" and self.elevation != 0.0:
+            raise CubecloudError(f"--elevation tilts the orbit and has no meaning with --cameras {self.cameras}: leave it out, or use --cameras orbit")
+        if not 0 <= self.novel_directions <= MAX_NOVEL_DIRECTIONS:
+            raise CubecloudError(f"--novel-directions {self.novel_directions} must be within 0..{MAX_NOVEL_DIRECTIONS} (0: no novel-view test)")
         if self.resolution > MAX_RESOLUTION:
             raise CubecloudError(f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512")
         if self.cube < 1:

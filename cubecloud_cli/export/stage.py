@@ -9,6 +9,9 @@ WORK/export/ holds
   points3D.ply              the cube-sampled cloud: x y z nx ny nz red green blue intensity density
   transforms.json           the cameras for nerfstudio / instant-ngp readers
   split.json                train and test view names (every 8th view is held out)
+  sparse_pc.ply             the same points as plain x y z nx ny nz red green blue (transforms.json's
+                            ply_file_path: nerfstudio and OpenSplat read it by position, not by name)
+  novel/                    the novel-view test: views.json and pixel-area reference.npy (export/novel.py)
   contact_sheet.png, contact_sheet_reference.png
   manifest.json             parameters, cameras, image model, timings, point and image metrics
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -27,10 +31,12 @@ import torch
 from cubecloud_cli import __version__
 from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, require_stage, stage_dir_name
 from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.cameras.novel import NovelViewSet, nearest_angles_deg
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
+from cubecloud_cli.export.novel import render_novel_references, write_novel
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
 from cubecloud_cli.export.progress import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.settings import ExportSettings
@@ -62,8 +68,8 @@ def export_scene(
 ) -> dict:
     """Run the stage; returns the manifest written to WORK/export/manifest.json.
 
-    ``on_progress(phase, done, total)`` reports the phases "bake", "images", "reference",
-    "points" and "write"; the two render phases count views.
+    ``on_progress(phase, done, total)`` reports the phases "bake", "images", "reference", "novel",
+    "points" and "write"; the three render phases count views.
     """
     work = Path(work)
     settings.validate()
@@ -100,17 +106,20 @@ def export_scene(
     }
     progress = ExportProgress(writer.directory, fingerprint)
     saved = progress.prepare()
+    novel = settings.novel_view_set()
+    total_views = 2 * settings.views + len(novel)
     if saved:
-        log.info(f"continuing the interrupted export: {saved} of {2 * settings.views} views are already rendered")
+        log.info(f"continuing the interrupted export: {saved} of {total_views} views are already rendered")
     writer.extra["resumed"] = {"views": saved, "bake": progress.load("bake") is not None}
     reset_peak_memory(device)
     try:
-        return _export(work, writer, progress, settings, cameras, image_model, preprocess, size, device, cunerf_name, on_progress)
+        return _export(work, writer, progress, settings, cameras, novel, image_model, preprocess, size, device, cunerf_name,
+                       on_progress)
     except KeyboardInterrupt:
         if not writer.directory.exists() and is_complete(writer.final_dir):
             raise KeyboardInterrupt(f"interrupted while tidying up: {writer.final_dir} is complete") from None
         raise KeyboardInterrupt(
-            f"interrupted: {progress.saved_views()} of {2 * settings.views} views are saved in {progress.directory}; "
+            f"interrupted: {progress.saved_views()} of {total_views} views are saved in {progress.directory}; "
             f"run the same command to continue"
         ) from None
     except BaseException:
@@ -119,7 +128,8 @@ def export_scene(
         raise
 
 
-def _export(work, writer, progress, settings, cameras, image_model, preprocess, size, device, cunerf_name, on_progress) -> dict:
+def _export(work, writer, progress, settings, cameras, novel, image_model, preprocess, size, device, cunerf_name,
+            on_progress) -> dict:
     with writer:
         with writer.phase("load"):
             volume_path = work / "preprocess" / "volume.npy"
@@ -150,6 +160,10 @@ def _export(work, writer, progress, settings, cameras, image_model, preprocess, 
         with writer.phase("render_reference"):
             reference = _render_saving_views(GridField(volume, device), cameras, image_model, device, progress, "reference",
                                              lambda done, total: on_progress("reference", done, total))
+        with writer.phase("render_novel"):
+            # The novel views face the origin: a stack's per-view slice planes do not apply to them.
+            novel_reference = render_novel_references(GridField(volume, device), novel, replace(image_model, slice_offsets=()),
+                                                      device, progress, lambda done, total: on_progress("novel", done, total))
         with writer.phase("point_cloud"):
             on_progress("points", 0, 1)
             cloud = build_point_cloud(
@@ -162,7 +176,11 @@ def _export(work, writer, progress, settings, cameras, image_model, preprocess, 
             on_progress("write", 0, 1)
             names = view_names(len(cameras))
             _write_scene(writer.directory, cameras, names, images, reference, cloud)
+            if len(novel):
+                write_novel(writer.directory, novel, novel_reference)
         _record(writer, settings, cameras, names, image_model, cloud, images, reference, preprocess, device, size)
+        if len(novel):
+            _record_novel(writer, cameras, names, novel)
     return read_manifest(writer.final_dir)
 
 
@@ -221,6 +239,10 @@ def _write_scene(directory: Path, cameras: PinholeCameras, names: list[str], ima
     write_test_list(sparse, test_names)
     extras = {"intensity": cloud.intensity, "density": cloud.density}
     write_point_cloud_ply(directory / "points3D.ply", cloud.xyz, cloud.rgb, extras)
+    # nerfstudio-format readers take ply_file_path's properties in a fixed order (OpenSplat reads
+    # x y z [normals] [colours] by position, so our extra columns would shift every point after
+    # the first): they get the plain layout, under nerfstudio's own name for the seed cloud.
+    write_point_cloud_ply(directory / "sparse_pc.ply", cloud.xyz, cloud.rgb)
     # The reference 3DGS loader reads sparse/0/points3D.ply when it exists (and otherwise writes
     # one there); a hard link gives it ours without a second copy on disk.
     try:
@@ -231,7 +253,7 @@ def _write_scene(directory: Path, cameras: PinholeCameras, names: list[str], ima
     paths = [f"images/{n}" for n in names]
     write_json(directory / "transforms.json", transforms_json(
         cameras, paths, train_file_paths=[f"images/{n}" for n in train_names],
-        test_file_paths=[f"images/{n}" for n in test_names], ply_file_path="points3D.ply"))
+        test_file_paths=[f"images/{n}" for n in test_names], ply_file_path="sparse_pc.ply"))
     write_json(directory / "split.json", {
         "rule": f"views with index % {HOLDOUT_EVERY} == 0 are held out for testing (reference 3DGS llffhold)",
         "train": train_names,
@@ -277,3 +299,19 @@ def _record(writer: StageWriter, settings: ExportSettings, cameras: PinholeCamer
         },
         "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
     })
+
+
+def _record_novel(writer: StageWriter, cameras: PinholeCameras, names: list[str], novel: NovelViewSet) -> None:
+    """What eval needs to read the novel views, and how far they lie from this export's cameras."""
+    train = [i for i in range(len(names)) if i not in set(held_out_views(len(names)))]
+    angles = nearest_angles_deg(novel.directions, cameras.centres()[train])
+    writer.extra["novel"] = {
+        "directions": len(novel.directions),
+        "magnifications": list(novel.magnifications),
+        "views": len(novel),
+        "base_focal": novel.base_focal,
+        # > 1: the training views are zoomed in further than the novel views' magnification 1.
+        "training_zoom": float(cameras.focal / novel.base_focal),
+        "nearest_training_camera_deg": {"min": float(np.nanmin(angles)), "median": float(np.nanmedian(angles)),
+                                        "max": float(np.nanmax(angles))} if np.isfinite(angles).any() else None,
+    }

@@ -67,10 +67,12 @@ def render_view(
     model: ImageModel,
     support: Support | None = None,
     device: torch.device | str = "cpu",
+    subpixel: tuple[float, float] = (0.5, 0.5),
 ) -> torch.Tensor:
-    """Image ``index`` of ``cameras`` as an (H, W) float tensor in [0, 1]."""
+    """Image ``index`` of ``cameras`` as an (H, W) float tensor in [0, 1], each pixel sampled at
+    its centre, or at another point ``subpixel`` of it (fractions of a pixel from its corner)."""
     device = torch.device(device)
-    origin, directions = camera_rays(cameras, index, device)
+    origin, directions = camera_rays(cameras, index, device, subpixel)
     if model.kind == "slice":
         normal = torch.as_tensor(cameras.rotations[index][2], dtype=torch.float32, device=device)
         values = torch.cat([

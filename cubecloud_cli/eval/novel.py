@@ -1,0 +1,134 @@
+"""The novel-view scores (DESIGN §5): every run rendered at the export's novel views and scored
+against their pixel-area references, overall and per cell of (angle from the nearest training
+camera × magnification). The headline is the mean over the magnifications 0.75–1.33.
+
+Pure functions over per-view score rows; ``stage.py`` renders and collects the rows.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet, nearest_angles_deg
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.eval.scoring import summarize
+
+NOVEL_DIR, VIEWS_FILE, REFERENCE_FILE = "novel", "views.json", "reference.npy"
+# Angle from the nearest training camera: a sphere of 60 keeps every direction within about 15°;
+# a ring leaves the poles 90° away.
+ANGLE_BINS = (0.0, 10.0, 20.0, 45.0, 180.0)
+# What the report shows as pictures: (label, direction index, magnification).
+PICTURED = (("from above (the head)", 0, 1.0), ("from below (the feet)", 1, 1.0), ("zoomed in 2x", 2, 2.0),
+            ("zoomed out 0.5x", 2, 0.5))  # ASCII: the pictures' font has no ×
+
+
+@dataclass
+class NovelTest:
+    views: NovelViewSet
+    reference: np.ndarray  # (V, H, W) float32, in views.entries() order
+
+
+def load_novel_test(scene_dir: Path, fix: str) -> NovelTest | None:
+    """The export's novel views and references, or None when it has none (an older export, a
+    foreign scene, or ``--novel-directions 0``)."""
+    folder = Path(scene_dir) / NOVEL_DIR
+    if not (folder / VIEWS_FILE).is_file():
+        return None
+    try:
+        views = NovelViewSet.from_json(json.loads((folder / VIEWS_FILE).read_text()))
+        reference = np.load(folder / REFERENCE_FILE, mmap_mode="r")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CubecloudError(f"{folder} is unreadable ({type(exc).__name__}): run `{fix}`") from None
+    expected = (len(views), views.resolution, views.resolution)
+    if reference.shape != expected:
+        raise CubecloudError(f"{folder / REFERENCE_FILE} holds {reference.shape}, not {expected}: run `{fix}`")
+    reference = np.asarray(reference, dtype=np.float32)
+    if not np.isfinite(reference).all():
+        raise CubecloudError(f"{folder / REFERENCE_FILE} holds NaN or Inf: run `{fix}`")
+    return NovelTest(views, reference)
+
+
+def angle_bin(angle: float) -> str:
+    """The label of the angle bin that holds ``angle`` degrees, e.g. "10–20°"."""
+    if not (math.isfinite(angle) and angle >= 0.0):
+        return "unknown"
+    bounds = list(zip(ANGLE_BINS[:-1], ANGLE_BINS[1:]))
+    low, high = next(((low, high) for low, high in bounds if angle < high), bounds[-1])
+    return f"≥ {low:g}°" if high == ANGLE_BINS[-1] else f"{low:g}–{high:g}°"
+
+
+def view_angles(test: NovelTest, training_centres: np.ndarray) -> np.ndarray:
+    """Degrees from each novel direction to the nearest training camera."""
+    return nearest_angles_deg(test.views.directions, training_centres)
+
+
+def annotate(rows: list[dict], test: NovelTest, angles: np.ndarray) -> list[dict]:
+    """Per-view score rows (in storage order) with their name, magnification, angle and cell."""
+    annotated = []
+    for row, (name, direction, magnification) in zip(rows, test.views.entries()):
+        annotated.append({**row, "view": name, "magnification": magnification, "angle_deg": float(angles[direction]),
+                          "angle_bin": angle_bin(float(angles[direction]))})
+    return annotated
+
+
+def _is_headline(magnification: float) -> bool:
+    return any(abs(magnification - m) < 1e-9 for m in HEADLINE_MAGNIFICATIONS)
+
+
+def summarize_novel(rows: list[dict]) -> dict:
+    """The novel-view summary of one run: the headline (0.75–1.33×), each magnification, and each
+    (angle bin × magnification) cell, each a :func:`summarize` of its views."""
+    magnifications = sorted({row["magnification"] for row in rows})
+    bins = [label for label in (angle_bin(a) for a in ANGLE_BINS[:-1]) if any(r["angle_bin"] == label for r in rows)]
+    cells = []
+    for label in bins:
+        for magnification in magnifications:
+            members = [r for r in rows if r["angle_bin"] == label and r["magnification"] == magnification]
+            if members:
+                cells.append({"angle": label, "magnification": magnification, **summarize(members)})
+    return {
+        "headline": summarize([r for r in rows if _is_headline(r["magnification"])]),
+        "headline_magnifications": list(HEADLINE_MAGNIFICATIONS),
+        "by_magnification": {f"{m:g}": summarize([r for r in rows if r["magnification"] == m]) for m in magnifications},
+        "angle_bins": bins,
+        "cells": cells,
+    }
+
+
+def cell_table(novel: dict, metric: str = "psnr") -> list[str]:
+    """A markdown table of one run's novel cells: angle bins down, magnifications across."""
+    magnifications = list(novel["by_magnification"])
+    lines = ["| angle from nearest training camera | " + " | ".join(f"{m}×" for m in magnifications) + " |",
+             "|---|" + "---|" * len(magnifications)]
+    for label in novel["angle_bins"]:
+        cells = []
+        for m in magnifications:
+            cell = next((c for c in novel["cells"] if c["angle"] == label and f"{c['magnification']:g}" == m), None)
+            cells.append("–" if cell is None else f"{_format(cell[metric], metric)} ({cell['views']})")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines.append("| all | " + " | ".join(f"{_format(novel['by_magnification'][m][metric], metric)} "
+                                         f"({novel['by_magnification'][m]['views']})" for m in magnifications) + " |")
+    return lines
+
+
+def _format(value, metric: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if isinstance(value, float) and math.isinf(value):
+        return "∞"
+    return f"{value:.4f}" if metric.startswith("ssim") else f"{value:.2f}"
+
+
+def pictured_views(test: NovelTest) -> list[tuple[str, int]]:
+    """(label, storage index) of the views the report shows, among those the set has."""
+    count = len(test.views.directions)
+    chosen = []
+    for label, direction, magnification in PICTURED:
+        if direction < count and magnification in test.views.magnifications:
+            chosen.append((label, test.views.magnifications.index(magnification) * count + direction))
+    return chosen
