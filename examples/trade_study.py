@@ -314,18 +314,23 @@ def main() -> None:
               f"{r['splat_s']:.0f} | {_number(r['novel_psnr'])} | {_number(r['novel_ssim'], 4)} | {_number(r['novel_psnr_0.5x'])} | "
               f"{_number(r['novel_psnr_2x'])} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['gaussians']} |" for r in rows]
     (args.out / "trade.md").write_text("\n".join(lines) + "\n")
+    write_plot(rows, args.out / "time_vs_psnr.svg")
+    print("\n".join(lines))
+
+
+def write_plot(rows: list[dict], path: Path) -> None:
+    """Novel-view PSNR against pipeline time, one point per configuration and method, each named."""
     scored = [r for r in rows if isinstance(r["novel_psnr"], (int, float))]
     series = []
     labels = {}
     for method in dict.fromkeys(r["method"] for r in scored):
         mine = [r for r in scored if r["method"] == method]
         series.append((method, [r["pipeline_s"] for r in mine], [r["novel_psnr"] for r in mine]))
-        labels[method] = [r["config"] if method == scored[0]["method"] else "" for r in mine]
+        labels[method] = [r["config"] for r in mine]
     if series:
-        (args.out / "time_vs_psnr.svg").write_text(line_plot_svg(
+        path.write_text(line_plot_svg(
             series, "novel-view PSNR (0.75–1.33×) against pipeline time", "pipeline time from the scan (s)",
-            "novel-view PSNR vs the volume's renders (dB)", markers_only=True, point_labels=labels))
-    print("\n".join(lines))
+            "novel-view PSNR vs the volume's renders (dB)", markers_only=True, point_labels=labels, size=(960, 600)))
 
 
 def _number(value, digits: int = 2) -> str:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from skimage.metrics import mean_squared_error, peak_signal_noise_ratio, structural_similarity
 
-from cubecloud_cli.eval.figures import colour_map, error_grid, line_plot_svg, write_turntable
+from cubecloud_cli.eval.figures import colour_map, error_grid, line_plot_svg, place_labels, write_turntable
 from cubecloud_cli.eval.scoring import score_view, score_views, summarize
 
 
@@ -92,3 +92,31 @@ def test_turntable_and_plot_files(tmp_path):
     root = ElementTree.fromstring(svg)
     assert root.tag.endswith("svg") and svg.count("<polyline") == 1 and svg.count("<circle") == 3
     ElementTree.fromstring(line_plot_svg([], "empty", "x", "y"))  # no data: still a valid picture
+
+
+def test_point_labels_never_overlap_each_other_or_a_point_and_stay_in_the_frame():
+    rng = np.random.default_rng(3)
+    anchors = [(float(x), float(y)) for x, y in rng.uniform((100, 100), (300, 250), size=(30, 2))]
+    anchors += [(200.0, 175.0)] * 4  # coincident points: only one spot near them is free each time
+    texts = [f"config={i}" for i in range(len(anchors))]
+    texts[3] = ""
+    bounds = (70.0, 30.0, 420.0, 350.0)
+    spots = place_labels(anchors, texts, bounds)
+    assert spots[3] is None
+    boxes = [spot[3] for spot in spots if spot is not None]
+    assert len(boxes) >= 20  # 33 names in a 200 × 150 px crowd: most find a spot
+    for i, a in enumerate(boxes):
+        assert bounds[0] <= a[0] and a[2] <= bounds[2] and bounds[1] <= a[1] and a[3] <= bounds[3]
+        for b in boxes[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])
+        for x, y in anchors:
+            assert not (a[0] < x + 3.5 and x - 3.5 < a[2] and a[1] < y + 3.5 and y - 3.5 < a[3])
+
+
+def test_plot_keeps_every_point_off_the_axes():
+    svg = line_plot_svg([("a", [0.0, 50.0, 100.0], [33.61, 40.0, 47.36])], "t", "x", "y", markers_only=True)
+    root = ElementTree.fromstring(svg)
+    axis_y = max(float(e.get("y1")) for e in root.iter() if e.tag.endswith("line"))
+    axis_x = min(float(e.get("x1")) for e in root.iter() if e.tag.endswith("line") and e.get("x1") == e.get("x2"))
+    for circle in (e for e in root.iter() if e.tag.endswith("circle")):
+        assert float(circle.get("cy")) < axis_y - 5 and float(circle.get("cx")) > axis_x + 5

@@ -104,17 +104,69 @@ def _nice_ticks(low: float, high: float, count: int = 5) -> list[float]:
     return [first + i * step for i in range(int((high - first) / step + 1e-9) + 1)]
 
 
+Box = tuple[float, float, float, float]  # left, top, right, bottom, in SVG pixels
+LABEL_FONT_PX = 10
+# Sans-serif glyphs average a bit over half an em; an estimate that errs wide keeps labels apart.
+LABEL_CHAR_WIDTH = 0.62 * LABEL_FONT_PX
+
+
+def _overlaps(a: Box, b: Box) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def place_labels(anchors: list[tuple[float, float]], texts: list[str], bounds: Box,
+                 marker_radius: float = 3.5) -> list[tuple[float, float, str, Box] | None]:
+    """Where each non-empty label goes beside its point: ``(x, y, text-anchor, box)``, or None when
+    no spot is free. Labels are placed greedily, each at the first of a fixed list of spots
+    around its point (right, left, above, below, then further out) whose box stays inside
+    ``bounds`` and clear of every label placed before and of every marker."""
+    markers = [(x - marker_radius, y - marker_radius, x + marker_radius, y + marker_radius) for x, y in anchors]
+    placed: list[Box] = []
+    spots = [(6, -5), (6, 9), (-6, -5), (-6, 9), (0, -8), (0, 16)]
+    spots += [(dx, dy) for step in (14, 24, 34, 44) for dx in (6, -6) for dy in (-step - 5, step + 9)]
+    result: list[tuple[float, float, str, Box] | None] = []
+    for (x, y), text in zip(anchors, texts):
+        if not text:
+            result.append(None)
+            continue
+        width = LABEL_CHAR_WIDTH * len(text)
+        choice = None
+        for dx, dy in spots:
+            anchor = "start" if dx > 0 else "end" if dx < 0 else "middle"
+            tx, ty = x + dx, y + dy
+            left = tx if anchor == "start" else tx - width if anchor == "end" else tx - width / 2
+            box = (left, ty - LABEL_FONT_PX, left + width, ty + 2)
+            inside = bounds[0] <= box[0] and box[2] <= bounds[2] and bounds[1] <= box[1] and box[3] <= bounds[3]
+            if inside and not any(_overlaps(box, other) for other in placed + markers):
+                choice = (tx, ty, anchor, box)
+                break
+        if choice is not None:
+            placed.append(choice[3])
+        result.append(choice)
+    return result
+
+
+def _padded_range(values: list[float]) -> tuple[float, float]:
+    """The data's range widened by 5% on each side, so no point sits on an axis or the frame."""
+    low, high = min(values), max(values)
+    pad = 0.05 * (high - low) if high > low else 0.5
+    return low - pad, high + pad
+
+
 def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str, x_label: str, y_label: str,
-                  markers_only: bool = False, point_labels: dict[str, list[str]] | None = None) -> str:
+                  markers_only: bool = False, point_labels: dict[str, list[str]] | None = None,
+                  size: tuple[int, int] = (640, 400)) -> str:
     """An SVG plot of ``(label, xs, ys)`` series: lines (or points), axes with ticks, a legend.
-    Non-finite points are left out."""
-    width, height, left, right, top, bottom = 640, 400, 70, 170, 40, 50
+    Non-finite points are left out. ``point_labels`` names points of a series; a name is drawn
+    where it overlaps no other name or point, further out with a leader line when it must, and
+    left out when the plot has no free spot for it."""
+    (width, height), left, right, top, bottom = size, 70, 170, 40, 50
     points = [(x, y) for _, xs, ys in series for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
     xs_all, ys_all = [p[0] for p in points] or [0.0, 1.0], [p[1] for p in points] or [0.0, 1.0]
-    x_ticks = _nice_ticks(min(xs_all), max(xs_all))
-    y_ticks = _nice_ticks(min(ys_all), max(ys_all))
-    x0, x1 = min(x_ticks[0], min(xs_all)), max(x_ticks[-1], max(xs_all))
-    y0, y1 = min(y_ticks[0], min(ys_all)), max(y_ticks[-1], max(ys_all))
+    (x_low, x_high), (y_low, y_high) = _padded_range(xs_all), _padded_range(ys_all)
+    x_ticks, y_ticks = _nice_ticks(x_low, x_high), _nice_ticks(y_low, y_high)
+    x0, x1 = min(x_ticks[0], x_low), max(x_ticks[-1], x_high)
+    y0, y1 = min(y_ticks[0], y_low), max(y_ticks[-1], y_high)
     x1, y1 = (x1 if x1 > x0 else x0 + 1.0), (y1 if y1 > y0 else y0 + 1.0)
 
     def sx(x: float) -> float:
@@ -136,6 +188,7 @@ def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str
                      f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{y:g}</text>')
     parts.append(f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(x_label)}</text>'
                  f'<text transform="translate(18 {(top + height - bottom) / 2:.0f}) rotate(-90)" text-anchor="middle">{escape(y_label)}</text>')
+    anchors, texts = [], []
     for index, (label, xs, ys) in enumerate(series):
         colour = SERIES_COLOURS[index % len(SERIES_COLOURS)]
         kept = [(x, y) for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
@@ -145,10 +198,21 @@ def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str
         names = (point_labels or {}).get(label, [])
         for i, (x, y) in enumerate(kept):
             parts.append(f'<circle cx="{sx(x):.1f}" cy="{sy(y):.1f}" r="3.5" fill="{colour}"/>')
-            if i < len(names) and names[i]:
-                parts.append(f'<text x="{sx(x) + 6:.1f}" y="{sy(y) - 6:.1f}" font-size="10">{escape(names[i])}</text>')
+            anchors.append((sx(x), sy(y), colour))
+            texts.append(names[i] if i < len(names) else "")
         legend_y = top + 10 + 18 * index
         parts.append(f'<rect x="{width - right + 12}" y="{legend_y - 9}" width="12" height="12" fill="{colour}"/>'
                      f'<text x="{width - right + 30}" y="{legend_y + 1}">{escape(label)}</text>')
+    bounds = (left + 1, top - 10, width - right + 4, height - bottom - 1)
+    for (x, y, colour), text, spot in zip(anchors, texts, place_labels([(x, y) for x, y, _ in anchors], texts, bounds)):
+        if spot is None:
+            continue
+        tx, ty, anchor, box = spot
+        near_x, near_y = min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3])
+        if math.hypot(near_x - x, near_y - y) > 8:  # moved out of its point's reach: a leader line says whose it is
+            parts.append(f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{near_x:.1f}" y2="{near_y:.1f}" stroke="{colour}" '
+                         'stroke-width="0.7" opacity="0.6"/>')
+        parts.append(f'<text x="{tx:.1f}" y="{ty:.1f}" font-size="{LABEL_FONT_PX}" text-anchor="{anchor}" '
+                     f'fill="{colour}">{escape(text)}</text>')
     parts.append("</svg>")
     return "\n".join(parts)
