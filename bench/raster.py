@@ -4,6 +4,7 @@ PyTorch path, on a random scene of Gaussians filling the volume's cube.
     python bench/raster.py                       # 50k Gaussians, 128² (the target scene)
     python bench/raster.py --gaussians 200000 --resolution 256
     python bench/raster.py --cloud work/export/points3D.ply   # the exported Cube-Cloud, as initialised
+    python bench/raster.py --antialias           # through the 2D Mip filter (its opacity factor and backward)
 
 Prints milliseconds per forward + backward (median of --repeats, after a warm-up that also
 compiles the kernels), the split between projection, compositing forward and backward, and the
@@ -61,7 +62,7 @@ def useful_pairs(projected, opacities, width, height) -> int:
     return int((alpha >= MIN_ALPHA).sum())
 
 
-def time_backend(projector, compositor, scene, cameras, width, repeats):
+def time_backend(projector, compositor, scene, cameras, width, repeats, antialias=False):
     means, log_scales, quaternions, opacities, colours = scene
     rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
     translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
@@ -70,9 +71,9 @@ def time_backend(projector, compositor, scene, cameras, width, repeats):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
         start = time.perf_counter()
         projected = projector(inputs[0], torch.exp(inputs[1]), inputs[2], rotation, translation,
-                            float(cameras.focal), width, width)
+                            float(cameras.focal), width, width, antialias=antialias)
         projected_at = time.perf_counter()
-        image, _ = compositor(projected, inputs[4], inputs[3], width, width)
+        image, _ = compositor(projected, inputs[4], projected.effective_opacities(inputs[3]), width, width)
         forward_at = time.perf_counter()
         image.sum().backward()
         end = time.perf_counter()
@@ -89,21 +90,23 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--skip-torch", action="store_true", help="time only the numba kernel")
     parser.add_argument("--cloud", help="an exported points3D.ply to initialise the scene from (default: random)")
+    parser.add_argument("--antialias", action="store_true", help="project through the 2D Mip filter, as anti-aliased training does")
     args = parser.parse_args()
 
     scene = cloud_scene(args.cloud, args.gaussians) if args.cloud else random_scene(args.gaussians)
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=args.resolution))
-    print(f"{len(scene[0])} Gaussians ({'from ' + args.cloud if args.cloud else 'random'}), {args.resolution}² view, {torch.get_num_threads()} threads; "
-          f"median of {args.repeats} forward + backward passes")
+    print(f"{len(scene[0])} Gaussians ({'from ' + args.cloud if args.cloud else 'random'}), {args.resolution}² view, {torch.get_num_threads()} threads, "
+          f"{'2D Mip filter' if args.antialias else '0.3 px² dilation'}; median of {args.repeats} forward + backward passes")
     results = {}
     for name, projector, compositor in (("numba", project_cpu, composite_cpu), ("torch", project, composite)):
         if name == "torch" and args.skip_torch:
             continue
-        times, projected = time_backend(projector, compositor, scene, cameras, args.resolution, args.repeats if name == "numba" else max(3, args.repeats // 5))
+        times, projected = time_backend(projector, compositor, scene, cameras, args.resolution,
+                                        args.repeats if name == "numba" else max(3, args.repeats // 5), args.antialias)
         results[name] = times
         print(f"  {name:<6} total {times['total']:7.2f} ms  (project {times['project']:.2f}, "
               f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f})")
-    pairs = useful_pairs(projected, scene[3], args.resolution, args.resolution)
+    pairs = useful_pairs(projected, projected.effective_opacities(scene[3]), args.resolution, args.resolution)
     print(f"  useful pairs (α ≥ 1/255): {pairs:,} -> {pairs / (results['numba']['total'] / 1000) / 1e6:.1f} M pairs/s (numba, fwd+bwd)")
     if "torch" in results:
         print(f"  speed-up of numba over the plain PyTorch path: {results['torch']['total'] / results['numba']['total']:.1f}x")

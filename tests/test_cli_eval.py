@@ -152,6 +152,11 @@ def test_bad_input(work, tmp_path):
     gaussians.sh_dc[:] = float("nan")
     write_gaussians_ply(nan_run / "splat" / "point_cloud.ply", gaussians)
     assert_one_line_error(invoke("eval", nan_run), r"splat renders NaN or Inf.*retrain")
+    bad_novel = copy("bad_novel")  # novel references damaged after the export: refused, never scored
+    np.save(bad_novel / "export" / "novel" / "reference.npy", np.zeros((3, 32, 32), dtype=np.float32))
+    assert_one_line_error(invoke("eval", bad_novel), r"novel/reference.npy is missing or changed.*cubecloud export")
+    np.save(bad_novel / "export" / "novel" / "reference.npy", np.full((15, 32, 32), np.nan, dtype=np.float32))
+    assert_one_line_error(invoke("eval", bad_novel), r"novel/reference.npy holds NaN or Inf.*cubecloud export")
     bad_split = copy("bad_split")
     (bad_split / "export" / "split.json").write_text('{"test": ')
     assert_one_line_error(invoke("eval", bad_split), r"split.json")
