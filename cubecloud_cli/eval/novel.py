@@ -100,30 +100,6 @@ def summarize_novel(rows: list[dict]) -> dict:
     }
 
 
-def cell_table(novel: dict, metric: str = "psnr") -> list[str]:
-    """A markdown table of one run's novel cells: angle bins down, magnifications across."""
-    magnifications = list(novel["by_magnification"])
-    lines = ["| angle from nearest training camera | " + " | ".join(f"{m}×" for m in magnifications) + " |",
-             "|---|" + "---|" * len(magnifications)]
-    for label in novel["angle_bins"]:
-        cells = []
-        for m in magnifications:
-            cell = next((c for c in novel["cells"] if c["angle"] == label and f"{c['magnification']:g}" == m), None)
-            cells.append("–" if cell is None else f"{_format(cell[metric], metric)} ({cell['views']})")
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines.append("| all | " + " | ".join(f"{_format(novel['by_magnification'][m][metric], metric)} "
-                                         f"({novel['by_magnification'][m]['views']})" for m in magnifications) + " |")
-    return lines
-
-
-def _format(value, metric: str) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "–"
-    if isinstance(value, float) and math.isinf(value):
-        return "∞"
-    return f"{value:.4f}" if metric.startswith("ssim") else f"{value:.2f}"
-
-
 def pictured_views(test: NovelTest) -> list[tuple[str, int]]:
     """(label, storage index) of the views the report shows, among those the set has."""
     count = len(test.views.directions)

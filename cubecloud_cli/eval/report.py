@@ -7,7 +7,6 @@ import csv
 import math
 from pathlib import Path
 
-from cubecloud_cli.eval.novel import cell_table
 from cubecloud_cli.eval.scoring import METRICS
 
 # The paper's Table I (KiTS23, 30 000 iterations each): its data, its protocol.
@@ -38,6 +37,26 @@ def _number(value, digits: int = 2, scientific: bool = False) -> str:
     if isinstance(value, int):
         return f"{value:,}".replace(",", " ")
     return f"{value:.{digits}e}" if scientific else f"{value:.{digits}f}"
+
+
+def cell_table(novel: dict, metric: str = "psnr") -> list[str]:
+    """A markdown table of one run's novel cells: angle bins down, magnifications across."""
+    magnifications = list(novel["by_magnification"])
+    lines = ["| angle from nearest training camera | " + " | ".join(f"{m}×" for m in magnifications) + " |",
+             "|---|" + "---|" * len(magnifications)]
+    for label in novel["angle_bins"]:
+        cells = []
+        for m in magnifications:
+            cell = next((c for c in novel["cells"] if c["angle"] == label and f"{c['magnification']:g}" == m), None)
+            cells.append("–" if cell is None else f"{_number(cell[metric], _digits(metric))} ({cell['views']})")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines.append("| all | " + " | ".join(f"{_number(novel['by_magnification'][m][metric], _digits(metric))} "
+                                         f"({novel['by_magnification'][m]['views']})" for m in magnifications) + " |")
+    return lines
+
+
+def _digits(metric: str) -> int:
+    return 4 if metric.startswith("ssim") else 2
 
 
 def _with_std(result: dict, metric: str, digits: int, scientific: bool = False) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from cubecloud_cli.cameras.novel import MAGNIFICATIONS, supersampling
+from cubecloud_cli.cameras.novel import MAGNIFICATIONS, SUPERSAMPLING
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.settings import ExportSettings
 
@@ -18,8 +18,9 @@ def export_bytes(settings: ExportSettings, volume_size: int) -> int:
     pixels = settings.resolution * settings.resolution
     novel_views = settings.novel_directions * len(MAGNIFICATIONS)
     stacks = (2 * settings.views + novel_views) * pixels * 4  # images, reference and novel stacks, float32
-    # A novel reference renders up to 4 × 4 sub-pixels per pixel.
-    largest = max(supersampling(m) for m in MAGNIFICATIONS) if novel_views else 1
+    # Counted as if a novel reference's k × k sub-pixel renders were held at once (they go one at
+    # a time): an upper estimate, as the refusal wants.
+    largest = SUPERSAMPLING if novel_views else 1
     rendering = pixels * largest * largest * BYTES_PER_RENDERED_PIXEL
     bake = settings.bake_resolution(volume_size)
     grids = 3 * 4 * (volume_size**3 + (bake**3 if settings.render_from == "grid" else 0))

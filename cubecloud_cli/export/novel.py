@@ -4,7 +4,7 @@ camera setup trains on, each pixel the mean over its area.
 A splat is a continuous image, and a pixel of a real camera integrates light over its area; a
 reference that samples each pixel's centre only would alias when the view zooms out, and score
 a correct anti-aliased splat as wrong. So every reference pixel averages a k × k grid of
-sub-pixel rays (:func:`cubecloud_cli.cameras.novel.supersampling`), rendered as k² images each
+sub-pixel rays (:data:`cubecloud_cli.cameras.novel.SUPERSAMPLING`), rendered as k² images each
 through one sub-pixel point of every pixel: the same rays as one image k times larger, in half
 the time on a CPU (smaller, more coherent batches).
 
@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from cubecloud_cli.cameras.novel import NovelViewSet, supersampling
+from cubecloud_cli.cameras.novel import SUPERSAMPLING, NovelViewSet
 from cubecloud_cli.export.images import write_contact_sheet
 from cubecloud_cli.export.progress import ExportProgress
 from cubecloud_cli.render import ImageModel, render_view
@@ -57,7 +57,6 @@ def render_novel_references(field, novel: NovelViewSet, model: ImageModel, devic
     done = 0
     with torch.no_grad():
         for group, magnification in enumerate(novel.magnifications):
-            factor = supersampling(magnification)
             cameras = novel.cameras(magnification)
             for direction in range(count):
                 index = group * count + direction
@@ -68,7 +67,7 @@ def render_novel_references(field, novel: NovelViewSet, model: ImageModel, devic
                 else:
                     if support is None and model.kind != "slice":
                         support = field.support(model.support_threshold)
-                    images[index] = pixel_area_render(field, cameras, direction, model, support, device, factor)
+                    images[index] = pixel_area_render(field, cameras, direction, model, support, device, SUPERSAMPLING)
                     progress.save(name, images[index])
                 done += 1
                 on_progress(done, len(novel))
