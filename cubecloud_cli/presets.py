@@ -46,7 +46,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 # cunerf presets hold one column per model, so `--model cunerf --preset fast` gets settings
-# meant for the MLP rather than the grid's learning rate. See README "cunerf" for the figures.
+# meant for the MLP rather than the grid's learning rate. See docs/results.md, "Speed of each stage", for the figures.
 # Measured on the bundled CT at 128³ (bench/cunerf.py): 2³ points per cube for 4000 iterations
 # beat 3³ for 2000 in the same time (37.3 vs 35.4 dB 3D PSNR).
 _GRID = {"lr": 0.05, "lr_final": 5e-4, "warmup": 100, "cube_radius": 0.5, "samples_per_axis": 2, "importance": 0}
