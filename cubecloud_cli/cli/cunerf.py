@@ -21,7 +21,7 @@ from cubecloud_cli.cli.common import (
 )
 from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
 from cubecloud_cli.presets import CUNERF_PRESETS, preset_note, resolve_cunerf
-from cubecloud_cli.progress import ProgressBar
+from cubecloud_cli.cli.progress import stage_progress
 
 log = logging.getLogger("cubecloud")
 
@@ -183,16 +183,7 @@ def train_cunerf_with_progress(
     work: Path, settings: CunerfSettings, force: bool, resume: bool, runtime: Runtime, name: str | None = None
 ) -> dict:
     """The stage with a bar: iterations with rate, ETA, loss and validation PSNR."""
-    with ProgressBar(settings.iterations, f"cunerf ({settings.model})") as bar:
-        shown = {"done": 0}
-
-        def on_progress(phase: str, done: int, total: int, fields: dict) -> None:
-            if phase == "train":
-                bar.advance(done - shown["done"], **fields)
-                shown["done"] = done
-            else:
-                bar.advance(0, description=f"cunerf: {phase}")
-
+    with stage_progress(f"cunerf ({settings.model})", total=settings.iterations) as on_progress:
         return train_cunerf(
             work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress
         )

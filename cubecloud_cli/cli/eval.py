@@ -14,7 +14,7 @@ from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
 from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.eval.compare import compare_works
-from cubecloud_cli.progress import ProgressBar
+from cubecloud_cli.cli.progress import stage_progress
 from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
@@ -28,15 +28,7 @@ TurntableResolutionOption = Annotated[int, typer.Option("--turntable-resolution"
 
 
 def evaluate_with_progress(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
-    with ProgressBar(1, f"eval {work}", unit="frames") as bar:
-        shown = {"done": 0}
-
-        def on_progress(phase: str, done: int, total: int, fields: dict) -> None:
-            if total != bar.total:
-                bar.set_total(total)
-            bar.advance(done - shown["done"], **fields)
-            shown["done"] = done
-
+    with stage_progress(f"eval {work}", unit="frames") as on_progress:
         return evaluate_work(work, settings, force=force, runtime=runtime, on_progress=on_progress)
 
 

@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from cubecloud_cli.artifacts import stage_dir_name
-from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, MAGNIFICATIONS
+from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS
 from cubecloud_cli.cli.common import (
     DEFAULT_PRESET_VALUE,
     ForceOption,
@@ -25,7 +25,7 @@ from cubecloud_cli.cunerf import Runtime
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.export.transfer import TRANSFER_PRESETS
 from cubecloud_cli.presets import PRESETS, preset_note, resolve
-from cubecloud_cli.progress import ProgressBar
+from cubecloud_cli.cli.progress import stage_progress
 
 log = logging.getLogger("cubecloud")
 
@@ -166,16 +166,6 @@ def describe_export(manifest: dict) -> str:
 def export_with_progress(work: Path, settings: ExportSettings, force: bool, runtime: Runtime,
                          name: str | None = None, cunerf_name: str | None = None) -> dict:
     """The stage with a bar over the rendered views (CuNeRF, reference, novel), with rate and ETA."""
-    labels = {"bake": "export: baking CuNeRF", "images": "export: CuNeRF views", "reference": "export: reference views",
-              "novel": "export: novel views", "points": "export: point cloud", "write": "export: writing"}
-    offsets = {"images": 0, "reference": settings.views, "novel": 2 * settings.views}
-    novel_views = settings.novel_directions * len(MAGNIFICATIONS)
-    with ProgressBar(2 * settings.views + novel_views, "export", unit="view") as bar:
-        def on_progress(phase: str, done: int, total: int) -> None:
-            if phase in offsets:
-                bar.set_completed(offsets[phase] + done, description=labels[phase])
-            else:
-                bar.advance(0, description=labels[phase])
-
+    with stage_progress("export", unit="view") as on_progress:
         return export_scene(work, settings, force=force, runtime=runtime, name=name, cunerf_name=cunerf_name,
                             on_progress=on_progress)

@@ -22,8 +22,7 @@ from cubecloud_cli.cli.common import (
     reports_errors,
 )
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
-from cubecloud_cli.preprocess.stage import PHASES
-from cubecloud_cli.progress import ProgressBar
+from cubecloud_cli.cli.progress import stage_progress
 from cubecloud_cli.presets import preset_note, resolve
 from cubecloud_cli.sample_data import SAMPLE_CT_ATTRIBUTION, sample_ct_path
 from cubecloud_cli.volume.intensity import WINDOW_NAMES
@@ -194,13 +193,5 @@ preprocess_command = scan_command(
 
 def run_preprocess_with_progress(scan: Path, output: Path, settings: PreprocessSettings, force: bool) -> dict:
     """The stage with a bar on the terminal, each phase weighted by its expected cost."""
-    with ProgressBar(1.0, "preprocess", unit=None) as bar:
-
-        def on_phase(phase: str, costs: dict[str, float], fraction: float) -> None:
-            total = sum(costs.values()) or 1.0
-            before = sum(costs[p] for p in PHASES[: PHASES.index(phase)])
-            bar.set_completed((before + fraction * costs[phase]) / total, f"preprocess: {phase}")
-
-        manifest = preprocess_scan(scan, output, settings, force=force, on_phase=on_phase)
-        bar.set_completed(1.0, "preprocess: done")
-    return manifest
+    with stage_progress("preprocess", unit=None) as on_progress:
+        return preprocess_scan(scan, output, settings, force=force, on_progress=on_progress)

@@ -21,7 +21,7 @@ from cubecloud_cli.cunerf import CunerfSettings, Runtime
 from cubecloud_cli.pipeline import run_pipeline
 from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.presets import preset_note, resolve_cunerf
-from cubecloud_cli.progress import PipelineProgress
+from cubecloud_cli.cli.progress import PipelineProgress
 
 log = logging.getLogger("cubecloud")
 

@@ -21,7 +21,7 @@ from cubecloud_cli.cli.common import (
 )
 from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
 from cubecloud_cli.presets import PRESETS, preset_note, resolve
-from cubecloud_cli.progress import ProgressBar
+from cubecloud_cli.cli.progress import stage_progress
 from cubecloud_cli.runtime import Runtime
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
@@ -116,15 +116,6 @@ def describe_splat(manifest: dict) -> str:
 
 def train_splat_with_progress(work: Path, settings: SplatSettings, scene: Path | None, force: bool, resume: bool,
                               runtime: Runtime, name: str | None = None) -> dict:
-    with ProgressBar(settings.iterations, "splat") as bar:
-        shown = {"done": 0}
-
-        def on_progress(phase: str, done: int, total: int, fields: dict) -> None:
-            if phase == "train":
-                bar.advance(done - shown["done"], **fields)
-                shown["done"] = done
-            else:
-                bar.advance(0, description=f"splat: {phase}")
-
+    with stage_progress("splat", total=settings.iterations) as on_progress:
         return train_splat(work, settings, scene_dir=scene, force=force, resume=resume, runtime=runtime, name=name,
                            on_progress=on_progress)

@@ -18,7 +18,6 @@ import logging
 import os
 import shutil
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.interrupts import (
     CubecloudInterrupted,
@@ -53,7 +53,6 @@ LOG_FILE = "log.csv"
 LOG_COLUMNS = ("iteration", "seconds", "loss", "lr", "val_psnr", "val_ssim", "val_psnr_body", "val_ssim_body")
 
 
-ProgressCallback = Callable[[str, int, int, dict], None]
 
 
 def _check_memory(settings: CunerfSettings, size: int, device: torch.device) -> None:
@@ -119,7 +118,7 @@ def train_cunerf(
     resume: bool = False,
     runtime: Runtime = Runtime(),
     name: str | None = None,
-    on_progress: ProgressCallback = lambda phase, done, total, fields: None,
+    on_progress: ProgressCallback = no_progress,
 ) -> dict:
     """Run the stage; returns the manifest written to WORK/cunerf/manifest.json.
 

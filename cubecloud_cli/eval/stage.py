@@ -9,11 +9,11 @@ import logging
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
 from cubecloud_cli.eval.novel import annotate, pictured_views, summarize_novel, view_angles
@@ -36,7 +36,6 @@ from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 
 log = logging.getLogger("cubecloud")
 
-ProgressCallback = Callable[[str, int, int, dict], None]
 CUNERF_ROW, CUNERF_TRAINING_ROW = "cunerf", "cunerf-training-views"
 
 
@@ -180,7 +179,7 @@ def evaluate_work(
     settings: EvalSettings = EvalSettings(),
     force: bool = False,
     runtime: Runtime = Runtime(),
-    on_progress: ProgressCallback = lambda phase, done, total, fields: None,
+    on_progress: ProgressCallback = no_progress,
 ) -> dict:
     work = Path(work)
     settings.validate()

@@ -23,7 +23,6 @@ import os
 import shutil
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -33,6 +32,7 @@ from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, req
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import NovelViewSet, nearest_angles_deg
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
@@ -49,7 +49,6 @@ from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json,
 log = logging.getLogger("cubecloud")
 
 HOLDOUT_EVERY = 8  # DESIGN §2 and the reference 3DGS evaluation: views with index % 8 == 0
-ProgressCallback = Callable[[str, int, int], None]
 
 
 def held_out_views(count: int) -> list[int]:
@@ -64,12 +63,12 @@ def export_scene(
     runtime: Runtime = Runtime(),
     name: str | None = None,
     cunerf_name: str | None = None,
-    on_progress: ProgressCallback = lambda phase, done, total: None,
+    on_progress: ProgressCallback = no_progress,
 ) -> dict:
     """Run the stage; returns the manifest written to WORK/export/manifest.json.
 
-    ``on_progress(phase, done, total)`` reports the phases "bake", "images", "reference", "novel",
-    "points" and "write"; the three render phases count views.
+    ``on_progress`` counts rendered views (CuNeRF's, the reference's, then the novel references)
+    through the phases "bake", "images", "reference", "novel", "points" and "write".
     """
     work = Path(work)
     settings.validate()
@@ -151,21 +150,26 @@ def _export(work, writer, progress, settings, cameras, novel, image_model, prepr
                     f"{model_path} was trained on a {field.volume_size}³ volume but preprocess/ holds {size}³: "
                     f"rerun `cubecloud cunerf {work} --force`"
                 )
+        views = 2 * len(cameras) + len(novel)
+
+        def count_views(phase: str, before: int):
+            return lambda done, total: on_progress(phase, before + done, views, {})
+
         with writer.phase("bake"):
-            on_progress("bake", 0, 1)
+            on_progress("bake", 0, views, {})
             cunerf_images_field = _cunerf_scalar_field(field, settings, size, device, progress, on_progress)
         with writer.phase("render_images"):
             images = _render_saving_views(cunerf_images_field, cameras, image_model, device, progress, "images",
-                                          lambda done, total: on_progress("images", done, total))
+                                          count_views("images", 0))
         with writer.phase("render_reference"):
             reference = _render_saving_views(GridField(volume, device), cameras, image_model, device, progress, "reference",
-                                             lambda done, total: on_progress("reference", done, total))
+                                             count_views("reference", len(cameras)))
         with writer.phase("render_novel"):
             # The novel views face the origin: a stack's per-view slice planes do not apply to them.
             novel_reference = render_novel_references(GridField(volume, device), novel, replace(image_model, slice_offsets=()),
-                                                      device, progress, lambda done, total: on_progress("novel", done, total))
+                                                      device, progress, count_views("novel", 2 * len(cameras)))
         with writer.phase("point_cloud"):
-            on_progress("points", 0, 1)
+            on_progress("points", views, views, {})
             cloud = build_point_cloud(
                 field.cube_values, field.point_density, cunerf_images_field, size, settings.cube,
                 settings.points_per_cube, settings.max_points or None, settings.air_threshold, settings.seed, device,
@@ -173,7 +177,7 @@ def _export(work, writer, progress, settings, cameras, novel, image_model, prepr
         if cloud.stats["points"] == 0:
             log.warning("the field is air everywhere: points3D holds no point (lower --air-threshold?)")
         with writer.phase("write"):
-            on_progress("write", 0, 1)
+            on_progress("write", views, views, {})
             names = view_names(len(cameras))
             _write_scene(writer.directory, cameras, names, images, reference, cloud)
             if len(novel):
@@ -211,7 +215,7 @@ def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int
         bake_size = settings.bake_resolution(size)
         baked = progress.load("bake")
         if baked is None or baked.shape != (bake_size,) * 3:
-            baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", int(f * 100), 100))
+            baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
             progress.save("bake", baked)
         return GridField(baked, device)
     occupancy = field.occupancy

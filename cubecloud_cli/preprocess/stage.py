@@ -14,11 +14,11 @@ import logging
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from cubecloud_cli.artifacts import StageWriter, check_free_disk, read_manifest
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.preprocess.preview import write_preview
 from cubecloud_cli.volume.cube_frame import plan_cube
@@ -101,14 +101,18 @@ def preprocess_scan(
     settings: PreprocessSettings,
     *,
     force: bool = False,
-    on_phase: Callable[[str, dict[str, float], float], None] = lambda phase, costs, fraction: None,
+    on_progress: ProgressCallback = no_progress,
 ) -> dict:
     """Run the stage; returns the manifest written to WORK/preprocess/manifest.json.
 
-    ``on_phase(name, costs, fraction)`` reports progress: the phase in :data:`PHASES` under
-    way, the expected cost of every phase (known once the scan's size is), and the fraction of
-    the current phase done.
+    ``on_progress`` counts expected seconds (:func:`phase_costs`, known once the scan's size
+    is) through the phases of :data:`PHASES`.
     """
+
+    def on_phase(phase: str, costs: dict[str, float], fraction: float) -> None:
+        before = sum(costs[p] for p in PHASES[: PHASES.index(phase)])
+        on_progress(phase, before + fraction * costs[phase], sum(costs.values()), {})
+
     settings.validate()
     writer = StageWriter(Path(work), "preprocess", asdict(settings), force=force)
     with writer:  # refuses an existing stage before the scan is read

@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 import shutil
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ from cubecloud_cli.interrupts import (
     interrupted,
     save_on_schedule,
 )
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -43,7 +43,6 @@ log = logging.getLogger("cubecloud")
 CHECKPOINT_FILE = "checkpoint.pt"
 PLY_FILE = "point_cloud.ply"
 LOG_COLUMNS = ("iteration", "seconds", "loss", "test_psnr", "gaussians")
-ProgressCallback = Callable[[str, int, int, dict], None]
 
 
 def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
@@ -84,7 +83,7 @@ def train_splat(
     resume: bool = False,
     runtime: Runtime = Runtime(),
     name: str | None = None,
-    on_progress: ProgressCallback = lambda phase, done, total, fields: None,
+    on_progress: ProgressCallback = no_progress,
 ) -> dict:
     work = Path(work)
     settings.validate()
