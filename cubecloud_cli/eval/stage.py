@@ -7,7 +7,7 @@ import csv
 import json
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ from cubecloud_cli.eval.runs import (
     resolve_scene,
     turntable_cameras,
 )
+from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.eval.scoring import score_views, summarize
 from cubecloud_cli.raster.backends import rasterizer_for
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -37,19 +38,6 @@ from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 log = logging.getLogger("cubecloud")
 
 CUNERF_ROW, CUNERF_TRAINING_ROW = "cunerf", "cunerf-training-views"
-
-
-@dataclass(frozen=True)
-class EvalSettings:
-    turntable_frames: int = 72  # 0: no turntables
-    turntable_resolution: int = 256  # renders larger than this are shown at this size
-
-    def validate(self) -> None:
-        if self.turntable_frames != 0 and not 2 <= self.turntable_frames <= MAX_TURNTABLE_FRAMES:
-            raise CubecloudError(f"--turntable-frames {self.turntable_frames} must be 0 (none) or between 2 and "
-                                 f"{MAX_TURNTABLE_FRAMES}, e.g. 72")
-        if not 16 <= self.turntable_resolution <= 4096:
-            raise CubecloudError(f"--turntable-resolution {self.turntable_resolution} must be between 16 and 4096 pixels")
 
 
 def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:

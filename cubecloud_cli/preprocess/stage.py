@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +21,7 @@ from cubecloud_cli.artifacts import StageWriter, check_free_disk, read_manifest
 from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.preprocess.preview import write_preview
+from cubecloud_cli.preprocess.settings import PreprocessSettings
 from cubecloud_cli.volume.cube_frame import plan_cube
 from cubecloud_cli.volume.intensity import detect_modality, replace_nonfinite, resolve_intensity_map
 from cubecloud_cli.volume.nifti import write_nifti
@@ -33,38 +34,6 @@ log = logging.getLogger("cubecloud")
 VOLUME_NPY = "volume.npy"
 VOLUME_NIFTI = "volume.nii.gz"
 PREVIEW_PNG = "preview.png"
-
-MIN_SIZE, MAX_SIZE = 8, 2048
-
-
-@dataclass(frozen=True)
-class PreprocessSettings:
-    """Every parameter of the stage, after presets are applied (recorded in the manifest)."""
-
-    size: int = 128
-    fit: str = "pad"
-    window: str = "abdomen"
-    hu_min: float | None = None
-    hu_max: float | None = None
-    modality: str = "auto"
-    percentiles: tuple[float, float] = (0.5, 99.5)
-    interpolation: str = "linear"
-    spacing: tuple[float, float, float] | None = None
-    volume_index: int | None = None
-
-    def validate(self) -> None:
-        if not MIN_SIZE <= self.size <= MAX_SIZE:
-            raise CubecloudError(f"--size {self.size} is outside {MIN_SIZE}..{MAX_SIZE} voxels: the paper uses 512")
-        if self.fit not in ("pad", "stretch"):
-            raise CubecloudError(f"--fit {self.fit!r} must be pad or stretch")
-        if self.interpolation not in ("linear", "nearest"):
-            raise CubecloudError(f"--interpolation {self.interpolation!r} must be linear or nearest")
-        low, high = self.percentiles
-        if not 0 <= low < high <= 100:
-            raise CubecloudError(f"--percentiles {low:g},{high:g} must satisfy 0 <= low < high <= 100")
-        if self.modality not in ("auto", "ct", "mr"):
-            raise CubecloudError(f"--modality {self.modality!r} must be auto, ct or mr")
-
 
 def _check_memory(size: int, source_voxels: int) -> None:
     # Peak: the float32 source and its windowed copy, two intermediate products, the S³ result.
