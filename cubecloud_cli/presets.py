@@ -1,4 +1,6 @@
-"""Preset values per stage (DESIGN.md §6). An option given on the command line wins.
+"""Preset values per stage (docs/design.md §6). An option given on the command line wins, then
+the preset's value, then the settings class's default; a settings field the presets set takes
+its default from the default preset (:func:`preset_default`), so each value is written here only.
 
 ``paper`` is the paper's setting; ``fast`` and ``balanced`` are for a 2-core CPU. The preprocess
 sizes follow the scans: the bundled 3 mm abdomen CT is 366 mm across, so 128³ (2.9 mm voxels)
@@ -73,37 +75,78 @@ CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 
 
 def resolve_cunerf(preset: str, model: str | None, overrides: Mapping[str, Any]) -> dict[str, Any]:
-    """The cunerf preset's values for the chosen model (the preset's own by default)."""
+    """The cunerf preset's values for the chosen model (the preset's own by default), with every
+    non-None override applied."""
     if preset not in PRESET_NAMES:
         raise ValueError(f"unknown preset {preset!r}")
     model = model or CUNERF_DEFAULT_MODEL[preset]
     if model not in CUNERF_PRESETS[preset]:
         raise ValueError(f"unknown model {model!r}")
     values = {"model": model, **CUNERF_PRESETS[preset][model]}
-    values.update({key: value for key, value in overrides.items() if value is not None})
+    values.update({key: value for key, value in overrides.items() if value is not None and key != "model"})
     return values
+
+
+# The paper's 3DGS baseline looks at sagittal slices, whatever the preset's orbit axis.
+STACK_AXIS = "lr"
 
 
 def resolve(stage: str, preset: str, overrides: Mapping[str, Any]) -> dict[str, Any]:
     """The preset's values for ``stage`` with every non-None override applied."""
+    if stage == "cunerf":
+        return resolve_cunerf(preset, overrides.get("model"), overrides)
     if preset not in PRESET_NAMES:
         raise ValueError(f"unknown preset {preset!r}")
     values = dict(PRESETS[stage][preset])
+    if stage == "export" and overrides.get("cameras") == "stack" and overrides.get("axis") is None:
+        values["axis"] = STACK_AXIS
     values.update({key: value for key, value in overrides.items() if value is not None})
     return values
 
 
-def preset_note(stage: str, key: str) -> str:
-    """The presets' values of one option for --help, e.g. "(preset: fast 128, balanced 192, paper 512)"."""
+def preset_default(stage: str, key: str) -> Any:
+    """The default preset's value of one option: the default of its settings field."""
+    return _columns(stage)[DEFAULT_PRESET][key]
+
+
+def _columns(stage: str) -> dict[str, dict[str, Any]]:
+    """Each preset's values for ``stage`` (cunerf: the preset's own model)."""
     if stage == "cunerf":
-        table = {name: CUNERF_PRESETS[name][CUNERF_DEFAULT_MODEL[name]] for name in PRESET_NAMES}
-    else:
-        table = PRESETS[stage]
-    return "(preset: " + ", ".join(f"{name} {_shown(key, table[name][key])}" for name in PRESET_NAMES) + ")"
+        return {
+            name: {"model": CUNERF_DEFAULT_MODEL[name], **CUNERF_PRESETS[name][CUNERF_DEFAULT_MODEL[name]]}
+            for name in PRESET_NAMES
+        }
+    return PRESETS[stage]
 
 
-def _shown(key: str, value: Any) -> str:
+def is_preset_key(stage: str, key: str) -> bool:
+    return any(key in column for column in _columns(stage).values())
+
+
+def preset_note(stage: str, key: str) -> str:
+    """The presets' values of one option for --help, e.g. "(preset: fast 128, balanced 192, paper 512)";
+    for cunerf, also the values the other model gets with --model."""
+    table = _columns(stage)
+    note = "(preset: " + ", ".join(f"{name} {shown(key, table[name][key])}" for name in PRESET_NAMES)
+    if stage == "cunerf" and key != "model":
+        others = [
+            (name, model, values[key])
+            for name in PRESET_NAMES
+            for model, values in CUNERF_PRESETS[name].items()
+            if model != CUNERF_DEFAULT_MODEL[name] and key in values
+        ]
+        by_model: dict[str, list[str]] = {}
+        for name, model, value in others:
+            by_model.setdefault(model, []).append(f"{name} {shown(key, value)}")
+        note += "".join(f"; with --model {model}: {', '.join(values)}" for model, values in by_model.items())
+    return note + ")"
+
+
+def shown(key: str, value: Any) -> str:
+    """A value as --help shows it."""
     if isinstance(value, bool):
         return "on" if value else "off"
+    if isinstance(value, tuple):
+        return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
     # A budget of None or 0 means no budget.
     return "none" if value is None or (value == 0 and key.startswith("max_")) else str(value)

@@ -15,10 +15,15 @@ import torch
 from cubecloud_cli.errors import CubecloudError
 
 
+DEVICES = ("auto", "cpu", "cuda")
+
+
 @dataclass(frozen=True)
 class Runtime:
     device: str = "auto"
+    """auto (CUDA when available), cpu or cuda."""
     threads: int | None = None
+    """CPU threads for torch and for splat's numba kernels (default: all cores)."""
 
     def apply(self) -> torch.device:
         """Set torch's thread count and return the device to run on."""
@@ -34,7 +39,7 @@ def resolve_device(device: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():
         raise CubecloudError("--device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto")
-    if device not in ("cpu", "cuda"):
+    if device not in DEVICES:
         raise CubecloudError(f"--device {device!r} must be auto, cpu or cuda")
     return torch.device(device)
 

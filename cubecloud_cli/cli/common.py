@@ -1,20 +1,27 @@
-"""What every command shares: error reporting, log printing, option parsers and option types."""
+"""What every command shares: error reporting, log printing, and the options several commands take."""
 
 from __future__ import annotations
 
 import functools
 import logging
 import sys
-from enum import Enum
 from pathlib import Path
-from typing import Annotated, Callable, Optional, TypeVar
+from typing import Annotated, Callable, Literal, Optional, TypeVar
 
 import typer
 
+from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.presets import DEFAULT_PRESET
+from cubecloud_cli.export.settings import ExportSettings
+from cubecloud_cli.preprocess.settings import Fit, Interpolation, Modality, PreprocessSettings
+from cubecloud_cli.presets import PRESET_NAMES
+from cubecloud_cli.render import IMAGE_MODELS
+from cubecloud_cli.runtime import DEVICES, Runtime
+from cubecloud_cli.sample_data import SAMPLE_CT_ATTRIBUTION, sample_ct_path
+from cubecloud_cli.volume.intensity import CT_WINDOWS, WINDOW_NAMES
 
 F = TypeVar("F", bound=Callable)
+log = logging.getLogger("cubecloud")
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -73,20 +80,11 @@ def parse_floats(text: str | None, count: int, option: str) -> tuple[float, ...]
     return values
 
 
-def unset_option(flag: str, help_text: str):
-    """An option whose default (None) means "the preset's value": no default is shown, the
-    help text names the presets' values instead."""
-    return typer.Option(flag, help=help_text, show_default=False)
-
-
-class Preset(str, Enum):
-    fast = "fast"
-    balanced = "balanced"
-    paper = "paper"
-
+PRESET_CHOICES = Literal[PRESET_NAMES]  # type: ignore[valid-type]
+DEVICE_CHOICES = Literal[DEVICES]  # type: ignore[valid-type]
 
 PresetOption = Annotated[
-    Preset,
+    PRESET_CHOICES,
     typer.Option(
         "--preset",
         help="Settings for every option left unset: fast and balanced for a 2-core CPU, paper "
@@ -94,12 +92,20 @@ PresetOption = Annotated[
     ),
 ]
 ForceOption = Annotated[bool, typer.Option("--force", help="Replace the stage if it is already complete.")]
+ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last checkpoint.")]
 WorkOption = Annotated[
     Path, typer.Option("--output", "-o", help="Work directory; each stage writes a folder inside it.")
 ]
 QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help="Print warnings and errors only.")]
-DEFAULT_PRESET_VALUE = Preset(DEFAULT_PRESET)
+DeviceOption = Annotated[Optional[DEVICE_CHOICES], settings_option(Runtime, "device")]
+ThreadsOption = Annotated[Optional[int], settings_option(Runtime, "threads")]
 
+
+def runtime_from_options(device: str | None, threads: int | None) -> Runtime:
+    return build_settings(Runtime, None, {"device": device, "threads": threads})
+
+
+# The scan options: `preprocess` and `run` take all of them (a test checks that they agree).
 ScanArgument = Annotated[
     Optional[Path],
     typer.Argument(
@@ -108,3 +114,53 @@ ScanArgument = Annotated[
         show_default=False,
     ),
 ]
+_WINDOWS = ", ".join(f"{name} {width:g}/{level:g}" for name, (width, level) in CT_WINDOWS.items())
+SizeOption = Annotated[Optional[int], settings_option(PreprocessSettings, "size")]
+FitOption = Annotated[Optional[Fit], settings_option(PreprocessSettings, "fit")]
+WindowOption = Annotated[
+    Optional[Literal[WINDOW_NAMES]],  # type: ignore[valid-type]
+    settings_option(PreprocessSettings, "window", extra=f"({_WINDOWS})"),
+]
+HuMinOption = Annotated[Optional[float], settings_option(PreprocessSettings, "hu_min")]
+HuMaxOption = Annotated[Optional[float], settings_option(PreprocessSettings, "hu_max")]
+ModalityOption = Annotated[Optional[Modality], settings_option(PreprocessSettings, "modality")]
+PercentilesOption = Annotated[Optional[str], settings_option(PreprocessSettings, "percentiles")]
+InterpolationOption = Annotated[Optional[Interpolation], settings_option(PreprocessSettings, "interpolation")]
+SpacingOption = Annotated[Optional[str], settings_option(PreprocessSettings, "spacing")]
+VolumeIndexOption = Annotated[Optional[int], settings_option(PreprocessSettings, "volume_index")]
+
+
+def preprocess_settings(
+    preset: str,
+    *,
+    size: int | None,
+    fit: str | None,
+    window: str | None,
+    hu_min: float | None,
+    hu_max: float | None,
+    modality: str | None,
+    percentiles: str | None,
+    interpolation: str | None,
+    spacing: str | None,
+    volume_index: int | None,
+) -> PreprocessSettings:
+    """The settings the scan options ask for, the preset filling what they leave unset."""
+    options = {
+        "size": size, "fit": fit, "window": window, "hu_min": hu_min, "hu_max": hu_max, "modality": modality,
+        "percentiles": parse_floats(percentiles, 2, "--percentiles"), "interpolation": interpolation,
+        "spacing": parse_floats(spacing, 3, "--spacing"), "volume_index": volume_index,
+    }
+    return build_settings(PreprocessSettings, preset, options)
+
+
+def scan_or_sample(scan: Optional[Path]) -> Path:
+    if scan is not None:
+        return scan
+    log.info(f"no scan given: using the {SAMPLE_CT_ATTRIBUTION}")
+    return sample_ct_path()
+
+
+# The export options `run` takes too.
+ViewsOption = Annotated[Optional[int], settings_option(ExportSettings, "views")]
+ResolutionOption = Annotated[Optional[int], settings_option(ExportSettings, "resolution")]
+ViewOption = Annotated[Optional[Literal[IMAGE_MODELS]], settings_option(ExportSettings, "view")]  # type: ignore[valid-type]

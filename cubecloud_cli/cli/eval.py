@@ -8,8 +8,16 @@ from typing import Annotated, Optional
 
 import typer
 
-from cubecloud_cli.cli.common import ForceOption, QuietOption, configure_logging, reports_errors
-from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
+from cubecloud_cli.cli.common import (
+    DeviceOption,
+    ForceOption,
+    QuietOption,
+    ThreadsOption,
+    configure_logging,
+    reports_errors,
+    runtime_from_options,
+)
+from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
 from cubecloud_cli.eval.stage import eval_is_current
@@ -23,8 +31,8 @@ WorkArgument = Annotated[Optional[Path], typer.Argument(help="Work directory wit
 CompareOption = Annotated[Optional[list[Path]], typer.Option(
     "--compare", metavar="WORK", help="Build one table across these work directories (repeat the option), WORK included; each is evaluated first when its eval/ is missing or older than its runs (all with --force).")]
 OutputOption = Annotated[Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")]
-FramesOption = Annotated[int, typer.Option("--turntable-frames", help="Frames of each run's turntable GIF (a dense orbit like the export's); 0 for none.")]
-TurntableResolutionOption = Annotated[int, typer.Option("--turntable-resolution", help="Largest side of the turntable frames, in pixels.")]
+FramesOption = Annotated[Optional[int], settings_option(EvalSettings, "turntable_frames")]
+TurntableResolutionOption = Annotated[Optional[int], settings_option(EvalSettings, "turntable_resolution")]
 
 
 def evaluate_with_progress(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
@@ -46,9 +54,9 @@ def eval_command(
     work: WorkArgument = None,
     compare: CompareOption = None,
     output: OutputOption = Path("comparison"),
-    turntable_frames: FramesOption = 72,
-    turntable_resolution: TurntableResolutionOption = 256,
-    device: DeviceOption = Device.auto,
+    turntable_frames: FramesOption = None,
+    turntable_resolution: TurntableResolutionOption = None,
+    device: DeviceOption = None,
     threads: ThreadsOption = None,
     force: ForceOption = False,
     quiet: QuietOption = False,
@@ -68,8 +76,9 @@ def eval_command(
     configure_logging(quiet)
     if work is None and not compare:
         raise CubecloudError("give a work directory (cubecloud eval work), or work directories to compare with --compare")
-    settings = EvalSettings(turntable_frames=turntable_frames, turntable_resolution=turntable_resolution)
-    runtime = Runtime(device.value, threads)
+    options = {"turntable_frames": turntable_frames, "turntable_resolution": turntable_resolution}
+    settings = build_settings(EvalSettings, None, options)
+    runtime = runtime_from_options(device, threads)
     if not compare:
         manifest = evaluate_with_progress(work, settings, force, runtime)
         log.info(f"wrote {Path(work) / 'eval'}: {describe_eval(manifest)}")

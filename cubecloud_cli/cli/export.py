@@ -3,121 +3,79 @@
 from __future__ import annotations
 
 import logging
-from enum import Enum
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Literal, Optional
 
 import typer
 
 from cubecloud_cli.artifacts import stage_dir_name
-from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS
+from cubecloud_cli.cameras import ORBIT_AXES
 from cubecloud_cli.cli.common import (
-    DEFAULT_PRESET_VALUE,
+    DeviceOption,
     ForceOption,
     PresetOption,
     QuietOption,
+    ResolutionOption,
+    ThreadsOption,
+    ViewOption,
+    ViewsOption,
     configure_logging,
     reports_errors,
-    unset_option,
+    runtime_from_options,
 )
-from cubecloud_cli.cli.cunerf import Device, DeviceOption, ThreadsOption
-from cubecloud_cli.cunerf import Runtime
-from cubecloud_cli.export import ExportSettings, export_scene
-from cubecloud_cli.export.transfer import TRANSFER_PRESETS
-from cubecloud_cli.presets import PRESETS, preset_note, resolve
+from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import stage_progress
+from cubecloud_cli.export import ExportSettings, export_scene
+from cubecloud_cli.export.settings import CameraPath, RenderSource
+from cubecloud_cli.export.transfer import TRANSFER_PRESETS
+from cubecloud_cli.presets import DEFAULT_PRESET
+from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
 
-
-class Axis(str, Enum):
-    si = "si"
-    ap = "ap"
-    lr = "lr"
+_TRANSFERS = "; ".join(f"{name}: {preset.description}" for name, preset in TRANSFER_PRESETS.items())
 
 
-class View(str, Enum):
-    dvr = "dvr"
-    slice = "slice"
-    mip = "mip"
-
-
-class CameraPath(str, Enum):
-    sphere = "sphere"
-    orbit = "orbit"
-    stack = "stack"
-
-
-class RenderFrom(str, Enum):
-    grid = "grid"
-    field = "field"
-
-
-Transfer = Enum("Transfer", {name: name for name in TRANSFER_PRESETS}, type=str)  # type: ignore[misc]
-_PRESET_HELP = "; ".join(f"{name}: {preset.description}" for name, preset in TRANSFER_PRESETS.items())
-
-
-WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ and cunerf/.")]
-CubeOption = Annotated[int, typer.Option("--cube", help="Cube side in voxels for point sampling (the paper: 16).")]
-PointsPerCubeOption = Annotated[Optional[int], unset_option("--points-per-cube", f"Points drawn uniformly in each cube. {preset_note('export', 'points_per_cube')}")]
-MaxPointsOption = Annotated[Optional[int], unset_option("--max-points", f"Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point. {preset_note('export', 'max_points')}")]
-AirOption = Annotated[float, typer.Option("--air-threshold", help="Points whose CuNeRF intensity is at or below this are air and dropped.")]
-CamerasOption = Annotated[Optional[CameraPath], unset_option("--cameras", f"sphere: --views cameras spread evenly over the whole sphere of directions, --axis up (DESIGN §2). orbit: --views cameras on a ring around --axis (the paper's). stack: the paper's 3DGS baseline, --views parallel slices across --axis (lr: sagittal) all seen from one camera pose; needs --view slice. {preset_note('export', 'cameras')}")]
-ViewsOption = Annotated[Optional[int], unset_option("--views", f"Training cameras (the paper: 60); every 8th is held out for testing. {preset_note('export', 'views')}")]
-AxisOption = Annotated[Optional[Axis], unset_option("--axis", f"Orbit axis, or the sphere's pole axis and image up: si (long axis, head up), ap (the paper's sagittal axis), lr. With --cameras stack, the slice normal instead: lr sagittal (its default), ap coronal, si axial. {preset_note('export', 'axis')}")]
-RadiusOption = Annotated[float, typer.Option("--radius", help="Camera distance from the volume's centre, in world units (the volume spans -1..1).")]
-FovOption = Annotated[Optional[float], unset_option("--fov", "Field of view in degrees (default: just wide enough for the whole volume in every view).")]
-ResolutionOption = Annotated[Optional[int], unset_option("--resolution", f"Image width and height in pixels. {preset_note('export', 'resolution')}")]
-ElevationOption = Annotated[float, typer.Option("--elevation", help="--cameras orbit: degrees the orbit is raised out of its plane (all views alike).")]
-ViewOption = Annotated[Optional[View], unset_option("--view", f"Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera, the paper's images) or mip (maximum intensity). {preset_note('export', 'view')}")]
-TransferOption = Annotated[Transfer, typer.Option("--transfer", help=f"dvr transfer function preset, in HU for CT: {_PRESET_HELP}.")]  # type: ignore[valid-type]
-TfLowOption = Annotated[Optional[float], unset_option("--tf-low", "dvr: intensity (0..1) where tissue starts to absorb; overrides the preset.")]
-TfHighOption = Annotated[Optional[float], unset_option("--tf-high", "dvr: intensity (0..1) of full absorption; overrides the preset.")]
-TfDensityOption = Annotated[Optional[float], unset_option("--tf-density", "dvr: extinction per world unit at full absorption; higher is more opaque.")]
-StepOption = Annotated[float, typer.Option("--step", help="Ray-march step in voxels of the preprocessed volume.")]
-RenderFromOption = Annotated[RenderFrom, typer.Option("--render-from", help="grid: bake CuNeRF to a grid once, then render (fast). field: query CuNeRF's cube renders at every ray sample (slow; exact).")]
-BakeSizeOption = Annotated[Optional[int], unset_option("--bake-size", "Grid side for --render-from grid (default: the volume's size).")]
-SeedOption = Annotated[int, typer.Option("--seed", help="Seed of the point sampling.")]
-NovelDirectionsOption = Annotated[int, typer.Option("--novel-directions", help="Directions of the novel-view test (from the head, from the feet, then fixed random ones), each rendered from the volume at magnifications 0.5, 0.75, 1, 1.33 and 2 with pixel-area references; eval scores every run on them. 0 for none.")]
-CunerfNameOption = Annotated[Optional[str], unset_option("--cunerf-name", "Export WORK/cunerf-NAME/ instead of WORK/cunerf/.")]
-NameOption = Annotated[Optional[str], unset_option("--name", "Write WORK/export-NAME/ instead of WORK/export/.")]
+def _option(name: str, *flags: str, extra: str = ""):
+    return settings_option(ExportSettings, name, *flags, extra=extra)
 
 
 def export_settings(preset: str, **options) -> ExportSettings:
     """Preset values with every option that was given applied on top."""
-    if options.get("cameras") == "stack" and options.get("axis") is None:
-        options["axis"] = "lr"  # the paper's baseline: sagittal slices, whatever the preset's orbit axis
-    preset_keys = PRESETS["export"][preset]
-    values = resolve("export", preset, {k: v for k, v in options.items() if k in preset_keys})
-    return ExportSettings(**values, **{k: v for k, v in options.items() if k not in preset_keys})
+    return build_settings(ExportSettings, preset, options)
+
+
+WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ and cunerf/.")]
+CunerfNameOption = Annotated[Optional[str], typer.Option("--cunerf-name", help="Export WORK/cunerf-NAME/ instead of WORK/cunerf/.", show_default=False)]
+NameOption = Annotated[Optional[str], typer.Option("--name", help="Write WORK/export-NAME/ instead of WORK/export/.", show_default=False)]
 
 
 @reports_errors
 def export_command(
     work: WorkArgument = Path("work"),
-    preset: PresetOption = DEFAULT_PRESET_VALUE,
-    cube: CubeOption = 16,
-    points_per_cube: PointsPerCubeOption = None,
-    max_points: MaxPointsOption = None,
-    air_threshold: AirOption = 0.02,
-    cameras: CamerasOption = None,
+    preset: PresetOption = DEFAULT_PRESET,
+    cube: Annotated[Optional[int], _option("cube")] = None,
+    points_per_cube: Annotated[Optional[int], _option("points_per_cube")] = None,
+    max_points: Annotated[Optional[int], _option("max_points")] = None,
+    air_threshold: Annotated[Optional[float], _option("air_threshold")] = None,
+    cameras: Annotated[Optional[CameraPath], _option("cameras")] = None,
     views: ViewsOption = None,
-    axis: AxisOption = None,
-    radius: RadiusOption = 4.0,
-    fov: FovOption = None,
+    axis: Annotated[Optional[Literal[tuple(ORBIT_AXES)]], _option("axis")] = None,  # type: ignore[misc]
+    radius: Annotated[Optional[float], _option("radius")] = None,
+    fov: Annotated[Optional[float], _option("fov")] = None,
     resolution: ResolutionOption = None,
-    elevation: ElevationOption = 0.0,
+    elevation: Annotated[Optional[float], _option("elevation")] = None,
     view: ViewOption = None,
-    transfer: TransferOption = Transfer("tissue"),  # type: ignore[valid-type]
-    tf_low: TfLowOption = None,
-    tf_high: TfHighOption = None,
-    tf_density: TfDensityOption = None,
-    step: StepOption = 1.0,
-    render_from: RenderFromOption = RenderFrom.grid,
-    bake_size: BakeSizeOption = None,
-    seed: SeedOption = 0,
-    novel_directions: NovelDirectionsOption = DEFAULT_DIRECTIONS,
-    device: DeviceOption = Device.auto,
+    transfer: Annotated[Optional[Literal[tuple(TRANSFER_PRESETS)]], _option("transfer", extra=f"({_TRANSFERS})")] = None,  # type: ignore[misc]
+    tf_low: Annotated[Optional[float], _option("tf_low")] = None,
+    tf_high: Annotated[Optional[float], _option("tf_high")] = None,
+    tf_density: Annotated[Optional[float], _option("tf_density")] = None,
+    step: Annotated[Optional[float], _option("step")] = None,
+    render_from: Annotated[Optional[RenderSource], _option("render_from")] = None,
+    bake_size: Annotated[Optional[int], _option("bake_size")] = None,
+    seed: Annotated[Optional[int], _option("seed")] = None,
+    novel_directions: Annotated[Optional[int], _option("novel_directions")] = None,
+    device: DeviceOption = None,
     threads: ThreadsOption = None,
     cunerf_name: CunerfNameOption = None,
     name: NameOption = None,
@@ -142,14 +100,14 @@ def export_command(
     """
     configure_logging(quiet)
     settings = export_settings(
-        preset.value,
+        preset,
         cube=cube, points_per_cube=points_per_cube, max_points=max_points, air_threshold=air_threshold,
-        cameras=cameras.value if cameras else None, views=views, axis=axis.value if axis else None, radius=radius, fov=fov, resolution=resolution,
-        elevation=elevation, view=view.value if view else None, transfer=transfer.value, tf_low=tf_low, tf_high=tf_high,
-        tf_density=tf_density, step=step, render_from=render_from.value, bake_size=bake_size, seed=seed,
+        cameras=cameras, views=views, axis=axis, radius=radius, fov=fov, resolution=resolution,
+        elevation=elevation, view=view, transfer=transfer, tf_low=tf_low, tf_high=tf_high,
+        tf_density=tf_density, step=step, render_from=render_from, bake_size=bake_size, seed=seed,
         novel_directions=novel_directions,
     )
-    manifest = export_with_progress(work, settings, force, Runtime(device.value, threads), name, cunerf_name)
+    manifest = export_with_progress(work, settings, force, runtime_from_options(device, threads), name, cunerf_name)
     log.info(f"wrote {Path(work) / stage_dir_name('export', name)}: {describe_export(manifest)}")
 
 

@@ -2,74 +2,115 @@
 
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 from pathlib import Path
 from typing import Annotated, Optional
 
-import typer
-
 from cubecloud_cli.artifacts import read_manifest
-from cubecloud_cli.cli.cunerf import Device, describe_metrics, train_cunerf_with_progress
-from cubecloud_cli.cli.export import View, describe_export, export_settings, export_with_progress
+from cubecloud_cli.cli.common import (
+    DeviceOption,
+    FitOption,
+    ForceOption,
+    HuMaxOption,
+    HuMinOption,
+    InterpolationOption,
+    ModalityOption,
+    PercentilesOption,
+    PresetOption,
+    QuietOption,
+    ResolutionOption,
+    ScanArgument,
+    SizeOption,
+    SpacingOption,
+    ThreadsOption,
+    ViewOption,
+    ViewsOption,
+    VolumeIndexOption,
+    WindowOption,
+    WorkOption,
+    configure_logging,
+    preprocess_settings,
+    reports_errors,
+    runtime_from_options,
+    scan_or_sample,
+)
+from cubecloud_cli.cli.cunerf import describe_metrics, train_cunerf_with_progress
 from cubecloud_cli.cli.eval import evaluate_with_progress
-from cubecloud_cli.cli.splat import describe_splat, splat_settings, train_splat_with_progress
-from cubecloud_cli.eval.report import table_rows
-from cubecloud_cli.cli.preprocess import run_preprocess_with_progress, scan_command
-from cubecloud_cli.cunerf import CunerfSettings, Runtime
-from cubecloud_cli.pipeline import run_pipeline
-from cubecloud_cli.preprocess import PreprocessSettings
-from cubecloud_cli.presets import preset_note, resolve_cunerf
+from cubecloud_cli.cli.export import describe_export, export_with_progress
+from cubecloud_cli.cli.fields import build_settings, settings_option
+from cubecloud_cli.cli.preprocess import run_preprocess_with_progress
 from cubecloud_cli.cli.progress import PipelineProgress
+from cubecloud_cli.cli.splat import describe_splat, train_splat_with_progress
+from cubecloud_cli.cunerf import CunerfSettings
+from cubecloud_cli.eval.report import table_rows
+from cubecloud_cli.export import ExportSettings
+from cubecloud_cli.pipeline import run_pipeline
+from cubecloud_cli.presets import DEFAULT_PRESET
+from cubecloud_cli.splat.settings import SplatSettings
 
 log = logging.getLogger("cubecloud")
-
-
-def _option(name: str, annotation, default) -> inspect.Parameter:
-    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
-
-
-RUN_OPTIONS = [
-    _option("cunerf_iterations", Annotated[Optional[int], typer.Option("--cunerf-iterations", help=f"Training iterations of the cunerf stage. {preset_note('cunerf', 'iterations')}", show_default=False)], None),
-    _option("splat_iterations", Annotated[Optional[int], typer.Option("--splat-iterations", help=f"Training iterations of the splat stage. {preset_note('splat', 'iterations')}", show_default=False)], None),
-    _option("views", Annotated[Optional[int], typer.Option("--views", help=f"Training cameras of the export stage (the paper: 60). {preset_note('export', 'views')}", show_default=False)], None),
-    _option("resolution", Annotated[Optional[int], typer.Option("--resolution", help=f"Width and height of the exported images. {preset_note('export', 'resolution')}", show_default=False)], None),
-    _option("view", Annotated[Optional[View], typer.Option("--view", help=f"Image model of the exported views: dvr, slice (the paper's) or mip. {preset_note('export', 'view')}", show_default=False)], None),
-    _option("device", Annotated[Device, typer.Option("--device", help="auto (CUDA when available), cpu or cuda, for cunerf and export.")], Device.auto),
-    _option("threads", Annotated[Optional[int], typer.Option("--threads", help="CPU threads for torch (default: torch's choice).", show_default=False)], None),
-]
-
-
-def _run(scan: Path, output: Path, settings: PreprocessSettings, force: bool, preset: str, extras: dict) -> None:
-    cunerf_settings = CunerfSettings(**resolve_cunerf(preset, None, {"iterations": extras["cunerf_iterations"]}))
-    export = export_settings(preset, views=extras["views"], resolution=extras["resolution"], view=extras["view"].value if extras["view"] else None)
-    splat = splat_settings(preset, iterations=extras["splat_iterations"])
-    with PipelineProgress(len(RUN_STAGES), "run " + " → ".join(RUN_STAGES)) as display:
-        outcomes = _run_stages(scan, output, settings, force, extras, cunerf_settings, export, splat, display)
-    _report(outcomes, output)
 
 
 RUN_STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
 
 
-def _run_stages(scan, output, settings, force, extras, cunerf_settings, export, splat, display) -> list:
-    return run_pipeline(
-        scan,
-        output,
-        settings,
-        cunerf_settings,
-        export,
-        splat,
-        force=force,
-        runtime=Runtime(extras["device"].value, extras["threads"]),
-        run_preprocess=run_preprocess_with_progress,
-        run_cunerf=lambda work, s, f, resume, runtime: train_cunerf_with_progress(work, s, f, resume, runtime),
-        run_export=lambda work, s, f, runtime: export_with_progress(work, s, f, runtime),
-        run_splat=lambda work, s, f, resume, runtime, name: train_splat_with_progress(work, s, None, f, resume, runtime, name),
-        run_eval=lambda work, s, f, runtime: evaluate_with_progress(work, s, f, runtime),
-        on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
+@reports_errors
+def run_command(
+    scan: ScanArgument = None,
+    output: WorkOption = Path("work"),
+    preset: PresetOption = DEFAULT_PRESET,
+    size: SizeOption = None,
+    fit: FitOption = None,
+    window: WindowOption = None,
+    hu_min: HuMinOption = None,
+    hu_max: HuMaxOption = None,
+    modality: ModalityOption = None,
+    percentiles: PercentilesOption = None,
+    interpolation: InterpolationOption = None,
+    spacing: SpacingOption = None,
+    volume_index: VolumeIndexOption = None,
+    cunerf_iterations: Annotated[Optional[int], settings_option(CunerfSettings, "iterations", "--cunerf-iterations")] = None,
+    splat_iterations: Annotated[Optional[int], settings_option(SplatSettings, "iterations", "--splat-iterations")] = None,
+    views: ViewsOption = None,
+    resolution: ResolutionOption = None,
+    view: ViewOption = None,
+    device: DeviceOption = None,
+    threads: ThreadsOption = None,
+    force: ForceOption = False,
+    quiet: QuietOption = False,
+) -> None:
+    """Run every stage on a scan, skipping stages already complete with the same settings.
+
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
+
+    Examples:
+
+      cubecloud run -o work            # bundled CT, preset fast (about 4 min on 2 cores)
+
+      cubecloud run scan.nii.gz -o work --preset balanced
+    """
+    configure_logging(quiet)
+    preprocess = preprocess_settings(
+        preset, size=size, fit=fit, window=window, hu_min=hu_min, hu_max=hu_max, modality=modality,
+        percentiles=percentiles, interpolation=interpolation, spacing=spacing, volume_index=volume_index,
     )
+    cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
+    export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})
+    splat = build_settings(SplatSettings, preset, {"iterations": splat_iterations})
+    with PipelineProgress(len(RUN_STAGES), "run " + " → ".join(RUN_STAGES)) as display:
+        outcomes = run_pipeline(
+            scan_or_sample(scan), output, preprocess, cunerf, export, splat,
+            force=force,
+            runtime=runtime_from_options(device, threads),
+            run_preprocess=run_preprocess_with_progress,
+            run_cunerf=train_cunerf_with_progress,
+            run_export=export_with_progress,
+            run_splat=lambda work, s, f, resume, runtime, name: train_splat_with_progress(work, s, None, f, resume, runtime, name),
+            run_eval=evaluate_with_progress,
+            on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
+        )
+    _report(outcomes, output)
 
 
 def _report(outcomes: list, output: Path) -> None:
@@ -85,19 +126,3 @@ def _report(outcomes: list, output: Path) -> None:
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
     table = "\n".join(table_rows(results))
     log.info(f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}")
-
-
-run_command = scan_command(
-    _run,
-    """Run every stage on a scan, skipping stages already complete with the same settings.
-
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
-
-    Examples:
-
-      cubecloud run -o work            # bundled CT, preset fast (about 6 min on 2 cores)
-
-      cubecloud run scan.nii.gz -o work --preset balanced
-    """,
-    RUN_OPTIONS,
-)

@@ -4,40 +4,72 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.cunerf.fields import DENSITY_ACTIVATIONS, FieldConfig
 from cubecloud_cli.cunerf.model import RENDER_POINTS_PER_CHUNK, RenderConfig
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.presets import preset_default
 
-MODELS = ("fast", "cunerf")
+Model = Literal["fast", "cunerf"]
+MODELS = get_args(Model)
+TrainLayout = Literal["stratified", "uniform"]
 
 
 @dataclass(frozen=True)
 class CunerfSettings:
-    model: str = "fast"
-    iterations: int = 4000
-    batch_size: int = 4096  # cubes per iteration (official: 1024)
-    lr: float = 0.05
-    lr_final: float = 5e-4
-    warmup: int = 100  # iterations of sine warm-up from 1% of lr (official: 1000)
-    cube_radius: float = 0.5  # cube half-size in voxels of the training lattice (official: 1)
-    samples_per_axis: int = 2  # n: n³ points per cube (official: 4 → 64)
-    importance: int = 0  # fine points per cube from the coarse weights (official: 64)
-    train_layout: str = "stratified"
+    STAGE: ClassVar[str] = "cunerf"
+
+    model: Model = preset_default("cunerf", "model")
+    """fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional
+    encoding, coarse + fine (GPU)."""
+    iterations: int = preset_default("cunerf", "iterations")
+    """Training iterations."""
+    batch_size: int = preset_default("cunerf", "batch_size")  # cubes per iteration (official: 1024)
+    """Cubes (voxels) per iteration (the official code: 1024)."""
+    lr: float = preset_default("cunerf", "lr")
+    """Peak learning rate (Adam)."""
+    lr_final: float = preset_default("cunerf", "lr_final")
+    """Learning rate at the last iteration, reached by log-linear decay."""
+    warmup: int = preset_default("cunerf", "warmup")  # iterations of sine warm-up from 1% of lr (official: 1000)
+    """Iterations of sine warm-up from 1% of --lr (the official code: 1000)."""
+    cube_radius: float = preset_default("cunerf", "cube_radius")  # cube half-size in voxels of the training lattice (official: 1)
+    """Cube half-size in voxels, times --train-scale (the paper: 1; 0.5 is the voxel itself)."""
+    samples_per_axis: int = preset_default("cunerf", "samples_per_axis")  # n: n³ points per cube (official: 4 → 64)
+    """n: n³ points per cube (the paper: 4, so 64 points)."""
+    importance: int = preset_default("cunerf", "importance")  # fine points per cube from the coarse weights (official: 64)
+    """Fine points per cube drawn from the coarse weights; 0 = no fine pass (the paper: 64)."""
+    train_layout: TrainLayout = "stratified"
+    """Training points: stratified (one per sub-cell) or uniform (i.i.d. in the cube)."""
     official: bool = False  # the official code's sampling and rendering quirks
+    """Reproduce the official code's sampling and rendering quirks (corner-biased samples, asymmetric lattice,
+    polar-crowded random directions, unbounded weights) for A/B comparison."""
     density: str = "softplus"
+    """Density activation: softplus, or relu as in the official code (can die and render black)."""
     grid_levels: int = 3
+    """fast model: grid levels, geometric from --grid-base to one vertex per voxel."""
     grid_base: int = 16
+    """fast model: vertices per axis of the coarsest level."""
     grid_features: int = 2
+    """fast model: features per grid vertex."""
     grid_hidden: int = 32
+    """fast model: width of the MLP's hidden layer."""
     train_scale: int = 1
+    """Zero-shot super-resolution: train on every s-th voxel per axis, score against all of them."""
     holdout: int = 8  # axial slices kept for validation
-    val_every: int = 1000
-    checkpoint_every: int = 500
+    """Axial slices kept out of training for validation."""
+    val_every: int = preset_default("cunerf", "val_every")
+    """Validate on the held-out slices every K iterations."""
+    checkpoint_every: int = preset_default("cunerf", "checkpoint_every")
+    """Save a checkpoint every K iterations (and on Ctrl-C)."""
     body_fraction: float = 0.8
+    """Share of each batch drawn from non-air voxels; the rest is uniform."""
     export_scale: float = 1.0
+    """recon.nii.gz resolution as a multiple of the volume's (2 = twice as many voxels per axis)."""
     skip_air: bool = True
+    """Skip rendering blocks that hold no non-zero training voxel (they read 0)."""
     seed: int = 0
+    """Seed of every random draw; the same seed repeats a run."""
 
     def validate(self, volume_size: int | None = None) -> None:
         def bad(message: str) -> CubecloudError:
@@ -59,7 +91,7 @@ class CunerfSettings:
             raise bad(f"--samples-per-axis {self.samples_per_axis} must be within 2..8 (the paper uses 4)")
         if not 0 <= self.importance <= 512:
             raise bad(f"--importance {self.importance} must be within 0..512 (the paper uses 64)")
-        if self.train_layout not in ("stratified", "uniform"):
+        if self.train_layout not in get_args(TrainLayout):
             raise bad(f"--train-layout {self.train_layout!r} must be stratified or uniform")
         if self.density not in DENSITY_ACTIVATIONS:
             raise bad(f"--density {self.density!r} must be softplus or relu")

@@ -10,7 +10,9 @@ from cubecloud_cli.eval.runs import MAX_TURNTABLE_FRAMES
 @dataclass(frozen=True)
 class EvalSettings:
     turntable_frames: int = 72  # 0: no turntables
+    """Frames of each run's turntable GIF (a dense orbit like the export's); 0 for none."""
     turntable_resolution: int = 256  # renders larger than this are shown at this size
+    """Largest side of the turntable frames, in pixels."""
 
     def validate(self) -> None:
         if self.turntable_frames != 0 and not 2 <= self.turntable_frames <= MAX_TURNTABLE_FRAMES:

@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras, stack_cameras, stack_offsets
 from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, NovelViewSet
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.presets import preset_default
 from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
 from cubecloud_cli.render import IMAGE_MODELS
 
-RENDER_SOURCES = ("grid", "field")
+RenderSource = Literal["grid", "field"]
+RENDER_SOURCES = get_args(RenderSource)
 # sphere and orbit: DESIGN §2. stack: the paper's 3DGS baseline, parallel slices seen from one pose.
-CAMERA_PATHS = ("sphere", "orbit", "stack")
+CameraPath = Literal["sphere", "orbit", "stack"]
+CAMERA_PATHS = get_args(CameraPath)
 CAMERA_BUILDERS = {"sphere": sphere_cameras, "orbit": orbit_cameras, "stack": stack_cameras}
 MAX_NOVEL_DIRECTIONS = 256
 MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
@@ -20,32 +24,62 @@ MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 ten
 
 @dataclass(frozen=True)
 class ExportSettings:
+    STAGE: ClassVar[str] = "export"
+
     # The point cloud (paper Eq. 1–2).
     cube: int = 16
-    points_per_cube: int = 512
-    max_points: int = 100_000  # 0: keep every non-air point
+    """Cube side in voxels for point sampling (the paper: 16)."""
+    points_per_cube: int = preset_default("export", "points_per_cube")
+    """Points drawn uniformly in each cube."""
+    max_points: int = preset_default("export", "max_points")  # 0: keep every non-air point
+    """Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point."""
     air_threshold: float = 0.02
+    """Points whose CuNeRF intensity is at or below this are air and dropped."""
     # The training cameras (DESIGN §2): over the sphere, on a ring about ``axis``, or the paper
     # baseline's stack of slices across ``axis``.
-    cameras: str = "sphere"
-    views: int = 60
-    axis: str = "si"
+    cameras: CameraPath = preset_default("export", "cameras")
+    """sphere: --views cameras spread evenly over the whole sphere of directions, --axis up. orbit: --views cameras
+    on a ring around --axis (the paper's). stack: the paper's 3DGS baseline, --views parallel slices across
+    --axis (lr: sagittal) all seen from one camera pose; needs --view slice."""
+    views: int = preset_default("export", "views")
+    """Training cameras (the paper: 60); every 8th is held out for testing."""
+    axis: str = preset_default("export", "axis")
+    """Orbit axis, or the sphere's pole axis and image up: si (long axis, head up), ap (the paper's sagittal axis),
+    lr. With --cameras stack, the slice normal instead: lr sagittal (its default), ap coronal, si axial."""
     radius: float = 4.0
+    """Camera distance from the volume's centre, in world units (the volume spans -1..1)."""
     fov: float | None = None
-    resolution: int = 128
+    """Field of view in degrees (default: just wide enough for the whole volume in every view)."""
+    resolution: int = preset_default("export", "resolution")
+    """Image width and height in pixels."""
     elevation: float = 0.0
+    """--cameras orbit: degrees the orbit is raised out of its plane (all views alike)."""
     # The images (DESIGN §3).
-    view: str = "dvr"
+    view: str = preset_default("export", "view")
+    """Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera,
+    the paper's images) or mip (maximum intensity)."""
     transfer: str = DEFAULT_TRANSFER
+    """dvr transfer function preset, in HU for CT."""
     tf_low: float | None = None
+    """dvr: intensity (0..1) where tissue starts to absorb; overrides the preset."""
     tf_high: float | None = None
+    """dvr: intensity (0..1) of full absorption; overrides the preset."""
     tf_density: float | None = None
+    """dvr: extinction per world unit at full absorption; higher is more opaque."""
     step: float = 1.0  # voxels of the preprocessed volume between ray samples
-    render_from: str = "grid"
+    """Ray-march step in voxels of the preprocessed volume."""
+    render_from: RenderSource = "grid"
+    """grid: bake CuNeRF to a grid once, then render (fast). field: query CuNeRF's cube renders at every ray sample
+    (slow; exact)."""
     bake_size: int | None = None  # None: the preprocessed volume's size
+    """Grid side for --render-from grid (default: the volume's size)."""
     seed: int = 0
+    """Seed of the point sampling."""
     # The novel-view test (DESIGN §2): directions, each at every magnification; 0 for none.
     novel_directions: int = DEFAULT_DIRECTIONS
+    """Directions of the novel-view test (from the head, from the feet, then fixed random ones), each rendered from
+    the volume at magnifications 0.5, 0.75, 1, 1.33 and 2 with pixel-area references; eval scores every run on
+    them. 0 for none."""
 
     def orbit(self) -> OrbitSpec:
         return OrbitSpec(self.views, self.axis, self.radius, self.resolution, self.elevation, self.fov)

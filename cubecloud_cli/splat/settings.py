@@ -4,23 +4,35 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.presets import preset_default
 from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE
 
 REFERENCE_ITERATIONS = 30_000
-INIT_CHOICES = ("cloud", "random")
+Init = Literal["cloud", "random"]
+INIT_CHOICES = get_args(Init)
 
 
 @dataclass(frozen=True)
 class SplatSettings:
-    iterations: int = 3000
-    init: str = "cloud"  # the Cube-Cloud points, or the paper's baseline of random points
+    STAGE: ClassVar[str] = "splat"
+
+    iterations: int = preset_default("splat", "iterations")
+    """Training iterations, one view each."""
+    init: Init = "cloud"
+    """cloud: the scene's points (Cube-Cloud). random: uniform points in the volume's cube (the paper's baseline)."""
     random_points: int = 100_000
+    """Points for --init random."""
     channels: int = 1
+    """Colour channels: 1 for CT (grey), 3 for RGB scenes."""
     sh_degree: int = 0
-    max_gaussians: int | None = 200_000
+    """Spherical-harmonics degree; dvr and slice images are view-independent, so 0."""
+    max_gaussians: int | None = preset_default("splat", "max_gaussians")
+    """Gaussian budget; densification stops growing at it."""
     dssim_weight: float = 0.2
+    """λ of (1-λ)·L1 + λ·D-SSIM (the paper: 0.2)."""
     lr_means: float = 1.6e-4  # × scene extent, decaying log-linearly to lr_means_final
     lr_means_final: float = 1.6e-6
     lr_sh: float = 0.0025  # the rest of the SH bands train at a twentieth of it
@@ -30,12 +42,18 @@ class SplatSettings:
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01
     refine: bool = True
-    # Mip-Splatting's 3D smoothing and 2D Mip filters (DESIGN §4), so the scene holds when the view
-    # zooms; False is the paper's plain 3DGS (0.3 px² dilation).
-    antialias: bool = True
+    """Densify, prune and reset opacity on the reference schedule (scaled to --iterations)."""
+    # Mip-Splatting's filters: DESIGN §4.
+    antialias: bool = preset_default("splat", "antialias")
+    """Mip-Splatting's anti-aliasing: a 3D smoothing filter tied to the training views' sampling rate (baked into
+    point_cloud.ply) and a 2D Mip filter instead of the 0.3 px dilation, so the scene holds when the view zooms.
+    --no-antialias is the paper's plain 3DGS."""
     seed: int = 0
+    """Seed of the view order, random points and splits."""
     eval_every: int = 500
+    """Score the test views every K iterations."""
     checkpoint_every: int = 500
+    """Save a checkpoint every K iterations (and on Ctrl-C)."""
 
     def validate(self) -> None:
         if self.iterations < 1:
