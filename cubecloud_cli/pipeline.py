@@ -8,20 +8,25 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ContextManager, Iterator
 
 from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, sha256_of_path
-from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
-from cubecloud_cli.cunerf.stage import CHECKPOINT_FILE
+from cubecloud_cli.cunerf import CunerfSettings, train_cunerf
+from cubecloud_cli.cunerf import stage as cunerf_stage
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
 from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.export import ExportSettings, export_scene
+from cubecloud_cli.export import stage as export_stage
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
+from cubecloud_cli.preprocess import stage as preprocess_stage
+from cubecloud_cli.progress import ProgressCallback, no_progress
+from cubecloud_cli.runtime import Runtime
+from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.splat.stage import CHECKPOINT_FILE as SPLAT_CHECKPOINT
 from cubecloud_cli.splat.stage import train_splat
 
 
@@ -68,28 +73,98 @@ def stage_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> 
     return True
 
 
-def _preprocess_quietly(scan: Path, work: Path, settings: PreprocessSettings, force: bool) -> dict:
-    return preprocess_scan(scan, work, settings, force=force)
+@dataclass(frozen=True)
+class PipelineStage:
+    """One row of the stage table: whether WORK/folder is current, and how to make it again.
 
+    A stage is redone when a stage it reads from (``upstream``) was, and resumed when it left
+    saved work behind and nothing upstream changed.
+    """
 
-def _cunerf_quietly(work: Path, settings: CunerfSettings, force: bool, resume: bool, runtime: Runtime) -> dict:
-    return train_cunerf(work, settings, force=force, resume=resume, runtime=runtime)
-
-
-def _export_quietly(work: Path, settings: ExportSettings, force: bool, runtime: Runtime) -> dict:
-    return export_scene(work, settings, force=force, runtime=runtime)
-
-
-def _splat_quietly(work: Path, settings: SplatSettings, force: bool, resume: bool, runtime: Runtime,
-                   name: str | None = None) -> dict:
-    return train_splat(work, settings, force=force, resume=resume, runtime=runtime, name=name)
-
-
-def _eval_quietly(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
-    return evaluate_work(work, settings, force=force, runtime=runtime)
+    folder: str
+    upstream: tuple[str, ...]
+    is_current: Callable[[], bool]
+    run: Callable[[bool, bool, ProgressCallback], dict]  # (force, resume, on_progress) -> manifest
+    checkpoint: Path | None = None  # saved work of an interrupted run, resumed when present
+    resumed: Callable[[dict], bool] = lambda manifest: False  # whether the run reused saved work anyway
 
 
 BASELINE_NAME = "random"
+
+
+def stage_table(
+    scan: Path,
+    work: Path,
+    preprocess: PreprocessSettings,
+    cunerf: CunerfSettings,
+    export: ExportSettings,
+    splat: SplatSettings,
+    evaluation: EvalSettings,
+    runtime: Runtime,
+    baseline: bool = True,
+) -> list[PipelineStage]:
+    """preprocess → cunerf → export → splat runs → eval, each with what makes it current."""
+    work = Path(work)
+
+    def current(folder: str, params: dict, inputs: list[Path]) -> Callable[[], bool]:
+        return lambda: stage_is_current(work / folder, params, inputs)
+
+    def checkpoint(folder: str, file: str) -> Path:
+        return work / f".{folder}{PARTIAL_SUFFIX}" / file
+
+    stages = [
+        PipelineStage("preprocess", (), current("preprocess", preprocess_stage.recorded_params(preprocess), [Path(scan)]),
+                      lambda force, resume, on_progress: preprocess_scan(scan, work, preprocess, force=force, on_progress=on_progress)),
+        PipelineStage("cunerf", ("preprocess",), current("cunerf", cunerf.as_dict(), cunerf_stage.input_files(work)),
+                      lambda force, resume, on_progress: train_cunerf(work, cunerf, force=force, resume=resume, runtime=runtime, on_progress=on_progress),
+                      checkpoint=checkpoint("cunerf", cunerf_stage.CHECKPOINT_FILE)),
+        PipelineStage("export", ("cunerf",), current("export", export_stage.recorded_params(export), export_stage.input_files(work)),
+                      lambda force, resume, on_progress: export_scene(work, export, force=force, runtime=runtime, on_progress=on_progress),
+                      resumed=export_stage.resumed_views),
+    ]
+    runs = [("splat", None, splat)] + ([(f"splat-{BASELINE_NAME}", BASELINE_NAME, replace(splat, init="random"))] if baseline else [])
+    for folder, name, settings in runs:
+        stages.append(PipelineStage(
+            folder, ("export",), current(folder, splat_stage.recorded_params(settings, work / "export"), splat_stage.input_files(work / "export")),
+            lambda force, resume, on_progress, settings=settings, name=name: train_splat(
+                work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress),
+            checkpoint=checkpoint(folder, splat_stage.CHECKPOINT_FILE)))
+    # eval is cheap and holds no choices worth protecting: one made with other settings or of
+    # other runs (a splat-NAME/ the user trained beside them) is simply redone, never refused.
+    stages.append(PipelineStage("eval", tuple(stage.folder for stage in stages), lambda: eval_is_current(work, evaluation),
+                                lambda force, resume, on_progress: evaluate_work(work, evaluation, force=force, runtime=runtime, on_progress=on_progress)))
+    return stages
+
+
+@contextmanager
+def _silent(stage: str) -> Iterator[ProgressCallback]:
+    yield no_progress
+
+
+def run_stages(
+    stages: list[PipelineStage],
+    work: Path,
+    *,
+    force: bool = False,
+    progress: Callable[[str], ContextManager[ProgressCallback]] = _silent,
+    on_stage: Callable[[StageOutcome], None] = lambda outcome: None,
+) -> list[StageOutcome]:
+    """Each stage in order: skipped if current, resumed if interrupted, run otherwise.
+    ``progress(folder)`` gives the callback a stage reports to (a bar on the terminal)."""
+    outcomes: dict[str, StageOutcome] = {}
+    for stage in stages:
+        start = time.perf_counter()
+        upstream_ran = force or any(outcomes[name].status != "skipped" for name in stage.upstream)
+        if not upstream_ran and stage.is_current():
+            outcomes[stage.folder] = StageOutcome(stage.folder, "skipped", 0.0)
+        else:
+            resume = not upstream_ran and stage.checkpoint is not None and stage.checkpoint.is_file()
+            with progress(stage.folder) as on_progress:
+                manifest = stage.run(upstream_ran or (Path(work) / stage.folder).exists(), resume, on_progress)
+            status = "resumed" if resume or stage.resumed(manifest) else "ran"
+            outcomes[stage.folder] = StageOutcome(stage.folder, status, time.perf_counter() - start)
+        on_stage(outcomes[stage.folder])
+    return list(outcomes.values())
 
 
 def run_pipeline(
@@ -100,88 +175,14 @@ def run_pipeline(
     export_settings: ExportSettings = ExportSettings(),
     splat_settings: SplatSettings = SplatSettings(),
     *,
+    eval_settings: EvalSettings = EvalSettings(),
     force: bool = False,
     runtime: Runtime = Runtime(),
-    run_preprocess: Callable[[Path, Path, PreprocessSettings, bool], dict] | None = None,
-    run_cunerf: Callable[[Path, CunerfSettings, bool, bool, Runtime], dict] | None = None,
-    run_export: Callable[[Path, ExportSettings, bool, Runtime], dict] | None = None,
-    run_splat: Callable[..., dict] | None = None,
-    eval_settings: EvalSettings = EvalSettings(),
-    run_eval: Callable[[Path, EvalSettings, bool, Runtime], dict] | None = None,
     baseline: bool = True,
+    progress: Callable[[str], ContextManager[ProgressCallback]] = _silent,
     on_stage: Callable[[StageOutcome], None] = lambda outcome: None,
 ) -> list[StageOutcome]:
-    """Run the stages in order. ``run_*`` let the caller wrap a stage (progress display).
-
-    A stage whose input was just rebuilt is rebuilt too; an interrupted cunerf run with a
-    checkpoint is resumed.
-    """
-    run_preprocess = run_preprocess or _preprocess_quietly
-    run_cunerf = run_cunerf or _cunerf_quietly
-    run_export = run_export or _export_quietly
-    run_splat = run_splat or _splat_quietly
-    run_eval = run_eval or _eval_quietly
-    outcomes: list[StageOutcome] = []
-
-    def finish(stage: str, status: str, started: float) -> None:
-        outcomes.append(StageOutcome(stage, status, 0.0 if status == "skipped" else time.perf_counter() - started))
-        on_stage(outcomes[-1])
-
-    work = Path(work)
-
-    start = time.perf_counter()
-    if not force and stage_is_current(work / "preprocess", asdict(preprocess_settings), [Path(scan)]):
-        finish("preprocess", "skipped", start)
-    else:
-        run_preprocess(scan, work, preprocess_settings, force)
-        finish("preprocess", "ran", start)
-    upstream_changed = force or outcomes[-1].status == "ran"
-
-    start = time.perf_counter()
-    volume = work / "preprocess" / "volume.npy"
-    if not upstream_changed and stage_is_current(work / "cunerf", cunerf_settings.as_dict(), [volume]):
-        finish("cunerf", "skipped", start)
-    else:
-        checkpoint = work / f".cunerf{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
-        resume = checkpoint.is_file() and not upstream_changed
-        run_cunerf(work, cunerf_settings, upstream_changed or (work / "cunerf").exists(), resume, runtime)
-        finish("cunerf", "resumed" if resume else "ran", start)
-    upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
-
-    start = time.perf_counter()
-    export_params = {**export_settings.as_dict(), "cunerf": "cunerf"}
-    export_inputs = [volume, work / "cunerf" / "model.pt"]
-    if not upstream_changed and stage_is_current(work / "export", export_params, export_inputs):
-        finish("export", "skipped", start)
-    else:
-        manifest = run_export(work, export_settings, upstream_changed or (work / "export").exists(), runtime)
-        resumed = bool(manifest.get("resumed", {}).get("views"))
-        finish("export", "resumed" if resumed else "ran", start)
-    upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
-
-    export_changed = upstream_changed
-    runs = [("splat", None, splat_settings)]
-    if baseline:
-        runs.append((f"splat-{BASELINE_NAME}", BASELINE_NAME, replace(splat_settings, init="random")))
-    for folder, name, settings in runs:
-        start = time.perf_counter()
-        splat_params = {**settings.as_dict(), "scene": str(work / "export")}
-        splat_inputs = [work / "export" / "images.npy", work / "export" / "points3D.ply"]
-        if not export_changed and stage_is_current(work / folder, splat_params, splat_inputs):
-            finish(folder, "skipped", start)
-        else:
-            checkpoint = work / f".{folder}{PARTIAL_SUFFIX}" / SPLAT_CHECKPOINT
-            resume = checkpoint.is_file() and not export_changed
-            run_splat(work, settings, export_changed or (work / folder).exists(), resume, runtime, name)
-            finish(folder, "resumed" if resume else "ran", start)
-        upstream_changed = upstream_changed or outcomes[-1].status != "skipped"
-
-    start = time.perf_counter()
-    # eval is cheap and holds no choices worth protecting: one made with other settings or of
-    # other runs (a splat-NAME/ the user trained beside them) is simply redone, never refused.
-    if not upstream_changed and eval_is_current(work, eval_settings):
-        finish("eval", "skipped", start)
-    else:
-        run_eval(work, eval_settings, upstream_changed or (work / "eval").exists(), runtime)
-        finish("eval", "ran", start)
-    return outcomes
+    """Every stage on a scan (the random-init baseline too, unless ``baseline`` is False)."""
+    stages = stage_table(scan, work, preprocess_settings, cunerf_settings, export_settings, splat_settings,
+                         eval_settings, runtime, baseline)
+    return run_stages(stages, work, force=force, progress=progress, on_stage=on_stage)

@@ -21,8 +21,8 @@ from cubecloud_cli.cli.common import (
     runtime_from_options,
 )
 from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import stage_progress
-from cubecloud_cli.cunerf import CunerfSettings, Runtime, train_cunerf
+from cubecloud_cli.cli.progress import stage_bar
+from cubecloud_cli.cunerf import CunerfSettings, train_cunerf
 from cubecloud_cli.cunerf.fields import DENSITY_ACTIVATIONS
 from cubecloud_cli.cunerf.settings import Model, TrainLayout
 from cubecloud_cli.presets import DEFAULT_PRESET
@@ -99,7 +99,8 @@ def cunerf_command(
     }
     settings = build_settings(CunerfSettings, preset, options)
     runtime = runtime_from_options(device, threads)
-    manifest = train_cunerf_with_progress(work, settings, force, resume, runtime, name)
+    with stage_bar(stage_dir_name("cunerf", name)) as on_progress:
+        manifest = train_cunerf(work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress)
     log.info(f"wrote {Path(work) / stage_dir_name('cunerf', name)}: {describe_metrics(manifest)}")
 
 
@@ -116,13 +117,3 @@ def describe_metrics(manifest: dict) -> str:
     if "val_psnr" in metrics:
         text += f" (held-out slices {_number(metrics['val_psnr'], 2)} dB)"
     return text + f", {manifest['timings_s']['total']:.0f} s"
-
-
-def train_cunerf_with_progress(
-    work: Path, settings: CunerfSettings, force: bool, resume: bool, runtime: Runtime, name: str | None = None
-) -> dict:
-    """The stage with a bar: iterations with rate, ETA, loss and validation PSNR."""
-    with stage_progress(f"cunerf ({settings.model})", total=settings.iterations) as on_progress:
-        return train_cunerf(
-            work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress
-        )

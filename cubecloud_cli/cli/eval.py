@@ -22,7 +22,7 @@ from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
 from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.eval.compare import compare_works
-from cubecloud_cli.cli.progress import stage_progress
+from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
@@ -33,11 +33,6 @@ CompareOption = Annotated[Optional[list[Path]], typer.Option(
 OutputOption = Annotated[Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")]
 FramesOption = Annotated[Optional[int], settings_option(EvalSettings, "turntable_frames")]
 TurntableResolutionOption = Annotated[Optional[int], settings_option(EvalSettings, "turntable_resolution")]
-
-
-def evaluate_with_progress(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
-    with stage_progress(f"eval {work}", unit="frames") as on_progress:
-        return evaluate_work(work, settings, force=force, runtime=runtime, on_progress=on_progress)
 
 
 def describe_eval(manifest: dict) -> str:
@@ -80,7 +75,7 @@ def eval_command(
     settings = build_settings(EvalSettings, None, options)
     runtime = runtime_from_options(device, threads)
     if not compare:
-        manifest = evaluate_with_progress(work, settings, force, runtime)
+        manifest = _evaluate(work, settings, force, runtime)
         log.info(f"wrote {Path(work) / 'eval'}: {describe_eval(manifest)}")
         return
     # A comparison evaluates each directory whose eval is missing or older than its runs (all of
@@ -92,7 +87,12 @@ def eval_command(
             targets.append(Path(target))
     for target in targets:
         if force or not eval_is_current(target):
-            manifest = evaluate_with_progress(target, settings, True, runtime)
+            manifest = _evaluate(target, settings, True, runtime)
             log.info(f"wrote {target / 'eval'}: {describe_eval(manifest)}")
     table = compare_works(targets, output)
     log.info(f"wrote {output / 'comparison.md'}:\n{table}")
+
+
+def _evaluate(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
+    with stage_bar("eval") as on_progress:
+        return evaluate_work(work, settings, force=force, runtime=runtime, on_progress=on_progress)

@@ -24,12 +24,11 @@ from cubecloud_cli.cli.common import (
     runtime_from_options,
 )
 from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import stage_progress
+from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.export.settings import CameraPath, RenderSource
 from cubecloud_cli.export.transfer import TRANSFER_PRESETS
 from cubecloud_cli.presets import DEFAULT_PRESET
-from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
 
@@ -107,7 +106,10 @@ def export_command(
         tf_density=tf_density, step=step, render_from=render_from, bake_size=bake_size, seed=seed,
         novel_directions=novel_directions,
     )
-    manifest = export_with_progress(work, settings, force, runtime_from_options(device, threads), name, cunerf_name)
+    runtime = runtime_from_options(device, threads)
+    with stage_bar(stage_dir_name("export", name)) as on_progress:
+        manifest = export_scene(work, settings, force=force, runtime=runtime, name=name, cunerf_name=cunerf_name,
+                                on_progress=on_progress)
     log.info(f"wrote {Path(work) / stage_dir_name('export', name)}: {describe_export(manifest)}")
 
 
@@ -119,11 +121,3 @@ def describe_export(manifest: dict) -> str:
         f"{metrics['views']} views ({metrics['test_views']} held out), {metrics['points']} points, "
         f"CuNeRF vs reference on test views {psnr_text}, {manifest['timings_s']['total']:.0f} s"
     )
-
-
-def export_with_progress(work: Path, settings: ExportSettings, force: bool, runtime: Runtime,
-                         name: str | None = None, cunerf_name: str | None = None) -> dict:
-    """The stage with a bar over the rendered views (CuNeRF, reference, novel), with rate and ETA."""
-    with stage_progress("export", unit="view") as on_progress:
-        return export_scene(work, settings, force=force, runtime=runtime, name=name, cunerf_name=cunerf_name,
-                            on_progress=on_progress)

@@ -26,8 +26,8 @@ from cubecloud_cli.cli.common import (
     reports_errors,
     scan_or_sample,
 )
-from cubecloud_cli.cli.progress import stage_progress
-from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
+from cubecloud_cli.cli.progress import stage_bar
+from cubecloud_cli.preprocess import preprocess_scan
 from cubecloud_cli.presets import DEFAULT_PRESET
 
 log = logging.getLogger("cubecloud")
@@ -70,7 +70,8 @@ def preprocess_command(
         preset, size=size, fit=fit, window=window, hu_min=hu_min, hu_max=hu_max, modality=modality,
         percentiles=percentiles, interpolation=interpolation, spacing=spacing, volume_index=volume_index,
     )
-    manifest = run_preprocess_with_progress(scan_or_sample(scan), output, settings, force)
+    with stage_bar("preprocess") as on_progress:
+        manifest = preprocess_scan(scan_or_sample(scan), output, settings, force=force, on_progress=on_progress)
     log.info(describe_result(manifest, output))
 
 
@@ -82,9 +83,3 @@ def describe_result(manifest: dict, work: Path) -> str:
         f"wrote {work / 'preprocess'}: {size}³ volume, {voxel} mm voxels, "
         f"{manifest['intensity']['method']}, {manifest['timings_s']['total']:.1f} s"
     )
-
-
-def run_preprocess_with_progress(scan: Path, output: Path, settings: PreprocessSettings, force: bool) -> dict:
-    """The stage with a bar on the terminal, each phase weighted by its expected cost."""
-    with stage_progress("preprocess", unit=None) as on_progress:
-        return preprocess_scan(scan, output, settings, force=force, on_progress=on_progress)

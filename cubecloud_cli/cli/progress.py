@@ -11,7 +11,7 @@ import logging
 import sys
 from contextlib import contextmanager
 from types import TracebackType
-from typing import Iterator
+from typing import ContextManager, Iterator
 
 from rich.console import Console
 from rich.text import Text
@@ -155,3 +155,12 @@ def stage_progress(
             bar.update(done, f"{label}: {phase}", **fields)
 
         yield on_progress
+
+
+# The unit each stage counts in; cunerf and splat count iterations.
+STAGE_UNITS = {"preprocess": None, "export": "view", "eval": "frame"}
+
+
+def stage_bar(folder: str) -> ContextManager[ProgressCallback]:
+    """The bar of the stage writing WORK/``folder`` (splat-random counts like splat)."""
+    return stage_progress(folder, unit=STAGE_UNITS.get(folder.split("-")[0], "it"))

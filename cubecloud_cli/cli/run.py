@@ -35,24 +35,20 @@ from cubecloud_cli.cli.common import (
     runtime_from_options,
     scan_or_sample,
 )
-from cubecloud_cli.cli.cunerf import describe_metrics, train_cunerf_with_progress
-from cubecloud_cli.cli.eval import evaluate_with_progress
-from cubecloud_cli.cli.export import describe_export, export_with_progress
+from cubecloud_cli.cli.cunerf import describe_metrics
+from cubecloud_cli.cli.export import describe_export
 from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.preprocess import run_preprocess_with_progress
-from cubecloud_cli.cli.progress import PipelineProgress
-from cubecloud_cli.cli.splat import describe_splat, train_splat_with_progress
+from cubecloud_cli.cli.progress import PipelineProgress, stage_bar
+from cubecloud_cli.cli.splat import describe_splat
 from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval.report import table_rows
+from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
-from cubecloud_cli.pipeline import run_pipeline
+from cubecloud_cli.pipeline import run_stages, stage_table
 from cubecloud_cli.presets import DEFAULT_PRESET
 from cubecloud_cli.splat.settings import SplatSettings
 
 log = logging.getLogger("cubecloud")
-
-
-RUN_STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
 
 
 @reports_errors
@@ -98,16 +94,11 @@ def run_command(
     cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})
     splat = build_settings(SplatSettings, preset, {"iterations": splat_iterations})
-    with PipelineProgress(len(RUN_STAGES), "run " + " → ".join(RUN_STAGES)) as display:
-        outcomes = run_pipeline(
-            scan_or_sample(scan), output, preprocess, cunerf, export, splat,
-            force=force,
-            runtime=runtime_from_options(device, threads),
-            run_preprocess=run_preprocess_with_progress,
-            run_cunerf=train_cunerf_with_progress,
-            run_export=export_with_progress,
-            run_splat=lambda work, s, f, resume, runtime, name: train_splat_with_progress(work, s, None, f, resume, runtime, name),
-            run_eval=evaluate_with_progress,
+    stages = stage_table(scan_or_sample(scan), output, preprocess, cunerf, export, splat, EvalSettings(),
+                         runtime_from_options(device, threads))
+    with PipelineProgress(len(stages), "run " + " → ".join(stage.folder for stage in stages)) as display:
+        outcomes = run_stages(
+            stages, output, force=force, progress=stage_bar,
             on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
         )
     _report(outcomes, output)

@@ -21,9 +21,8 @@ from cubecloud_cli.cli.common import (
     runtime_from_options,
 )
 from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import stage_progress
+from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.presets import DEFAULT_PRESET
-from cubecloud_cli.runtime import Runtime
 from cubecloud_cli.splat.settings import Init, SplatSettings
 from cubecloud_cli.splat.stage import train_splat
 
@@ -88,7 +87,10 @@ def splat_command(
         channels=channels, sh_degree=sh_degree, dssim_weight=dssim_weight, refine=refine, antialias=antialias,
         eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed,
     )
-    manifest = train_splat_with_progress(work, settings, scene, force, resume, runtime_from_options(device, threads), name)
+    runtime = runtime_from_options(device, threads)
+    with stage_bar(stage_dir_name("splat", name)) as on_progress:
+        manifest = train_splat(work, settings, scene_dir=scene, force=force, resume=resume, runtime=runtime, name=name,
+                               on_progress=on_progress)
     log.info(f"wrote {Path(work) / stage_dir_name('splat', name)}: {describe_splat(manifest)}")
 
 
@@ -98,10 +100,3 @@ def describe_splat(manifest: dict) -> str:
     psnr_text = f"{psnr:.2f} dB" if isinstance(psnr, (int, float)) else str(psnr)
     return (f"test PSNR {psnr_text} on {metrics['test_views']} views, {metrics['gaussians']} Gaussians, "
             f"{metrics['iterations_per_second']:.1f} it/s, {manifest['timings_s']['total']:.0f} s")
-
-
-def train_splat_with_progress(work: Path, settings: SplatSettings, scene: Path | None, force: bool, resume: bool,
-                              runtime: Runtime, name: str | None = None) -> dict:
-    with stage_progress("splat", total=settings.iterations) as on_progress:
-        return train_splat(work, settings, scene_dir=scene, force=force, resume=resume, runtime=runtime, name=name,
-                           on_progress=on_progress)

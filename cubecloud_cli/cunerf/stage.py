@@ -47,6 +47,11 @@ from cubecloud_cli.volume.nifti import write_nifti
 log = logging.getLogger("cubecloud")
 
 CHECKPOINT_FILE = "checkpoint.pt"
+
+
+def input_files(work: Path) -> list[Path]:
+    """The files a cunerf stage is trained from; with its settings, they make it current."""
+    return [Path(work) / "preprocess" / "volume.npy"]
 RECON_FILE = "recon.nii.gz"
 PREVIEW_FILE = "preview.png"
 LOG_FILE = "log.csv"

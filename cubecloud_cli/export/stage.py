@@ -51,6 +51,21 @@ log = logging.getLogger("cubecloud")
 HOLDOUT_EVERY = 8  # DESIGN §2 and the reference 3DGS evaluation: views with index % 8 == 0
 
 
+def recorded_params(settings: ExportSettings, cunerf_name: str | None = None) -> dict:
+    """What a complete export must have been made with to be current: its settings and its cunerf run."""
+    return {**settings.as_dict(), "cunerf": stage_dir_name("cunerf", cunerf_name)}
+
+
+def input_files(work: Path, cunerf_name: str | None = None) -> list[Path]:
+    """The files an export reads: the volume and the trained field."""
+    return [Path(work) / "preprocess" / "volume.npy", Path(work) / stage_dir_name("cunerf", cunerf_name) / MODEL_FILE]
+
+
+def resumed_views(manifest: dict) -> int:
+    """How many views an export took from an interrupted run's saved work."""
+    return int(manifest.get("resumed", {}).get("views", 0))
+
+
 def held_out_views(count: int) -> list[int]:
     return [index for index in range(count) if index % HOLDOUT_EVERY == 0]
 
@@ -92,7 +107,7 @@ def export_scene(
     except ValueError as exc:
         raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
 
-    params = {**settings.as_dict(), "cunerf": stage_dir_name("cunerf", cunerf_name)}
+    params = recorded_params(settings, cunerf_name)
     writer = StageWriter(work, "export", params, force=force, name=name, keep_partial=True, transient=(PROGRESS_DIR,))
     writer.check_can_start()
     fingerprint = {

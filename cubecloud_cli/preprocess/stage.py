@@ -35,6 +35,11 @@ VOLUME_NPY = "volume.npy"
 VOLUME_NIFTI = "volume.nii.gz"
 PREVIEW_PNG = "preview.png"
 
+def recorded_params(settings: PreprocessSettings) -> dict:
+    """What a complete preprocess/ must have been made with to be current (with the same scan)."""
+    return asdict(settings)
+
+
 def _check_memory(size: int, source_voxels: int) -> None:
     # Peak: the float32 source and its windowed copy, two intermediate products, the S³ result.
     needed = 4 * (2 * source_voxels + 3 * size**3)
@@ -83,7 +88,7 @@ def preprocess_scan(
         on_progress(phase, before + fraction * costs[phase], sum(costs.values()), {})
 
     settings.validate()
-    writer = StageWriter(Path(work), "preprocess", asdict(settings), force=force)
+    writer = StageWriter(Path(work), "preprocess", recorded_params(settings), force=force)
     with writer:  # refuses an existing stage before the scan is read
         costs = phase_costs(0, settings.size)
         on_phase("read", costs, 0.0)

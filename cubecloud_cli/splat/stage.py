@@ -45,6 +45,17 @@ PLY_FILE = "point_cloud.ply"
 LOG_COLUMNS = ("iteration", "seconds", "loss", "test_psnr", "gaussians")
 
 
+def recorded_params(settings: SplatSettings, scene_dir: Path) -> dict:
+    """What a complete splat run must have been made with to be current: its settings and its scene."""
+    return {**settings.as_dict(), "scene": str(scene_dir)}
+
+
+def input_files(scene_dir: Path) -> list[Path]:
+    """The scene files a splat run trains from (the point cloud only seeds --init cloud, but a new
+    export changes both)."""
+    return [Path(scene_dir) / "images.npy", Path(scene_dir) / "points3D.ply"]
+
+
 def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
     if settings.init == "random":
         xyz, grey = random_points(settings.random_points, settings.seed)
@@ -100,7 +111,7 @@ def train_splat(
     if scene.single_centre:  # said here, not in load_scene, so that eval does not repeat it
         log.warning(f"every training camera of {scene_dir} sits in one place: 3DGS cannot tell their images apart "
                     f"(the paper's baseline); the scene extent is taken as {scene.extent:.3g}, from the camera's distance to the origin")
-    writer = StageWriter(work, "splat", {**settings.as_dict(), "scene": str(scene_dir)}, force=force, name=name,
+    writer = StageWriter(work, "splat", recorded_params(settings, scene_dir), force=force, name=name,
                          keep_partial=True, transient=(CHECKPOINT_FILE,))
     writer.check_can_start()
     checkpoint = writer.directory / CHECKPOINT_FILE
