@@ -7,13 +7,14 @@ import csv
 import json
 import logging
 import math
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
 from cubecloud_cli.progress import ProgressCallback, no_progress
+from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
 from cubecloud_cli.eval.novel import annotate, pictured_views, summarize_novel, view_angles
@@ -162,6 +163,37 @@ def eval_is_current(work: Path, settings: EvalSettings | None = None) -> bool:
                and recorded.get(f"{run}/point_cloud.ply") == file_digest(Path(work) / run / "point_cloud.ply") for run in runs)
 
 
+@dataclass
+class LoadedRuns:
+    """The runs to score, each with the scene it is scored on, and the work directory's own scene."""
+
+    runs: list[SplatRun]
+    scene_of: dict[str, ScoredScene]
+    main_scene: ScoredScene
+    own_export: Path
+    turntables: dict[str, PinholeCameras | None]
+
+    def frames(self) -> int:
+        """Renders to make: each run's held-out views, novel views and turntable."""
+        total = 0
+        for run in self.runs:
+            scored, turntable = self.scene_of[run.name], self.turntables[run.name]
+            total += len(scored.scene.test) + (len(turntable) if turntable else 0)
+            total += len(scored.novel.views) if scored.novel else 0
+        return total
+
+
+@dataclass
+class Scores:
+    """What scoring found: a row per run (and CuNeRF), per-view rows, and the renders the report pictures."""
+
+    results: dict[str, dict] = field(default_factory=dict)
+    per_view: list[dict] = field(default_factory=list)
+    renders_by_view: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # held-out view -> row -> render
+    novel_renders: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # pictured novel view -> run -> render
+    pictures: dict[str, list[str]] = field(default_factory=lambda: {"views": [], "novel": [], "turntables": [], "curves": []})
+
+
 def evaluate_work(
     work: Path,
     settings: EvalSettings = EvalSettings(),
@@ -183,101 +215,123 @@ def evaluate_work(
     writer.check_can_start()
     with writer:
         with writer.phase("load"):
-            runs = [load_run(work, folder) for folder in folders]
-            scene_of = {run.name: resolve_scene(work, run) for run in runs}
-            scenes: dict[Path, ScoredScene] = {}
-            for run in runs:
-                if scene_of[run.name] not in scenes:
-                    channels = int(run.manifest.get("params", {}).get("channels", 1))
-                    scenes[scene_of[run.name]] = load_scored_scene(scene_of[run.name], channels)
-                writer.add_input(run.directory / "point_cloud.ply", f"{run.name}/point_cloud.ply")
-            own_export = (work / "export").resolve()
-            main_scene = scenes.get(own_export) or scenes[scene_of[runs[0].name]]
-            turntables = {run.name: turntable_cameras(scenes[scene_of[run.name]], settings.turntable_frames,
-                                                      settings.turntable_resolution) if settings.turntable_frames else None
-                          for run in runs}
-        total = sum(len(scenes[scene_of[run.name]].scene.test) + (len(turntables[run.name]) if turntables[run.name] else 0)
-                    + (len(scenes[scene_of[run.name]].novel.views) if scenes[scene_of[run.name]].novel else 0)
-                    for run in runs)
-        done = 0
+            loaded = _load_runs(work, folders, settings, writer)
+        total, done = loaded.frames(), 0
 
         def tick() -> None:
             nonlocal done
             done += 1
             on_progress("render", done, total, {})
 
-        results: dict[str, dict] = {}
-        per_view: list[dict] = []
-        renders_by_view: dict[str, dict[str, np.ndarray]] = {}
-        novel_renders: dict[int, dict[str, np.ndarray]] = {}  # pictured novel view -> run -> render
-        pictures: dict[str, list[str]] = {"views": [], "novel": [], "turntables": [], "curves": []}
+        scores = Scores()
         with writer.phase("score"):
-            for run in runs:
-                scored = scenes[scene_of[run.name]]
-                test, names = scored.scene.test, [scored.scene.names[i] for i in scored.scene.test]
-                gaussians = run.gaussians()
-                renders, ms = render_views(gaussians, scored.scene.cameras, test, rasterizer, tick, run.antialias)
-                if not np.isfinite(renders).all():
-                    raise CubecloudError(f"{run.name} renders NaN or Inf (its point_cloud.ply holds non-finite values): "
-                                         f"retrain it with `{run.retrain}`")
-                results[run.name] = {
-                    **_score_row(scored.reference[test], renders, names, run.name, run.method, per_view,
-                                 scored.scene.directory, scored.reference_kind),
-                    "ms_per_frame": ms, "fps": 1000.0 / ms if ms > 0 else None, "gaussians": len(gaussians),
-                    "size_mb": run.size_mb, "train_seconds": run.manifest.get("timings_s", {}).get("train"),
-                    "iterations": run.manifest.get("metrics", {}).get("iterations"), "rasterizer": rasterizer.description,
-                }
-                if scored.novel is not None:
-                    pictured = _score_novel(run, gaussians, scored, rasterizer, tick, per_view, results[run.name])
-                    if scored is main_scene:
-                        for index, render in pictured.items():
-                            novel_renders.setdefault(index, {})[run.name] = render
-                if scored is main_scene:
-                    for name, render in zip(names, renders):
-                        renders_by_view.setdefault(name, {})[run.name] = render
-                if turntables[run.name] is not None:
-                    frames, _ = render_views(gaussians, turntables[run.name], list(range(len(turntables[run.name]))),
-                                             rasterizer, tick, run.antialias)
-                    relative = f"turntable_{run.name}.gif"
-                    write_turntable(writer.directory / relative, frames)
-                    pictures["turntables"].append(relative)
-                del gaussians
-            if main_scene.reference_kind == "volume" and main_scene.scene.directory.resolve() == own_export:
-                results.update(_cunerf_rows(work, main_scene, per_view))
-                images = main_scene.scene.images.numpy().mean(axis=-1)
-                for index in main_scene.scene.test:
-                    renders_by_view.setdefault(main_scene.scene.names[index], {})[CUNERF_ROW] = images[index]
-            else:
-                log.warning(f"no CuNeRF rows: {own_export} is not the scene the runs trained on, or has no reference renders")
+            for run in loaded.runs:
+                _score_run(run, loaded, rasterizer, tick, scores, writer.directory)
+            _score_cunerf(work, loaded, scores)
         with writer.phase("pictures"):
-            (writer.directory / "views").mkdir(exist_ok=True)
-            for index in main_scene.scene.test:
-                name = main_scene.scene.names[index]
-                if name in renders_by_view:
-                    relative = f"views/{_picture_name(name)}.png"
-                    error_grid(main_scene.reference[index], renders_by_view[name], f"held-out view {name}").save(writer.directory / relative)
-                    pictures["views"].append(relative)
-            if main_scene.novel is not None:
-                for label, index in pictured_views(main_scene.novel):
-                    if index in novel_renders:
-                        name = main_scene.novel.views.entries()[index][0]
-                        relative = f"views/{name}.png"
-                        error_grid(main_scene.novel.reference[index], novel_renders[index], f"novel view {name}: {label}").save(
-                            writer.directory / relative)
-                        pictures["novel"].append(relative)
-            curves = [(run.name, *_training_curve(run)) for run in runs]
-            if any(xs for _, xs, _ in curves):
-                (writer.directory / "psnr_vs_iteration.svg").write_text(line_plot_svg(
-                    curves, "test PSNR during training (against the training images)", "iteration", "PSNR (dB)"))
-                pictures["curves"].append("psnr_vs_iteration.svg")
-        foreign = [run.name for run in runs if scenes[scene_of[run.name]] is not main_scene]
-        protocol = protocol_description(main_scene, foreign)
-        metrics = {"protocol": protocol, "results": results, "paper": PAPER_TABLE_I}
-        (writer.directory / "metrics.json").write_text(json.dumps(to_jsonable(metrics), indent=2, allow_nan=False) + "\n")
-        write_per_view_csv(writer.directory / "per_view.csv", per_view)
-        (writer.directory / "report.md").write_text(report_markdown(f"cubecloud eval: {work}", protocol, results, pictures))
-        writer.metrics.update({row: {k: result.get(k) for k in ("novel_psnr", "novel_ssim", "psnr", "ssim", "mse")}
-                               for row, result in results.items()})
+            _draw_pictures(loaded, scores, writer.directory)
+        _write_report(work, loaded, scores, writer)
         writer.metrics.update(peak_memory_mb(device))
         writer.extra["rasterizer"] = rasterizer.description
     return read_manifest(work / "eval")
+
+
+def _load_runs(work: Path, folders: list[str], settings: EvalSettings, writer: StageWriter) -> LoadedRuns:
+    """Each run and its scene (loaded once however many runs share it), recording the runs' files as inputs."""
+    runs = [load_run(work, folder) for folder in folders]
+    scenes: dict[Path, ScoredScene] = {}
+    scene_of = {}
+    for run in runs:
+        directory = resolve_scene(work, run)
+        if directory not in scenes:
+            channels = int(run.manifest.get("params", {}).get("channels", 1))
+            scenes[directory] = load_scored_scene(directory, channels)
+        scene_of[run.name] = scenes[directory]
+        writer.add_input(run.directory / "point_cloud.ply", f"{run.name}/point_cloud.ply")
+    own_export = (work / "export").resolve()
+    main_scene = scenes.get(own_export) or scene_of[runs[0].name]
+    turntables = {run.name: turntable_cameras(scene_of[run.name], settings.turntable_frames, settings.turntable_resolution)
+                  if settings.turntable_frames else None for run in runs}
+    return LoadedRuns(runs, scene_of, main_scene, own_export, turntables)
+
+
+def _score_run(run: SplatRun, loaded: LoadedRuns, rasterizer, tick, scores: Scores, directory: Path) -> None:
+    """Score one run on its held-out and novel views, and render its turntable."""
+    scored = loaded.scene_of[run.name]
+    test, names = scored.scene.test, [scored.scene.names[i] for i in scored.scene.test]
+    gaussians = run.gaussians()
+    renders, ms = render_views(gaussians, scored.scene.cameras, test, rasterizer, tick, run.antialias)
+    if not np.isfinite(renders).all():
+        raise CubecloudError(f"{run.name} renders NaN or Inf (its point_cloud.ply holds non-finite values): "
+                             f"retrain it with `{run.retrain}`")
+    result = scores.results[run.name] = {
+        **_score_row(scored.reference[test], renders, names, run.name, run.method, scores.per_view,
+                     scored.scene.directory, scored.reference_kind),
+        "ms_per_frame": ms, "fps": 1000.0 / ms if ms > 0 else None, "gaussians": len(gaussians),
+        "size_mb": run.size_mb, "train_seconds": run.manifest.get("timings_s", {}).get("train"),
+        "iterations": run.manifest.get("metrics", {}).get("iterations"), "rasterizer": rasterizer.description,
+    }
+    if scored.novel is not None:
+        pictured = _score_novel(run, gaussians, scored, rasterizer, tick, scores.per_view, result)
+        if scored is loaded.main_scene:
+            for index, render in pictured.items():
+                scores.novel_renders.setdefault(index, {})[run.name] = render
+    if scored is loaded.main_scene:
+        for name, render in zip(names, renders):
+            scores.renders_by_view.setdefault(name, {})[run.name] = render
+    turntable = loaded.turntables[run.name]
+    if turntable is not None:
+        frames, _ = render_views(gaussians, turntable, list(range(len(turntable))), rasterizer, tick, run.antialias)
+        relative = f"turntable_{run.name}.gif"
+        write_turntable(directory / relative, frames)
+        scores.pictures["turntables"].append(relative)
+
+
+def _score_cunerf(work: Path, loaded: LoadedRuns, scores: Scores) -> None:
+    """The CuNeRF rows, when the runs trained on this work directory's own export with its reference renders."""
+    main = loaded.main_scene
+    if main.reference_kind != "volume" or main.scene.directory.resolve() != loaded.own_export:
+        log.warning(f"no CuNeRF rows: {loaded.own_export} is not the scene the runs trained on, or has no reference renders")
+        return
+    scores.results.update(_cunerf_rows(work, main, scores.per_view))
+    images = main.scene.images.numpy().mean(axis=-1)
+    for index in main.scene.test:
+        scores.renders_by_view.setdefault(main.scene.names[index], {})[CUNERF_ROW] = images[index]
+
+
+def _draw_pictures(loaded: LoadedRuns, scores: Scores, directory: Path) -> None:
+    """Reference | render | error grids of the held-out and pictured novel views, and the training curves."""
+    main, pictures = loaded.main_scene, scores.pictures
+    (directory / "views").mkdir(exist_ok=True)
+    for index in main.scene.test:
+        name = main.scene.names[index]
+        if name in scores.renders_by_view:
+            relative = f"views/{_picture_name(name)}.png"
+            error_grid(main.reference[index], scores.renders_by_view[name], f"held-out view {name}").save(directory / relative)
+            pictures["views"].append(relative)
+    if main.novel is not None:
+        for label, index in pictured_views(main.novel):
+            if index in scores.novel_renders:
+                name = main.novel.views.entries()[index][0]
+                relative = f"views/{name}.png"
+                error_grid(main.novel.reference[index], scores.novel_renders[index], f"novel view {name}: {label}").save(
+                    directory / relative)
+                pictures["novel"].append(relative)
+    curves = [(run.name, *_training_curve(run)) for run in loaded.runs]
+    if any(xs for _, xs, _ in curves):
+        (directory / "psnr_vs_iteration.svg").write_text(line_plot_svg(
+            curves, "test PSNR during training (against the training images)", "iteration", "PSNR (dB)"))
+        pictures["curves"].append("psnr_vs_iteration.svg")
+
+
+def _write_report(work: Path, loaded: LoadedRuns, scores: Scores, writer: StageWriter) -> None:
+    """metrics.json, per_view.csv and report.md, and the headline scores into the manifest."""
+    foreign = [run.name for run in loaded.runs if loaded.scene_of[run.name] is not loaded.main_scene]
+    protocol = protocol_description(loaded.main_scene, foreign)
+    metrics = {"protocol": protocol, "results": scores.results, "paper": PAPER_TABLE_I}
+    (writer.directory / "metrics.json").write_text(json.dumps(to_jsonable(metrics), indent=2, allow_nan=False) + "\n")
+    write_per_view_csv(writer.directory / "per_view.csv", scores.per_view)
+    (writer.directory / "report.md").write_text(report_markdown(f"cubecloud eval: {work}", protocol, scores.results,
+                                                                scores.pictures))
+    writer.metrics.update({row: {k: result.get(k) for k in ("novel_psnr", "novel_ssim", "psnr", "ssim", "mse")}
+                           for row, result in scores.results.items()})

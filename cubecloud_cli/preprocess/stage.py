@@ -14,6 +14,7 @@ import logging
 import os
 from dataclasses import asdict
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -22,11 +23,12 @@ from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.preprocess.preview import write_preview
 from cubecloud_cli.preprocess.settings import PreprocessSettings
-from cubecloud_cli.volume.cube_frame import plan_cube
-from cubecloud_cli.volume.intensity import detect_modality, replace_nonfinite, resolve_intensity_map
+from cubecloud_cli.volume.cube_frame import CubeFrame, plan_cube
+from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
 from cubecloud_cli.volume.nifti import write_nifti
 from cubecloud_cli.volume.orientation import axis_codes, reorient_to_ras
 from cubecloud_cli.volume.readers import read_scan
+from cubecloud_cli.volume.scan import Scan
 from cubecloud_cli.volume.resample import interpolation_matrix, resample_axes
 
 log = logging.getLogger("cubecloud")
@@ -103,70 +105,21 @@ def preprocess_scan(
 
         on_phase("intensity", costs, 0.0)
         with writer.phase("intensity"):
-            replaced = replace_nonfinite(scan.data)
-            if replaced:
-                log.warning(
-                    f"{replaced} voxels were NaN or Inf; replaced them with the scan's "
-                    f"smallest (NaN, -Inf) or largest (+Inf) finite value"
-                )
-            if settings.modality == "auto":
-                modality, reason = detect_modality(scan.data, scan.modality)
-                log.info(f"modality: {modality.upper()} ({reason}); override with --modality")
-            else:
-                modality = settings.modality
-            source_range = (float(scan.data.min()), float(scan.data.max()))
-            if source_range[0] == source_range[1]:
-                log.warning(
-                    f"the scan is constant ({source_range[0]:g} everywhere): the volume is uniform "
-                    f"and holds no anatomy"
-                )
-            intensity = resolve_intensity_map(
-                scan.data, modality, settings.window, settings.hu_min, settings.hu_max, settings.percentiles
-            )
-            source_info = {
-                "path": str(Path(scan_path).resolve()),
-                "format": scan.source_format,
-                "shape": list(scan.data.shape),
-                "axcodes": axis_codes(scan.affine),
-                "spacing_mm": scan.spacing_mm,
-                "affine": scan.affine,
-                "value_range": source_range,
-                "nonfinite_replaced": replaced,
-            }
-            ras_data, ras_affine = reorient_to_ras(scan.data, scan.affine)
-            normalized = intensity.apply(ras_data, inplace=True)
+            source_info = describe_source(scan, scan_path, replaced=replace_nonfinite_voxels(scan))
+            intensity = choose_intensity_map(scan, settings)
+            normalized = normalize_in_ras(scan, intensity)
             del scan
 
         on_phase("resample", costs, 0.0)
         with writer.phase("resample"):
-            frame = plan_cube(normalized.shape, ras_affine, settings.size, settings.fit)  # type: ignore[arg-type]
-            matrices = [
-                interpolation_matrix(n, settings.size, frame.index_scale[a], frame.index_offset[a], settings.interpolation)  # type: ignore[arg-type]
-                for a, n in enumerate(normalized.shape)
-            ]
-            volume = resample_axes(normalized, matrices)
+            frame, volume = resample_to_cube(normalized, settings)
             del normalized
 
         on_phase("write", costs, 0.0)
         with writer.phase("write"):
-            np.save(writer.directory / VOLUME_NPY, volume)
-            write_nifti(
-                volume,
-                frame.voxel_to_scanner(),
-                writer.directory / VOLUME_NIFTI,
-                f"cubecloud {intensity.method} -> [0,1]",
-                on_progress=lambda fraction: on_phase("write", costs, fraction),
-            )
-            write_preview(volume, writer.directory / PREVIEW_PNG)
+            _write_volume(writer.directory, volume, frame, intensity, lambda fraction: on_phase("write", costs, fraction))
 
-        writer.metrics.update(
-            {
-                "value_min": float(volume.min()),
-                "value_max": float(volume.max()),
-                "value_mean": float(volume.mean()),
-                "nonzero_fraction": float(np.count_nonzero(volume) / volume.size),
-            }
-        )
+        writer.metrics.update(_volume_statistics(volume))
         writer.extra.update(
             {
                 "source": source_info,
@@ -176,3 +129,85 @@ def preprocess_scan(
             }
         )
     return read_manifest(writer.final_dir)
+
+
+def replace_nonfinite_voxels(scan: Scan) -> int:
+    """Replace NaN and Inf voxels in place (the affine is untouched); returns how many there were."""
+    replaced = replace_nonfinite(scan.data)
+    if replaced:
+        log.warning(
+            f"{replaced} voxels were NaN or Inf; replaced them with the scan's "
+            f"smallest (NaN, -Inf) or largest (+Inf) finite value"
+        )
+    return replaced
+
+
+def describe_source(scan: Scan, scan_path: Path, replaced: int) -> dict:
+    """The scan as read, for the manifest: its format, array shape, orientation, affine and values."""
+    source_range = (float(scan.data.min()), float(scan.data.max()))
+    if source_range[0] == source_range[1]:
+        log.warning(
+            f"the scan is constant ({source_range[0]:g} everywhere): the volume is uniform and holds no anatomy"
+        )
+    return {
+        "path": str(Path(scan_path).resolve()),
+        "format": scan.source_format,
+        "shape": list(scan.data.shape),
+        "axcodes": axis_codes(scan.affine),
+        "spacing_mm": scan.spacing_mm,
+        "affine": scan.affine,
+        "value_range": source_range,
+        "nonfinite_replaced": replaced,
+    }
+
+
+def choose_intensity_map(scan: Scan, settings: PreprocessSettings) -> IntensityMap:
+    """The map from the scan's values to [0, 1]: a CT window or MR percentiles, by the scan's modality."""
+    if settings.modality == "auto":
+        modality, reason = detect_modality(scan.data, scan.modality)
+        log.info(f"modality: {modality.upper()} ({reason}); override with --modality")
+    else:
+        modality = settings.modality
+    return resolve_intensity_map(
+        scan.data, modality, settings.window, settings.hu_min, settings.hu_max, settings.percentiles
+    )
+
+
+def normalize_in_ras(scan: Scan, intensity: IntensityMap) -> Scan:
+    """The scan with its axes flipped and permuted to RAS (the affine follows, so every voxel keeps
+    its scanner position) and its values mapped to [0, 1] in place."""
+    data, affine = reorient_to_ras(scan.data, scan.affine)
+    return Scan(intensity.apply(data, inplace=True), affine, scan.source_format, scan.modality, scan.notes)
+
+
+def resample_to_cube(scan: Scan, settings: PreprocessSettings) -> tuple[CubeFrame, np.ndarray]:
+    """The S³ cube the volume is resampled to (its frame replaces the affine: voxel -> world ->
+    scanner), and the resampled volume."""
+    frame = plan_cube(scan.data.shape, scan.affine, settings.size, settings.fit)  # type: ignore[arg-type]
+    matrices = [
+        interpolation_matrix(n, settings.size, frame.index_scale[a], frame.index_offset[a], settings.interpolation)  # type: ignore[arg-type]
+        for a, n in enumerate(scan.data.shape)
+    ]
+    return frame, resample_axes(scan.data, matrices)
+
+
+def _write_volume(directory: Path, volume: np.ndarray, frame: CubeFrame, intensity: IntensityMap,
+                  on_fraction: Callable[[float], None]) -> None:
+    np.save(directory / VOLUME_NPY, volume)
+    write_nifti(
+        volume,
+        frame.voxel_to_scanner(),
+        directory / VOLUME_NIFTI,
+        f"cubecloud {intensity.method} -> [0,1]",
+        on_progress=on_fraction,
+    )
+    write_preview(volume, directory / PREVIEW_PNG)
+
+
+def _volume_statistics(volume: np.ndarray) -> dict[str, float]:
+    return {
+        "value_min": float(volume.min()),
+        "value_max": float(volume.max()),
+        "value_mean": float(volume.mean()),
+        "nonzero_fraction": float(np.count_nonzero(volume) / volume.size),
+    }
