@@ -136,3 +136,39 @@ def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
     resets = [it for kind, it in events if kind == "reset"]
     densified = [it for kind, it in events if kind == "densify"]
     assert resets == [20, 40, 60, 80] and densified == list(range(10, 100, 10))
+
+
+def test_optimizer_moments_follow_their_rows_when_parameters_are_replaced():
+    from cubecloud_cli.splat.optimizer import replace_parameters
+
+    means = torch.arange(12, dtype=torch.float32).reshape(4, 3).requires_grad_(True)
+    other = torch.zeros(4, 1, requires_grad=True)
+    optimizer = torch.optim.Adam([{"params": [means], "name": "means"}, {"params": [other], "name": "other"}], lr=0.1)
+    (means.square().sum() + other.sum()).backward()
+    optimizer.step()
+    before = {key: optimizer.state[means][key].clone() for key in ("exp_avg", "exp_avg_sq")}
+    keep = torch.tensor([True, False, True, True])
+    rows = torch.cat((torch.arange(4)[keep], torch.tensor([2])))  # prune row 1, duplicate row 2
+
+    replaced = replace_parameters(optimizer, ["means"], lambda name, old: old[rows], lambda name, moment: moment[rows])
+
+    new = replaced["means"]
+    assert new.requires_grad and new.is_leaf and torch.equal(new.detach(), means.detach()[rows])
+    assert optimizer.param_groups[0]["params"][0] is new and means not in optimizer.state
+    for key, moment in before.items():
+        assert torch.equal(optimizer.state[new][key], moment[rows])
+    assert optimizer.param_groups[1]["params"][0] is other  # groups not named are untouched
+    (new.square().sum() + other.sum()).backward()
+    optimizer.step()  # Adam steps with the rewritten state
+
+
+def test_the_strategy_asks_the_schedule_when_to_densify_and_reset():
+    from cubecloud_cli.splat.densify import DensifyStrategy
+    from cubecloud_cli.splat.settings import SplatSettings
+
+    strategy = DensifyStrategy.from_settings(SplatSettings(iterations=30_000))
+    assert strategy.thresholds.grad_threshold == SplatSettings().grad_threshold
+    assert not strategy.densify_due(500) and strategy.densify_due(600) and not strategy.densify_due(650)
+    assert strategy.reset_due(3000) and not strategy.reset_due(15_000)  # no reset once refining stops
+    assert not strategy.prunes_large(3000) and strategy.prunes_large(3001)
+    assert not DensifyStrategy.from_settings(SplatSettings(iterations=30_000, refine=False)).densify_due(600)

@@ -14,9 +14,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-TILE = 16
-TILE_SHIFT = 4  # log2(TILE)
-ALPHA_LEVEL_SCALE = 255.0  # α ≥ 1/255 ⇔ power ≤ ln(255·o)
+from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE, TILE_SHIFT
 
 
 @njit(cache=True)

@@ -22,11 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.raster.cpu_binning import TILE
-
-MAX_ALPHA = 0.99
-MIN_ALPHA = 1.0 / 255.0
-TRANSMITTANCE_STOP = 1e-4
+from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
 LEVEL_MARGIN = 1e-9
 

@@ -15,9 +15,13 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.raster.projection import FRUSTUM_CLAMP, MIN_COMPENSATION, MIN_DETERMINANT
-
-MIN_QUATERNION_NORM = 1e-12
+from cubecloud_cli.raster.constants import (
+    EIGENVALUE_FLOOR,
+    FRUSTUM_CLAMP,
+    MIN_COMPENSATION,
+    MIN_DETERMINANT,
+    MIN_QUATERNION_NORM,
+)
 
 
 @njit(cache=True)
@@ -109,7 +113,7 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         v = focal * cy / z + height / 2.0
         means2d[i, 0], means2d[i, 1] = u, v
         middle = 0.5 * (a + c)
-        largest = middle + math.sqrt(max(middle * middle - determinant, 0.1))
+        largest = middle + math.sqrt(max(middle * middle - determinant, EIGENVALUE_FLOOR))
         finite = (np.isfinite(u) and np.isfinite(v) and np.isfinite(conics[i, 0]) and np.isfinite(conics[i, 1])
                   and np.isfinite(conics[i, 2]) and np.isfinite(largest) and largest < 1e36)  # ceil(3√λ) stays within int64
         if not (in_front and finite):

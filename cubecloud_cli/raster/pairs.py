@@ -17,11 +17,8 @@ from dataclasses import dataclass
 
 import torch
 
+from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, MAX_ALPHA, MIN_ALPHA, TRANSMITTANCE_STOP
 from cubecloud_cli.raster.projection import Projected
-
-MAX_ALPHA = 0.99
-MIN_ALPHA = 1.0 / 255.0
-TRANSMITTANCE_STOP = 1e-4
 
 
 @dataclass
@@ -41,7 +38,7 @@ def pixel_bounds(projected: Projected, width: int, height: int, opacities: torch
         half_x = half_y = projected.radii.to(u.dtype)
         if opacities is not None:
             # α ≥ 1/255 ⇔ power ≤ L = ln(255·o), an ellipse whose box has half-sides √(2L·σ²).
-            level = torch.log((255.0 * opacities.detach().to(u.dtype)).clamp_min(1e-30)).clamp_min(0.0)
+            level = torch.log((ALPHA_LEVEL_SCALE * opacities.detach().to(u.dtype)).clamp_min(1e-30)).clamp_min(0.0)
             covariance = projected.covariances2d.detach().to(u.dtype)
             half_x = torch.minimum(half_x, torch.sqrt(2.0 * level * covariance[:, 0]))
             half_y = torch.minimum(half_y, torch.sqrt(2.0 * level * covariance[:, 2]))

@@ -27,12 +27,15 @@ from dataclasses import dataclass
 
 import torch
 
-NEAR_PLANE = 0.2
-DILATION = 0.3
-MIP_FILTER_VARIANCE = 0.1  # px², Mip-Splatting's 2D filter
-MIN_COMPENSATION = 0.005  # floor of ρ, as the antialiased 3DGS and gsplat's torch reference
-FRUSTUM_CLAMP = 1.3
-MIN_DETERMINANT = 1e-12
+from cubecloud_cli.raster.constants import (
+    DILATION,
+    EIGENVALUE_FLOOR,
+    FRUSTUM_CLAMP,
+    MIN_COMPENSATION,
+    MIN_DETERMINANT,
+    MIP_FILTER_VARIANCE,
+    NEAR_PLANE,
+)
 
 
 def dilation(antialias: bool) -> float:
@@ -138,7 +141,7 @@ def project(
     means2d = torch.stack((focal * cx / z + width / 2.0, focal * cy / z + height / 2.0), dim=-1)
     with torch.no_grad():
         middle = 0.5 * (a + c)
-        largest = middle + torch.sqrt((middle * middle - determinant).clamp_min(0.1))
+        largest = middle + torch.sqrt((middle * middle - determinant).clamp_min(EIGENVALUE_FLOOR))
         radii = torch.ceil(3.0 * torch.sqrt(largest)).long()
         on_screen = (
             (means2d[:, 0] + radii > 0) & (means2d[:, 0] - radii < width)

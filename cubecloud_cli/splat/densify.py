@@ -12,6 +12,9 @@ applies the plan to every per-Gaussian tensor (parameters and optimizer moments 
   reference's screen-size rule never fires, see §1.3, and is not reproduced);
 * hold the count to ``max_gaussians``: growth goes to the largest gradients first, and a model
   above the budget loses its least opaque Gaussians.
+
+:class:`DensifyStrategy` is the one place that says when: it holds the thresholds and the
+reference schedule scaled to the run, and the training loop only asks it.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from cubecloud_cli.raster.projection import quaternion_to_rotation
+from cubecloud_cli.splat.settings import SplatSettings
 
 RESET_OPACITY = 0.01
 SPLIT_SCALE_DIVISOR = 1.6  # 0.8 · 2 children, as in the reference
@@ -28,11 +32,41 @@ SPLIT_SCALE_DIVISOR = 1.6  # 0.8 · 2 children, as in the reference
 
 @dataclass(frozen=True)
 class DensifySettings:
-    grad_threshold: float = 0.0002
-    percent_dense: float = 0.01
+    grad_threshold: float = SplatSettings.grad_threshold
+    percent_dense: float = SplatSettings.percent_dense
     min_opacity: float = 0.005
     max_world_size: float = 0.1
     max_gaussians: int | None = None
+
+
+@dataclass(frozen=True)
+class DensifyStrategy:
+    """When the training loop gathers gradient statistics, densifies, prunes large Gaussians and
+    resets opacity: the reference's rules on the reference schedule scaled to the run."""
+
+    thresholds: DensifySettings
+    schedule: dict[str, int]
+    refine: bool = True
+
+    @classmethod
+    def from_settings(cls, settings: SplatSettings) -> "DensifyStrategy":
+        thresholds = DensifySettings(settings.grad_threshold, settings.percent_dense, max_gaussians=settings.max_gaussians)
+        return cls(thresholds, settings.schedule(), settings.refine)
+
+    def refining(self, iteration: int) -> bool:
+        """Statistics, densification and resets happen only before densify_until, as in the reference."""
+        return self.refine and iteration < self.schedule["densify_until"]
+
+    def densify_due(self, iteration: int) -> bool:
+        return (self.refining(iteration) and iteration > self.schedule["densify_from"]
+                and iteration % self.schedule["densify_every"] == 0)
+
+    def prunes_large(self, iteration: int) -> bool:
+        """The world-size rule applies once the first opacity reset has passed."""
+        return iteration > self.schedule["reset_every"]
+
+    def reset_due(self, iteration: int) -> bool:
+        return self.refining(iteration) and iteration % self.schedule["reset_every"] == 0
 
 
 class GradientStats:

@@ -102,10 +102,7 @@ def train_splat(
         require_stage(work, "export")
         scene_dir = work / "export"
     device = runtime.apply()
-    if runtime.threads is not None and device.type == "cpu":
-        import numba  # the kernels run on numba's own thread pool, which --threads bounds too
-
-        numba.set_num_threads(min(runtime.threads, numba.config.NUMBA_NUM_THREADS))
+    _bound_kernel_threads(runtime, device)
     reset_peak_memory(device)
     scene = load_scene(scene_dir, settings.channels)
     if scene.single_centre:  # said here, not in load_scene, so that eval does not repeat it
@@ -121,55 +118,85 @@ def train_splat(
     try:
         with writer:
             with writer.phase("load"):
-                images_digest = None
-                for path in (scene_dir / "images.npy", scene_dir / "points3D.ply"):
-                    if path.is_file():
-                        digest = writer.add_input(path, str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path))
-                        images_digest = digest if path.name == "images.npy" else images_digest
-                trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
-                trainer.identity = _scene_identity(scene)
+                images_digest = _record_inputs(writer, scene_dir)
+                trainer = _build_trainer(scene, settings, device, state)
                 initial_count = len(trainer.gaussians)
-                if state is not None:
-                    trainer.restore(state)
-                    log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
             with writer.phase("train"):
                 _train(trainer, checkpoint, on_progress)
             with writer.phase("write"):
                 on_progress("write", 0, 1, {})
-                # The 3D filter baked in: a viewer shows what eval scores.
-                write_gaussians_ply(writer.directory / PLY_FILE, trainer.gaussians.baked())
-                write_csv_log(writer.directory / "log.csv", LOG_COLUMNS, trainer.history)
-                _write_preview(trainer, writer.directory / "preview.png")
-            final = trainer.evaluate(scene.test)
-            writer.metrics.update({
-                "test_psnr": final.get("psnr"), "test_l1": final.get("l1"), "test_views": len(scene.test),
-                "gaussians": len(trainer.gaussians), "initial_gaussians": initial_count,
-                "iterations": trainer.iteration, "train_seconds": round(trainer.elapsed_s, 2),
-                "iterations_per_second": round(trainer.iteration / max(trainer.elapsed_s, 1e-9), 3),
-                **peak_memory_mb(device),
-            })
-            writer.extra.update({
-                "schedule": trainer.schedule,
-                # resolved: eval finds the scene from any working directory; images_sha256 tells
-                # it whether the scene there is still the one trained on.
-                "scene": {"directory": str(scene_dir), "resolved": str(Path(scene_dir).resolve()),
-                          "own_export": Path(scene_dir).resolve() == (work / "export").resolve(),
-                          "images_sha256": images_digest, "views": len(scene.names), "train": len(scene.train),
-                          "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
-                          "height": scene.cameras.height, "extent": scene.extent},
-                "rasterizer": trainer.rasterizer.description,
-                "antialias": ({"3d_filter": "Mip-Splatting, variance 0.2 × (depth / focal)² of the nearest training camera; "
-                                            "baked into point_cloud.ply", "2d_filter": "Mip-Splatting, 0.1 px², opacity "
-                                            "compensated; a renderer applies it (eval does)"}
-                              if settings.antialias else {"dilation_px2": 0.3}),
-                "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
-                            "kernel_threads": _kernel_threads() if device.type == "cpu" else None},
-            })
+                _write_outputs(trainer, writer.directory)
+            _record_results(writer, trainer, scene, scene_dir, work, settings, device, initial_count, images_digest)
     except (CubecloudInterrupted, NothingToResume):
         raise
     except KeyboardInterrupt:
         raise interrupted(checkpoint) from None
     return read_manifest(writer.final_dir)
+
+
+def _bound_kernel_threads(runtime: Runtime, device: torch.device) -> None:
+    if runtime.threads is not None and device.type == "cpu":
+        import numba  # the kernels run on numba's own thread pool, which --threads bounds too
+
+        numba.set_num_threads(min(runtime.threads, numba.config.NUMBA_NUM_THREADS))
+
+
+def _record_inputs(writer: StageWriter, scene_dir: Path) -> str | None:
+    """Hash the scene's images and points into the manifest; returns the images' digest."""
+    images_digest = None
+    for path in input_files(scene_dir):
+        if path.is_file():
+            label = str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path)
+            digest = writer.add_input(path, label)
+            images_digest = digest if path.name == "images.npy" else images_digest
+    return images_digest
+
+
+def _build_trainer(scene: TrainingScene, settings: SplatSettings, device: torch.device, state: dict | None) -> SplatTrainer:
+    """A trainer from the initial Gaussians, restored to a checkpoint's state when resuming."""
+    trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
+    trainer.identity = _scene_identity(scene)
+    if state is not None:
+        trainer.restore(state)
+        log.info(f"resuming at iteration {trainer.iteration} of {settings.iterations}")
+    return trainer
+
+
+def _write_outputs(trainer: SplatTrainer, directory: Path) -> None:
+    # The 3D filter baked in: a viewer shows what eval scores.
+    write_gaussians_ply(directory / PLY_FILE, trainer.gaussians.baked())
+    write_csv_log(directory / "log.csv", LOG_COLUMNS, trainer.history)
+    _write_preview(trainer, directory / "preview.png")
+
+
+def _record_results(writer: StageWriter, trainer: SplatTrainer, scene: TrainingScene, scene_dir: Path, work: Path,
+                    settings: SplatSettings, device: torch.device, initial_count: int, images_digest: str | None) -> None:
+    """The final test scores, the schedule, the scene trained on and the runtime, into the manifest."""
+    final = trainer.evaluate(scene.test)
+    writer.metrics.update({
+        "test_psnr": final.get("psnr"), "test_l1": final.get("l1"), "test_views": len(scene.test),
+        "gaussians": len(trainer.gaussians), "initial_gaussians": initial_count,
+        "iterations": trainer.iteration, "train_seconds": round(trainer.elapsed_s, 2),
+        "iterations_per_second": round(trainer.iteration / max(trainer.elapsed_s, 1e-9), 3),
+        **peak_memory_mb(device),
+    })
+    writer.extra.update({
+        "schedule": trainer.schedule,
+        # resolved: eval finds the scene from any working directory; images_sha256 tells
+        # it whether the scene there is still the one trained on.
+        "scene": {"directory": str(scene_dir), "resolved": str(Path(scene_dir).resolve()),
+                  "own_export": Path(scene_dir).resolve() == (work / "export").resolve(),
+                  "images_sha256": images_digest, "views": len(scene.names), "train": len(scene.train),
+                  "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
+                  "height": scene.cameras.height, "extent": scene.extent},
+        "rasterizer": trainer.rasterizer.description,
+        "antialias": ({"3d_filter": "Mip-Splatting, variance 0.2 × (depth / focal)² of the nearest training camera; "
+                                    "baked into point_cloud.ply", "2d_filter": "Mip-Splatting, 0.1 px², opacity "
+                                    "compensated; a renderer applies it (eval does)"}
+                      if settings.antialias else {"dilation_px2": 0.3}),
+        "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
+                    "kernel_threads": _kernel_threads() if device.type == "cpu" else None},
+    })
 
 
 def _scene_identity(scene: TrainingScene) -> dict:

@@ -14,7 +14,8 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.metrics import psnr_from_mse
 from cubecloud_cli.raster.backends import Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.splat.data import TrainingScene
-from cubecloud_cli.splat.densify import DensifySettings, GradientStats, apply_plan, plan_densification, reset_opacity
+from cubecloud_cli.splat.densify import DensifyStrategy, GradientStats, apply_plan, plan_densification, reset_opacity
+from cubecloud_cli.splat.optimizer import replace_parameters
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.settings import SplatSettings
@@ -62,8 +63,8 @@ class SplatTrainer:
         self.optimizer = torch.optim.Adam(
             [{"params": [getattr(gaussians, name)], "lr": rates[name], "name": name} for name in PARAMETERS], eps=1e-15
         )
-        self.schedule = settings.schedule()
-        self.densify = DensifySettings(settings.grad_threshold, settings.percent_dense, max_gaussians=settings.max_gaussians)
+        self.strategy = DensifyStrategy.from_settings(settings)
+        self.schedule = self.strategy.schedule
         self.stats = GradientStats(len(gaussians), device)
         self.generator = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
@@ -111,9 +112,7 @@ class SplatTrainer:
         loss = photometric_loss(rendered.image, self.images[view], self.settings.dssim_weight)
         loss.backward()
         self.iteration += 1
-        schedule = self.schedule
-        # As in the reference: statistics, densification and resets only before densify_until.
-        refining = self.settings.refine and self.iteration < schedule["densify_until"]
+        refining = self.strategy.refining(self.iteration)
         screen_gradient = rendered.screen_gradient() if refining else None
         if screen_gradient is not None:
             self.stats.add(screen_gradient, rendered.radii, self.scene.cameras.width, self.scene.cameras.height)
@@ -122,9 +121,9 @@ class SplatTrainer:
         # One sum per parameter: NaN and ±Inf propagate into it, at a fraction of isfinite's cost.
         if not bool(torch.isfinite(torch.stack([getattr(self.gaussians, name).detach().sum() for name in PARAMETERS])).all()):
             raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {self.iteration}")
-        if refining and self.iteration > schedule["densify_from"] and self.iteration % schedule["densify_every"] == 0:
-            self._densify(prune_large=self.iteration > schedule["reset_every"])
-        if refining and self.iteration % schedule["reset_every"] == 0:
+        if self.strategy.densify_due(self.iteration):
+            self._densify(prune_large=self.strategy.prunes_large(self.iteration))
+        if self.strategy.reset_due(self.iteration):
             self._reset_opacity()
         if not refining and self.iteration % RECOMPUTE_EVERY == 0:
             self._update_smoothing()  # the means still move a little once densification stops
@@ -136,35 +135,22 @@ class SplatTrainer:
     def _densify(self, prune_large: bool) -> None:
         g = self.gaussians
         plan = plan_densification(g.means, g.log_scales, g.quaternions, g.opacity_logits, self.stats.mean(),
-                                  self.densify, self.extent, prune_large, self.generator)
+                                  self.strategy.thresholds, self.extent, prune_large, self.generator)
         children = {"means": plan.child_means.to(self.device), "log_scales": plan.child_log_scales.to(self.device)}
-        for group in self.optimizer.param_groups:
-            name = group["name"]
-            old = group["params"][0]
-            new = apply_plan(plan, old.detach(), children.get(name)).requires_grad_(True)
-            state = self.optimizer.state.pop(old, {})
-            for key in ("exp_avg", "exp_avg_sq"):
-                if key in state:
-                    state[key] = apply_plan(plan, state[key], new_rows_zero=True)
-            group["params"][0] = new
-            if state:
-                self.optimizer.state[new] = state
+        replaced = replace_parameters(
+            self.optimizer, PARAMETERS,
+            lambda name, old: apply_plan(plan, old, children.get(name)),
+            lambda name, moment: apply_plan(plan, moment, new_rows_zero=True),
+        )
+        for name, new in replaced.items():
             setattr(g, name, new)
         self.stats = GradientStats(len(g), self.device)
         self._update_smoothing()
 
     def _reset_opacity(self) -> None:
-        group = next(group for group in self.optimizer.param_groups if group["name"] == "opacity_logits")
-        old = group["params"][0]
-        new = reset_opacity(old.detach()).requires_grad_(True)
-        state = self.optimizer.state.pop(old, {})
-        for key in ("exp_avg", "exp_avg_sq"):
-            if key in state:
-                state[key] = torch.zeros_like(state[key])
-        group["params"][0] = new
-        if state:
-            self.optimizer.state[new] = state
-        self.gaussians.opacity_logits = new
+        replaced = replace_parameters(self.optimizer, ["opacity_logits"], lambda name, old: reset_opacity(old),
+                                      lambda name, moment: torch.zeros_like(moment))
+        self.gaussians.opacity_logits = replaced["opacity_logits"]
 
     # -- evaluation and checkpoints -------------------------------------------------------
 
