@@ -2,7 +2,7 @@
 
 Every stage (`preprocess`, `cunerf`, `export`, `splat`, `eval`) writes its files through
 :class:`StageWriter`, and reads the stage before it through :func:`require_stage`. The rules
-(DESIGN.md §1):
+(docs/design.md §1):
 
 * A stage directory is complete only when its ``manifest.json`` exists.
 * Files are written into a hidden sibling ``WORK/.NAME.partial/`` and renamed into place at the

@@ -1,4 +1,4 @@
-"""Image and volume metrics of DESIGN.md §5, vectorised over stacks of slices.
+"""Image and volume metrics of docs/design.md §5, vectorised over stacks of slices.
 
 * PSNR with data range 1 (MSE of 0 gives +inf, never a division by zero).
 * SSIM after Wang et al., as ``skimage.metrics.structural_similarity(..., gaussian_weights=True,
@@ -134,7 +134,7 @@ def volume_metrics(reference: np.ndarray, estimate: np.ndarray, mask: np.ndarray
 
 
 def image_metrics(reference: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
-    """DESIGN §5 2D metrics of a stack of views (N, H, W): PSNR, SSIM and MSE per view, then
+    """docs/design.md §5 2D metrics of a stack of views (N, H, W): PSNR, SSIM and MSE per view, then
     averaged over views; the ``*_foreground`` variants count only pixels where the reference is
     non-zero (black background inflates PSNR). Views smaller than the SSIM window get no SSIM."""
     reference = np.asarray(reference, dtype=np.float32)

@@ -21,7 +21,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "fast": {"size": 128, "fit": "pad", "window": "abdomen", "interpolation": "linear"},
         "balanced": {"size": 192, "fit": "pad", "window": "abdomen", "interpolation": "linear"},
         # The paper resized every CT to 512³ with nearest neighbour and min-max scaled it
-        # (research/cunerf.md §3.4-3.5).
+        # (docs/cunerf.md §3.4-3.5).
         "paper": {"size": 512, "fit": "stretch", "window": "full", "interpolation": "nearest"},
     },
     # export: images as large as the volume is wide, 60 views as in the paper. The paper renders
@@ -52,7 +52,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 # Measured on the bundled CT at 128³ (bench/cunerf.py): 2³ points per cube for 4000 iterations
 # beat 3³ for 2000 in the same time (37.3 vs 35.4 dB 3D PSNR).
 _GRID = {"lr": 0.05, "lr_final": 5e-4, "warmup": 100, "cube_radius": 0.5, "samples_per_axis": 2, "importance": 0}
-# The paper's network and schedule (research/cunerf.md §8); CPU presets cut the batch and samples.
+# The paper's network and schedule (docs/cunerf.md §8); CPU presets cut the batch and samples.
 _MLP = {"lr": 2e-3, "lr_final": 2e-5, "cube_radius": 1.0}
 CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "paper": "cunerf"}
 CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {

@@ -23,7 +23,7 @@ iterations ×0.5 and ×2, budget ×1/8 and ×1/4; a choice takes every value but
     budget             splat --max-gaussians (both runs)
     antialias          splat --antialias / --no-antialias (both runs: on, off)
 
-Scores: the novel-view headline (mean over 0.75–1.33×, DESIGN §5), its 0.5× and 2× means, and
+Scores: the novel-view headline (mean over 0.75–1.33×, docs/design.md §5), its 0.5× and 2× means, and
 the held-out views, all against renders of the preprocessed volume.
 
 Each configuration gets a work directory OUT/<config>/. Stages whose options and inputs match an

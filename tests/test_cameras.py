@@ -1,4 +1,4 @@
-"""Orbit and sphere cameras (DESIGN §2): geometry, the fitted field of view, projection and its
+"""Orbit and sphere cameras (docs/design.md §2): geometry, the fitted field of view, projection and its
 guards; the novel-view set."""
 
 import json
@@ -158,7 +158,7 @@ def test_extreme_fields_of_view(fov):
     assert np.isfinite(cameras.pixel_directions(1)).all()
 
 
-# -- the sphere (DESIGN §2) --------------------------------------------------------------------
+# -- the sphere (docs/design.md §2) --------------------------------------------------------------------
 
 def angles_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(a @ b.T, -1.0, 1.0))

@@ -39,7 +39,7 @@ def test_cunerf_network_has_the_papers_shape():
     assert widths == [(69, 256)] + [(256, 256)] * 3 + [(325, 256)] + [(256, 256)] * 2
     assert (field.head.in_features, field.head.out_features) == (256, 2)
     parameters = sum(p.numel() for p in field.parameters())
-    assert 425_000 < parameters < 435_000  # ~431k effective (research/cunerf.md §1.2)
+    assert 425_000 < parameters < 435_000  # ~431k effective (docs/cunerf.md §1.2)
 
 
 @pytest.mark.parametrize("kind", ["cunerf", "grid"])

@@ -53,7 +53,7 @@ def render(means, log_scales, quaternions, opacities, colours, view=0, backgroun
 
 
 def literal_loop(projected, colours, opacities, background):
-    """The reference algorithm, pixel by pixel, Gaussian by Gaussian (research/3dgs.md §1.9)."""
+    """The reference algorithm, pixel by pixel, Gaussian by Gaussian (docs/references.md §1.9)."""
     image = np.zeros((H, W, colours.shape[1]))
     order = torch.argsort(projected.depths, stable=True).tolist()
     m, conic, radii = projected.means2d.detach().numpy(), projected.conics.detach().numpy(), projected.radii.numpy()

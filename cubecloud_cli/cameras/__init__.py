@@ -1,4 +1,4 @@
-"""Pinhole cameras in the OpenCV / COLMAP convention (DESIGN §2): the sphere and the orbit that
+"""Pinhole cameras in the OpenCV / COLMAP convention (docs/design.md §2): the sphere and the orbit that
 `export` trains from, the single-pose slice stack of the paper's 3DGS baseline, and the novel
 views that every scene is scored on."""
 

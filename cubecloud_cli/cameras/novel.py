@@ -1,4 +1,4 @@
-"""The novel-view test (DESIGN §2, §5): views that no camera setup trains on.
+"""The novel-view test (docs/design.md §2, §5): views that no camera setup trains on.
 
 A fixed set of directions (the two poles of the long axis, from the head and from the feet, then
 seeded random directions, uniform over the sphere), each seen at several magnifications, from the

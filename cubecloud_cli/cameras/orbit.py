@@ -1,4 +1,4 @@
-"""The orbit of views that `export` renders (DESIGN §2).
+"""The orbit of views that `export` renders (docs/design.md §2).
 
 ``views`` cameras evenly spaced over 360° about a volume axis, at ``radius`` world units from the
 origin (the volume fills [−1, 1]³), all looking at the origin with image "up" along the orbit

@@ -1,6 +1,6 @@
 """A set of pinhole cameras sharing one image size and focal length.
 
-Convention (DESIGN §2, the one COLMAP, OpenCV and the reference 3DGS code use): camera x right,
+Convention (docs/design.md §2, the one COLMAP, OpenCV and the reference 3DGS code use): camera x right,
 y down, z forward; poses are world-to-camera, ``X_cam = R @ X_world + t``; pixel (u, v) covers
 [u, u+1) × [v, v+1) with its centre at (u + 0.5, v + 0.5); the principal point is the image centre.
 """

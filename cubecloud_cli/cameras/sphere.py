@@ -1,4 +1,4 @@
-"""Cameras over the whole sphere of directions (DESIGN §2): the scene is trained from every side it
+"""Cameras over the whole sphere of directions (docs/design.md §2): the scene is trained from every side it
 will be seen from, not only from one ring.
 
 ``views`` directions on a spherical Fibonacci lattice (heights 1 − (2k+1)/N along the pole axis,

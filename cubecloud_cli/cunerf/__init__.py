@@ -1,4 +1,4 @@
-"""The cunerf stage: a cube-based neural field of the preprocessed volume (research/cunerf.md)."""
+"""The cunerf stage: a cube-based neural field of the preprocessed volume (docs/cunerf.md)."""
 
 from cubecloud_cli.cunerf.api import CunerfField
 from cubecloud_cli.cunerf.settings import CunerfSettings

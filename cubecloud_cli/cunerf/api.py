@@ -6,7 +6,7 @@
     volume = field.bake(256)                       # the field on a 256³ grid over the cube
     affine = field.bake_affine(256)                # that grid's voxel → scanner-mm affine
 
-World coordinates follow DESIGN §2: the preprocessed volume fills [−1, 1]³, voxel (i, j, k) of
+World coordinates follow docs/design.md §2: the preprocessed volume fills [−1, 1]³, voxel (i, j, k) of
 an S³ grid centred at ((2i+1)/S − 1, …).
 """
 

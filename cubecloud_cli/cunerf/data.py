@@ -2,7 +2,7 @@
 
 * Training voxels: every voxel of the preprocessed S³ volume, or with ``train_scale`` s > 1 only
   those whose indices are multiples of s on every axis (strided decimation, as CuNeRF's
-  zero-shot super-resolution does, research/cunerf.md §3.5), so the full-resolution volume can
+  zero-shot super-resolution does, docs/cunerf.md §3.5), so the full-resolution volume can
   score the super-resolution.
 * Validation: whole axial slices kept out of training. At s = 1 they are training slices set
   aside; at s > 1 they are full-resolution slices between the decimated ones.
@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 
 def voxel_centres(indices: torch.Tensor, size: int) -> torch.Tensor:
-    """World coordinates of voxel indices (..., 3): ((2i + 1)/S − 1), DESIGN §2."""
+    """World coordinates of voxel indices (..., 3): ((2i + 1)/S − 1), docs/design.md §2."""
     return (2.0 * indices.to(torch.float32) + 1.0) / size - 1.0
 
 

@@ -3,7 +3,7 @@
 Both fields share one interface, so the cube sampler, the renderer and everything downstream
 (export's point cloud and images) never ask which one trained:
 
-* :class:`CuNeRFField`, the paper's network (research/cunerf.md §1): positional encoding with
+* :class:`CuNeRFField`, the paper's network (docs/cunerf.md §1): positional encoding with
   11 frequencies of coordinates scaled to [−π, π], and an MLP of 7 applied layers of width 256
   with the encoded input concatenated before the 5th (the official code builds an 8th layer
   that it never applies; we do not build it).
@@ -106,7 +106,7 @@ class CuNeRFField(NeuralField):
         self.head = nn.Linear(config.width, 2)
 
     def raw(self, points: torch.Tensor) -> torch.Tensor:
-        # The official code scales each axis to [−π, π] (research/cunerf.md §3.3).
+        # The official code scales each axis to [−π, π] (docs/cunerf.md §3.3).
         encoded = self.encoding(points * math.pi)
         hidden = encoded
         for index, layer in enumerate(self.layers):
@@ -154,7 +154,7 @@ def trilinear_corners(points: torch.Tensor, resolution: int) -> tuple[torch.Tens
     """Row indices (P, 8) into an r³ table (x-major) and trilinear weights (P, 8) summing to 1.
 
     Vertex v of a level sits at world (2v + 1)/r − 1, the centre of voxel v of an r³ volume over
-    [−1, 1]³ (DESIGN §2). Points outside the outermost vertices take the border value.
+    [−1, 1]³ (docs/design.md §2). Points outside the outermost vertices take the border value.
     """
     r = resolution
     continuous = ((points.detach() + 1.0) * (0.5 * r) - 0.5).clamp(0.0, r - 1.0)

@@ -1,5 +1,5 @@
 """A cube renderer around one or two neural fields: CuNeRF's coarse-to-fine pipeline
-(research/cunerf.md §2): sample the cube → coarse field → render → resample radii from the
+(docs/cunerf.md §2): sample the cube → coarse field → render → resample radii from the
 coarse weights → fine field on all points → render.
 
 The official behaviour, quirks included, is one switch (``RenderConfig.official``): the
@@ -97,7 +97,7 @@ class CubeModel(nn.Module):
         return CubeOutput(self._finish(fine.value, train), self._finish(coarse_value, train), True)
 
     def _finish(self, value: torch.Tensor, train: bool) -> torch.Tensor:
-        # Official renders exceed 1 and are clipped only at test (research/cunerf.md §2.3).
+        # Official renders exceed 1 and are clipped only at test (docs/cunerf.md §2.3).
         if self.render_config.official and not train:
             return value.clamp(0.0, 1.0)
         return value

@@ -1,4 +1,4 @@
-"""CuNeRF's isotropic volume rendering of one cube (research/cunerf.md §2.3).
+"""CuNeRF's isotropic volume rendering of one cube (docs/cunerf.md §2.3).
 
 Samples are sorted by their distance r from the cube centre and composited outward:
 

@@ -1,5 +1,5 @@
 """Where a cube's samples go: the points inside a cube, directions on the sphere, and the
-radii that hierarchical resampling draws from the coarse weights (research/cunerf.md §2.2, §2.4).
+radii that hierarchical resampling draws from the coarse weights (docs/cunerf.md §2.2, §2.4).
 
 Offsets are returned relative to the cube centre, in the units of ``half_size`` (world units),
 so a cube of half-size h spans [−h, h]³ around its centre.

@@ -1,4 +1,4 @@
-"""The training loop: batches of voxels → cube renders → adaptive MSE → Adam (research/cunerf.md §3).
+"""The training loop: batches of voxels → cube renders → adaptive MSE → Adam (docs/cunerf.md §3).
 
 Everything random draws from one ``torch.Generator`` whose state goes into the checkpoint with
 the model, the optimizer and the iteration, so a resumed run continues exactly as an
@@ -28,7 +28,7 @@ VALIDATION_SEED = 1234
 
 def learning_rate(step: int, settings: CunerfSettings) -> float:
     """Sine warm-up from 1% over ``warmup`` steps, then log-linear decay lr → lr_final over the
-    run (the official mip-NeRF-style schedule, research/cunerf.md §3.2)."""
+    run (the official mip-NeRF-style schedule, docs/cunerf.md §3.2)."""
     warm = 1.0
     if settings.warmup > 0:
         warm = 0.01 + 0.99 * math.sin(0.5 * math.pi * min(max(step / settings.warmup, 0.0), 1.0))

@@ -1,5 +1,5 @@
 """`cubecloud eval`: held-out scores of every splat run and of CuNeRF against the reference renders
-of the volume (DESIGN §5), pictures, and tables across work directories."""
+of the volume (docs/design.md §5), pictures, and tables across work directories."""
 
 from cubecloud_cli.eval.scoring import score_view, score_views, summarize
 from cubecloud_cli.eval.settings import EvalSettings

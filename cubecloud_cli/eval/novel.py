@@ -1,4 +1,4 @@
-"""The novel-view scores (DESIGN §5): every run rendered at the export's novel views and scored
+"""The novel-view scores (docs/design.md §5): every run rendered at the export's novel views and scored
 against their pixel-area references, overall and per cell of (angle from the nearest training
 camera × magnification). The headline is the mean over the magnifications 0.75–1.33.
 

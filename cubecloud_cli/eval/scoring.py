@@ -1,4 +1,4 @@
-"""Per-view scores of DESIGN §5 and their mean ± std: the numbers of `cubecloud eval`.
+"""Per-view scores of docs/design.md §5 and their mean ± std: the numbers of `cubecloud eval`.
 
 Every view is scored on its own (PSNR, SSIM and MSE over the whole image, and again over the
 foreground, where the reference is non-zero), then the views are summarised. Known answers stay

@@ -55,7 +55,7 @@ def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:
                         "is the mean over 0.75–1.33×" if scored.novel is not None else
                         "none: the scene has no novel-view test (an export made before it, a foreign scene, or "
                         "--novel-directions 0)"),
-        "metrics": "DESIGN §5: PSNR with data range 1, SSIM (Gaussian window σ = 1.5, 11 taps, no sample-covariance "
+        "metrics": "docs/design.md §5: PSNR with data range 1, SSIM (Gaussian window σ = 1.5, 11 taps, no sample-covariance "
                    "correction, as scikit-image), MSE on [0, 1]; per view, then mean and population std over views; "
                    "colour renders are scored on their grey mean, as the references are grey",
         "foreground": "the *_foreground scores count only pixels where the reference is non-zero",

@@ -1,4 +1,4 @@
-"""The novel-view test's references (DESIGN §2): renders of the preprocessed volume at views no
+"""The novel-view test's references (docs/design.md §2): renders of the preprocessed volume at views no
 camera setup trains on, each pixel the mean over its area.
 
 A splat is a continuous image, and a pixel of a real camera integrates light over its area; a

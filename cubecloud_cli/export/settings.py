@@ -14,7 +14,7 @@ from cubecloud_cli.render import IMAGE_MODELS
 
 RenderSource = Literal["grid", "field"]
 RENDER_SOURCES = get_args(RenderSource)
-# sphere and orbit: DESIGN §2. stack: the paper's 3DGS baseline, parallel slices seen from one pose.
+# sphere and orbit: docs/design.md §2. stack: the paper's 3DGS baseline, parallel slices seen from one pose.
 CameraPath = Literal["sphere", "orbit", "stack"]
 CAMERA_PATHS = get_args(CameraPath)
 CAMERA_BUILDERS = {"sphere": sphere_cameras, "orbit": orbit_cameras, "stack": stack_cameras}
@@ -35,7 +35,7 @@ class ExportSettings:
     """Point budget, filled where the field has structure (edges) first; 0 keeps every non-air point."""
     air_threshold: float = 0.02
     """Points whose CuNeRF intensity is at or below this are air and dropped."""
-    # The training cameras (DESIGN §2): over the sphere, on a ring about ``axis``, or the paper
+    # The training cameras (docs/design.md §2): over the sphere, on a ring about ``axis``, or the paper
     # baseline's stack of slices across ``axis``.
     cameras: CameraPath = preset_default("export", "cameras")
     """sphere: --views cameras spread evenly over the whole sphere of directions, --axis up. orbit: --views cameras
@@ -54,7 +54,7 @@ class ExportSettings:
     """Image width and height in pixels."""
     elevation: float = 0.0
     """--cameras orbit: degrees the orbit is raised out of its plane (all views alike)."""
-    # The images (DESIGN §3).
+    # The images (docs/design.md §3).
     view: str = preset_default("export", "view")
     """Image model: dvr (volume rendering through a transfer function), slice (the cross-section facing the camera,
     the paper's images) or mip (maximum intensity)."""
@@ -75,7 +75,7 @@ class ExportSettings:
     """Grid side for --render-from grid (default: the volume's size)."""
     seed: int = 0
     """Seed of the point sampling."""
-    # The novel-view test (DESIGN §2): directions, each at every magnification; 0 for none.
+    # The novel-view test (docs/design.md §2): directions, each at every magnification; 0 for none.
     novel_directions: int = DEFAULT_DIRECTIONS
     """Directions of the novel-view test (from the head, from the feet, then fixed random ones), each rendered from
     the volume at magnifications 0.5, 0.75, 1, 1.33 and 2 with pixel-area references; eval scores every run on

@@ -48,7 +48,7 @@ from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json,
 
 log = logging.getLogger("cubecloud")
 
-HOLDOUT_EVERY = 8  # DESIGN §2 and the reference 3DGS evaluation: views with index % 8 == 0
+HOLDOUT_EVERY = 8  # docs/design.md §2 and the reference 3DGS evaluation: views with index % 8 == 0
 
 
 def recorded_params(settings: ExportSettings, cunerf_name: str | None = None) -> dict:
@@ -312,7 +312,7 @@ def _record(writer: StageWriter, settings: ExportSettings, cameras: PinholeCamer
         "split": {"train": [n for i, n in enumerate(names) if i not in held_out], "test": [names[i] for i in held_out]},
         "point_cloud": cloud.stats,
         "world": {
-            "cube": "[-1, 1]^3, RAS axes (DESIGN §2)",
+            "cube": "[-1, 1]^3, RAS axes (docs/design.md §2)",
             "mm_per_world_unit": preprocess.get("geometry", {}).get("mm_per_world_unit"),
             "world_to_scanner": preprocess.get("geometry", {}).get("world_to_scanner"),
         },

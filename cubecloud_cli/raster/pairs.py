@@ -3,7 +3,7 @@
 This is the test oracle of the fast kernels, and the fallback on any device. It enumerates the
 (Gaussian, pixel) pairs inside each splat's 3σ square, sorts them by pixel and then depth, and
 composites front to back with segmented scans, so memory grows with the pairs, not with pixels
-× Gaussians. The rules are those of the reference 3DGS rasterizer (research/3dgs.md §1.9):
+× Gaussians. The rules are those of the reference 3DGS rasterizer (docs/references.md §1.9):
 
 * α = min(0.99, o·exp(−power)), and a pair with α < 1/255 is skipped;
 * a pixel stops at the first Gaussian that would bring its transmittance below 1e-4, and that

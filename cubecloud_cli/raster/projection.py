@@ -1,7 +1,7 @@
 """EWA projection of 3D Gaussians into a pinhole view (Zwicker et al. 2001, as 3DGS does it).
 
 Pure, differentiable PyTorch; the constants are those of the reference 3DGS rasterizer
-(research/3dgs.md §1.8–1.9), so a scene trained here renders the same there:
+(docs/references.md §1.8–1.9), so a scene trained here renders the same there:
 
 * Gaussians at depth ≤ ``near`` (0.2) are culled;
 * the Jacobian is evaluated with x/z and y/z clamped to ±1.3·tan(fov/2), so Gaussians far off
@@ -17,7 +17,7 @@ than staying a 0.3 px² dot at full opacity, which is what makes plain 3DGS alia
 ρ is floored at :data:`MIN_COMPENSATION` (a degenerate, flat splat keeps a trace rather than 0/0);
 gsplat's antialiased mode computes the same factor.
 
-Pixel coordinates follow DESIGN §2: the principal point is (W/2, H/2) and pixel (u, v) has its
+Pixel coordinates follow docs/design.md §2: the principal point is (W/2, H/2) and pixel (u, v) has its
 centre at (u + 0.5, v + 0.5).
 """
 

@@ -1,4 +1,4 @@
-"""One renderer for every image model of DESIGN §3, on any scalar field over the world cube."""
+"""One renderer for every image model of docs/design.md §3, on any scalar field over the world cube."""
 
 from cubecloud_cli.render.image_models import IMAGE_MODELS, ImageModel, TransferFunction
 from cubecloud_cli.render.renderer import render_view, render_views

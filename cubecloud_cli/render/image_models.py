@@ -1,4 +1,4 @@
-"""What a pixel is (DESIGN §3): the image models and their per-ray accumulators.
+"""What a pixel is (docs/design.md §3): the image models and their per-ray accumulators.
 
 Marching models (``dvr``, ``mip``; ``xray`` later) see the samples of each ray in order, a block
 at a time, through an accumulator; ``slice`` samples each ray once where it meets a plane. A new

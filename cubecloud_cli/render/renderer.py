@@ -1,4 +1,4 @@
-"""One renderer for every image model and every field (DESIGN §3).
+"""One renderer for every image model and every field (docs/design.md §3).
 
 The same code draws the reference images from the preprocessed volume and the training images
 from CuNeRF, so the two differ only by their fields. Marching models sample each ray at

@@ -111,7 +111,7 @@ class ScalarField(Protocol):
 
 
 class GridField:
-    """Trilinear interpolation of an S³ volume laid over [−1, 1]³ as DESIGN §2 says: voxel
+    """Trilinear interpolation of an S³ volume laid over [−1, 1]³ as docs/design.md §2 says: voxel
     (i, j, k) centred at ((2i+1)/S − 1, …). Beyond the outermost voxels the volume continues as
     air (0), so the field fades to 0 within half a voxel outside the cube.
     """

@@ -1,4 +1,4 @@
-"""Adaptive density control of the reference 3DGS (research/3dgs.md §1.3–1.4), as pure functions.
+"""Adaptive density control of the reference 3DGS (docs/references.md §1.3–1.4), as pure functions.
 
 Every ``refine_every`` iterations the trainer asks :func:`plan_densification` what to change and
 applies the plan to every per-Gaussian tensor (parameters and optimizer moments alike) with

@@ -2,7 +2,7 @@
 
 means (N, 3) world units; log scales (N, 3); quaternions (N, 4), w first, normalised on use;
 opacity logits (N,); SH coefficients split as the reference does, the constant term sh_dc
-(N, 1, C) and the rest (N, (degree+1)² − 1, C), with C = 1 for CT (grey, DESIGN §4) or 3 (they
+(N, 1, C) and the rest (N, (degree+1)² − 1, C), with C = 1 for CT (grey, docs/design.md §4) or 3 (they
 train at different rates). Activations: exp, normalise, sigmoid, and :func:`sh_to_colour`.
 ``smoothing`` is the variance of Mip-Splatting's 3D filter per Gaussian (``smoothing.py``), a
 property of the training cameras rather than a trained parameter; the scales and opacities the

@@ -1,4 +1,4 @@
-"""Trained Gaussians as a PLY in the reference 3DGS layout (research/3dgs.md §1.6), which common
+"""Trained Gaussians as a PLY in the reference 3DGS layout (docs/references.md §1.6), which common
 splat viewers open: x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3, all float32,
 pre-activation (log scales, logit opacity, raw w-first quaternions), f_rest channel-major.
 

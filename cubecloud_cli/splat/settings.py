@@ -1,5 +1,5 @@
 """Everything that decides what `splat` trains (recorded in its manifest), and the reference
-3DGS schedule scaled to the iteration count (research/3dgs.md §1.1–1.3)."""
+3DGS schedule scaled to the iteration count (docs/references.md §1.1–1.3)."""
 
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ class SplatSettings:
     percent_dense: float = 0.01
     refine: bool = True
     """Densify, prune and reset opacity on the reference schedule (scaled to --iterations)."""
-    # Mip-Splatting's filters: DESIGN §4.
+    # Mip-Splatting's filters: docs/design.md §4.
     antialias: bool = preset_default("splat", "antialias")
     """Mip-Splatting's anti-aliasing: a 3D smoothing filter tied to the training views' sampling rate (baked into
     point_cloud.ply) and a 2D Mip filter instead of the 0.3 px dilation, so the scene holds when the view zooms.

@@ -1,5 +1,5 @@
 """View-dependent colour from real spherical harmonics, in the basis and sign convention of the
-reference 3DGS code (research/3dgs.md §1.5), so coefficients trained here mean the same there.
+reference 3DGS code (docs/references.md §1.5), so coefficients trained here mean the same there.
 
 colour = max(Σ_l Σ_m c_lm Y_lm(direction) + 0.5, 0), direction = unit(mean − camera centre).
 """

@@ -1,6 +1,6 @@
 """The cube that every stage works in, and its maps to voxels and to the scanner.
 
-Three frames (DESIGN.md §2):
+Three frames (docs/design.md §2):
 
 * cube voxel index (i, j, k) of the S³ preprocessed volume, axes RAS;
 * world: voxel centre (i, j, k) at ((2i+1)/S − 1, (2j+1)/S − 1, (2k+1)/S − 1), so the volume fills

@@ -11,7 +11,7 @@ from cubecloud_cli.errors import CubecloudError
 
 log = logging.getLogger("cubecloud")
 
-# Width and level in HU (research/ct_gs.md §4.2). abdomen = OHIF "soft tissue" (W400 L40), the
+# Width and level in HU (docs/references.md §2). abdomen = OHIF "soft tissue" (W400 L40), the
 # natural default for KiTS-like abdominal CT; soft-tissue = the teaching/mediastinum W350 L50.
 CT_WINDOWS: dict[str, tuple[float, float]] = {
     "abdomen": (400.0, 40.0),
