@@ -16,7 +16,8 @@ from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import project
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_inputs, rasterizer_for
 from cubecloud_cli.raster.cpu import project_cpu
-from cubecloud_cli.raster.cpu_binning import TILE, bin_tiles, splat_boxes, sum_per_gaussian
+from cubecloud_cli.raster.constants import TILE
+from cubecloud_cli.raster.cpu_binning import bin_tiles, splat_boxes, sum_per_gaussian
 from cubecloud_cli.raster.cpu_kernels import exp_negative
 from cubecloud_cli.raster.pairs import pixel_bounds
 

@@ -10,7 +10,6 @@ directions, which is within a few per cent of a sphere's training zoom; 2 zooms 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np

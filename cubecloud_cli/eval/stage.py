@@ -20,7 +20,6 @@ from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntabl
 from cubecloud_cli.eval.novel import annotate, pictured_views, summarize_novel, view_angles
 from cubecloud_cli.eval.report import PAPER_TABLE_I, report_markdown, write_per_view_csv
 from cubecloud_cli.eval.runs import (
-    MAX_TURNTABLE_FRAMES,
     ScoredScene,
     SplatRun,
     file_digest,

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +86,73 @@ def export_scene(
     through the phases "bake", "images", "reference", "novel", "points" and "write".
     """
     work = Path(work)
+    job, cunerf = _plan_export(work, settings, runtime, cunerf_name)
+    device, preprocess = job.device, job.preprocess
+    params = recorded_params(settings, cunerf_name)
+    writer = StageWriter(work, "export", params, force=force, name=name, keep_partial=True, transient=(PROGRESS_DIR,))
+    writer.check_can_start()
+    fingerprint = {
+        "params": params,
+        "volume": preprocess["files"]["volume.npy"]["sha256"],
+        "model": cunerf["files"].get(MODEL_FILE, {}).get("sha256"),
+        "version": __version__,
+        # Renders on another device may differ by rounding: views are not mixed across devices.
+        "device": device.type,
+    }
+    progress = ExportProgress(writer.directory, fingerprint)
+    saved = progress.prepare()
+    total_views = job.total_views
+    if saved:
+        log.info(f"continuing the interrupted export: {saved} of {total_views} views are already rendered")
+    writer.extra["resumed"] = {"views": saved, "bake": progress.load("bake") is not None}
+    reset_peak_memory(device)
+    try:
+        return _export(job, writer, progress, on_progress)
+    except KeyboardInterrupt:
+        if not writer.directory.exists() and is_complete(writer.final_dir):
+            raise KeyboardInterrupt(f"interrupted while tidying up: {writer.final_dir} is complete") from None
+        raise KeyboardInterrupt(
+            f"interrupted: {progress.saved_views()} of {total_views} views are saved in {progress.directory}; "
+            f"run the same command to continue"
+        ) from None
+    except BaseException:
+        if writer.directory.exists() and not progress.has_work():
+            shutil.rmtree(writer.directory, ignore_errors=True)  # nothing there would save time
+        raise
+
+
+@dataclass(frozen=True)
+class ExportJob:
+    """What one export works from, checked before anything is written."""
+
+    work: Path
+    settings: ExportSettings
+    cameras: PinholeCameras
+    novel: NovelViewSet
+    image_model: ImageModel
+    preprocess: dict  # the preprocess manifest
+    size: int  # the volume's side in voxels
+    device: torch.device
+    cunerf_name: str | None
+
+    @property
+    def total_views(self) -> int:
+        return 2 * len(self.cameras) + len(self.novel)
+
+
+@dataclass
+class ExportRenders:
+    """The rendered views and the point cloud, ready to be written."""
+
+    images: np.ndarray  # CuNeRF's renders: the training images
+    reference: np.ndarray  # the volume's renders of the same views
+    novel_reference: np.ndarray
+    cloud: PointCloud
+
+
+def _plan_export(work: Path, settings: ExportSettings, runtime: Runtime, cunerf_name: str | None) -> tuple[ExportJob, dict]:
+    """Check the settings against the volume and the cunerf run, and build the cameras and the image
+    model; returns the job and the cunerf manifest."""
     settings.validate()
     preprocess = require_stage(work, "preprocess")
     size = int(preprocess["volume"]["shape"][0])
@@ -106,101 +173,82 @@ def export_scene(
         image_model.validate()
     except ValueError as exc:
         raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
-
-    params = recorded_params(settings, cunerf_name)
-    writer = StageWriter(work, "export", params, force=force, name=name, keep_partial=True, transient=(PROGRESS_DIR,))
-    writer.check_can_start()
-    fingerprint = {
-        "params": params,
-        "volume": preprocess["files"]["volume.npy"]["sha256"],
-        "model": cunerf["files"].get(MODEL_FILE, {}).get("sha256"),
-        "version": __version__,
-        # Renders on another device may differ by rounding: views are not mixed across devices.
-        "device": device.type,
-    }
-    progress = ExportProgress(writer.directory, fingerprint)
-    saved = progress.prepare()
-    novel = settings.novel_view_set()
-    total_views = 2 * settings.views + len(novel)
-    if saved:
-        log.info(f"continuing the interrupted export: {saved} of {total_views} views are already rendered")
-    writer.extra["resumed"] = {"views": saved, "bake": progress.load("bake") is not None}
-    reset_peak_memory(device)
-    try:
-        return _export(work, writer, progress, settings, cameras, novel, image_model, preprocess, size, device, cunerf_name,
-                       on_progress)
-    except KeyboardInterrupt:
-        if not writer.directory.exists() and is_complete(writer.final_dir):
-            raise KeyboardInterrupt(f"interrupted while tidying up: {writer.final_dir} is complete") from None
-        raise KeyboardInterrupt(
-            f"interrupted: {progress.saved_views()} of {total_views} views are saved in {progress.directory}; "
-            f"run the same command to continue"
-        ) from None
-    except BaseException:
-        if writer.directory.exists() and not progress.has_work():
-            shutil.rmtree(writer.directory, ignore_errors=True)  # nothing there would save time
-        raise
+    job = ExportJob(work, settings, cameras, settings.novel_view_set(), image_model, preprocess, size, device, cunerf_name)
+    return job, cunerf
 
 
-def _export(work, writer, progress, settings, cameras, novel, image_model, preprocess, size, device, cunerf_name,
-            on_progress) -> dict:
+def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_progress: ProgressCallback) -> dict:
     with writer:
         with writer.phase("load"):
-            volume_path = work / "preprocess" / "volume.npy"
-            model_path = work / stage_dir_name("cunerf", cunerf_name) / MODEL_FILE
-            # The hashes are taken anyway for the manifest; they also catch files changed in place.
-            for path, label, fix in (
-                (volume_path, "preprocess/volume.npy", f"cubecloud preprocess SCAN -o {work} --force"),
-                (model_path, f"{stage_dir_name('cunerf', cunerf_name)}/{MODEL_FILE}", f"cubecloud cunerf {work} --force"),
-            ):
-                recorded = read_manifest(path.parent)["files"].get(path.name, {}).get("sha256")
-                if writer.add_input(path, label) != recorded:
-                    raise CubecloudError(f"{path} changed since its stage was written: run `{fix}`")
-            volume = np.load(volume_path)
-            if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
-                raise CubecloudError(f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`")
-            field = CunerfField.from_file(model_path, device.type)
-            if field.volume_size != size:
-                raise CubecloudError(
-                    f"{model_path} was trained on a {field.volume_size}³ volume but preprocess/ holds {size}³: "
-                    f"rerun `cubecloud cunerf {work} --force`"
-                )
-        views = 2 * len(cameras) + len(novel)
-
-        def count_views(phase: str, before: int):
-            return lambda done, total: on_progress(phase, before + done, views, {})
-
-        with writer.phase("bake"):
-            on_progress("bake", 0, views, {})
-            cunerf_images_field = _cunerf_scalar_field(field, settings, size, device, progress, on_progress)
-        with writer.phase("render_images"):
-            images = _render_saving_views(cunerf_images_field, cameras, image_model, device, progress, "images",
-                                          count_views("images", 0))
-        with writer.phase("render_reference"):
-            reference = _render_saving_views(GridField(volume, device), cameras, image_model, device, progress, "reference",
-                                             count_views("reference", len(cameras)))
-        with writer.phase("render_novel"):
-            # The novel views face the origin: a stack's per-view slice planes do not apply to them.
-            novel_reference = render_novel_references(GridField(volume, device), novel, replace(image_model, slice_offsets=()),
-                                                      device, progress, count_views("novel", 2 * len(cameras)))
-        with writer.phase("point_cloud"):
-            on_progress("points", views, views, {})
-            cloud = build_point_cloud(
-                field.cube_values, field.point_density, cunerf_images_field, size, settings.cube,
-                settings.points_per_cube, settings.max_points or None, settings.air_threshold, settings.seed, device,
-            )
-        if cloud.stats["points"] == 0:
+            volume, field = _load_inputs(job, writer)
+        renders = _render(job, volume, field, writer, progress, on_progress)
+        if renders.cloud.stats["points"] == 0:
             log.warning("the field is air everywhere: points3D holds no point (lower --air-threshold?)")
         with writer.phase("write"):
-            on_progress("write", views, views, {})
-            names = view_names(len(cameras))
-            _write_scene(writer.directory, cameras, names, images, reference, cloud)
-            if len(novel):
-                write_novel(writer.directory, novel, novel_reference)
-        _record(writer, settings, cameras, names, image_model, cloud, images, reference, preprocess, device, size)
-        if len(novel):
-            _record_novel(writer, cameras, names, novel)
+            on_progress("write", job.total_views, job.total_views, {})
+            names = view_names(len(job.cameras))
+            _write_scene(writer.directory, job.cameras, names, renders.images, renders.reference, renders.cloud)
+            if len(job.novel):
+                write_novel(writer.directory, job.novel, renders.novel_reference)
+        _record(writer, job, names, renders)
+        if len(job.novel):
+            _record_novel(writer, job.cameras, names, job.novel)
     return read_manifest(writer.final_dir)
+
+
+def _load_inputs(job: ExportJob, writer: StageWriter) -> tuple[np.ndarray, CunerfField]:
+    """The volume and the trained field, each checked against the manifest of the stage that wrote it."""
+    work, size = job.work, job.size
+    volume_path = work / "preprocess" / "volume.npy"
+    model_path = work / stage_dir_name("cunerf", job.cunerf_name) / MODEL_FILE
+    # The hashes are taken anyway for the manifest; they also catch files changed in place.
+    for path, label, fix in (
+        (volume_path, "preprocess/volume.npy", f"cubecloud preprocess SCAN -o {work} --force"),
+        (model_path, f"{stage_dir_name('cunerf', job.cunerf_name)}/{MODEL_FILE}", f"cubecloud cunerf {work} --force"),
+    ):
+        recorded = read_manifest(path.parent)["files"].get(path.name, {}).get("sha256")
+        if writer.add_input(path, label) != recorded:
+            raise CubecloudError(f"{path} changed since its stage was written: run `{fix}`")
+    volume = np.load(volume_path)
+    if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
+        raise CubecloudError(f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`")
+    field = CunerfField.from_file(model_path, job.device.type)
+    if field.volume_size != size:
+        raise CubecloudError(
+            f"{model_path} was trained on a {field.volume_size}³ volume but preprocess/ holds {size}³: "
+            f"rerun `cubecloud cunerf {work} --force`"
+        )
+    return volume, field
+
+
+def _render(job: ExportJob, volume: np.ndarray, field: CunerfField, writer: StageWriter, progress: ExportProgress,
+            on_progress: ProgressCallback) -> ExportRenders:
+    """CuNeRF's views, the volume's views and novel references, and the point cloud, each phase timed."""
+    settings, cameras, device, views = job.settings, job.cameras, job.device, job.total_views
+
+    def count_views(phase: str, before: int):
+        return lambda done, total: on_progress(phase, before + done, views, {})
+
+    with writer.phase("bake"):
+        on_progress("bake", 0, views, {})
+        cunerf_images_field = _cunerf_scalar_field(field, settings, job.size, device, progress, on_progress)
+    with writer.phase("render_images"):
+        images = _render_saving_views(cunerf_images_field, cameras, job.image_model, device, progress, "images",
+                                      count_views("images", 0))
+    with writer.phase("render_reference"):
+        reference = _render_saving_views(GridField(volume, device), cameras, job.image_model, device, progress, "reference",
+                                         count_views("reference", len(cameras)))
+    with writer.phase("render_novel"):
+        # The novel views face the origin: a stack's per-view slice planes do not apply to them.
+        novel_reference = render_novel_references(GridField(volume, device), job.novel, replace(job.image_model, slice_offsets=()),
+                                                  device, progress, count_views("novel", 2 * len(cameras)))
+    with writer.phase("point_cloud"):
+        on_progress("points", views, views, {})
+        cloud = build_point_cloud(
+            field.cube_values, field.point_density, cunerf_images_field, job.size, settings.cube,
+            settings.points_per_cube, settings.max_points or None, settings.air_threshold, settings.seed, device,
+        )
+    return ExportRenders(images, reference, novel_reference, cloud)
 
 
 def _render_saving_views(field, cameras: PinholeCameras, model: ImageModel, device: torch.device,
@@ -282,9 +330,10 @@ def _write_scene(directory: Path, cameras: PinholeCameras, names: list[str], ima
     write_contact_sheet(reference, directory / "contact_sheet_reference.png", held_out, "reference renders (preprocessed volume)")
 
 
-def _record(writer: StageWriter, settings: ExportSettings, cameras: PinholeCameras, names: list[str],
-            image_model: ImageModel, cloud: PointCloud, images: np.ndarray, reference: np.ndarray,
-            preprocess: dict, device: torch.device, size: int) -> None:
+def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: ExportRenders) -> None:
+    """The CuNeRF-vs-reference scores, the cameras, the image model and the frames, into the manifest."""
+    settings, cameras, cloud, device, preprocess = job.settings, job.cameras, renders.cloud, job.device, job.preprocess
+    images, reference = renders.images, renders.reference
     held_out = held_out_views(len(names))
     test_metrics = image_metrics(reference[held_out], images[held_out])
     writer.metrics.update({f"cunerf_vs_reference_{k}": v for k, v in test_metrics.items()})
@@ -303,10 +352,10 @@ def _record(writer: StageWriter, settings: ExportSettings, cameras: PinholeCamer
             "convention": "OpenCV/COLMAP: x right, y down, z forward; world-to-camera poses; pixel centres at +0.5",
             "centres": cameras.centres().round(9).tolist(),
         },
-        "image_model": {**image_model.as_dict(), "step_voxels": settings.step},
+        "image_model": {**job.image_model.as_dict(), "step_voxels": settings.step},
         "render_source": {
             "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
-            "bake_size": settings.bake_resolution(size) if settings.render_from == "grid" else None,
+            "bake_size": settings.bake_resolution(job.size) if settings.render_from == "grid" else None,
             "reference_images": "preprocess/volume.npy, trilinear",
         },
         "split": {"train": [n for i, n in enumerate(names) if i not in held_out], "test": [names[i] for i in held_out]},

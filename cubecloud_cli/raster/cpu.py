@@ -9,7 +9,8 @@ import torch
 from cubecloud_cli.raster import cpu_binning as binning
 from cubecloud_cli.raster import cpu_kernels as kernels
 from cubecloud_cli.raster import cpu_projection
-from cubecloud_cli.raster.projection import NEAR_PLANE, Projected, dilation
+from cubecloud_cli.raster.constants import NEAR_PLANE, TILE
+from cubecloud_cli.raster.projection import Projected, dilation
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
@@ -72,7 +73,7 @@ def project_cpu(
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height):
-        tiles_x, tiles_y = -(-width // binning.TILE), -(-height // binning.TILE)
+        tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
         means2d_np, opacities_np = _numpy(means2d), _numpy(opacities)
         bounds, levels = binning.splat_boxes(means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np,
                                              width, height)

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE, TILE_SHIFT
+from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
 
 @njit(cache=True)

@@ -60,7 +60,10 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     inside its square, so the work is the pair count rather than pixels × entries.
 
     ``last`` is, per pixel, the entry where the backward pass starts: the entry at which the pixel
-    stopped (not blended), else the tile's end. Any entry before it with α ≥ 1/255 was blended."""
+    stopped (not blended), else the tile's end. Any entry before it with α ≥ 1/255 was blended.
+
+    One body on purpose: the per-tile state (transmittance, the bit masks of live pixels) lives in
+    the body of the parallel loop over tiles, which numba compiles as one kernel."""
     channels = colours.shape[1]
     image = np.zeros((height * width, channels))
     final_transmittance = np.ones(height * width)
@@ -137,7 +140,9 @@ def backward(offsets, entries, slots, bounds, means2d, conics, colours, opacitie
              height, tiles_x, final_transmittance, last, blended, grad_image):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
     colour (C), summed per Gaussian afterwards. Entries are walked back to front; each pixel
-    starts at its last blended entry."""
+    starts at its last blended entry.
+
+    One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]
     slot_grads = np.zeros((entries.size, 6 + channels))
     for tile in prange(offsets.size - 1):

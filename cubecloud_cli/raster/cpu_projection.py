@@ -128,7 +128,11 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
 def project_backward(means, scales, quaternions, rotation, translation, focal, width, height, near, variance, antialias,
                      grad_means2d, grad_conics, grad_compensations):
     """Gradients with respect to means (N, 3), scales (N, 3) and quaternions (N, 4). Gaussians
-    whose incoming gradients are all zero are skipped: in a dense scene, many are."""
+    whose incoming gradients are all zero are skipped: in a dense scene, many are.
+
+    One body on purpose: it is the chain rule of ``projection.project`` written out step by step
+    in the forward pass's order, checked against autograd in tests/test_raster_cpu.py; split up,
+    one derivation would be scattered over functions passing a dozen partials around."""
     count = means.shape[0]
     grad_means = np.zeros((count, 3))
     grad_scales = np.zeros((count, 3))
