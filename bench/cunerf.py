@@ -105,14 +105,22 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--seconds", type=float, default=600.0, help="training-time budget per model")
     parser.add_argument("--iterations", type=int, default=0, help="override the preset's iterations")
-    parser.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"],
-                        help="whose cunerf settings each model trains with (the volume size is --size)")
+    parser.add_argument(
+        "--preset",
+        default="fast",
+        choices=["fast", "balanced", "paper"],
+        help="whose cunerf settings each model trains with (the volume size is --size)",
+    )
     parser.add_argument("--points", type=int, default=32768, help="voxels scored at each curve point")
     parser.add_argument("--eval-every", type=float, default=20.0, help="seconds of training between points")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--train-scale", type=int, default=1,
-                        help="zero-shot super-resolution: train on every s-th voxel, score on all, "
-                        "beside trilinear interpolation of the same voxels")
+    parser.add_argument(
+        "--train-scale",
+        type=int,
+        default=1,
+        help="zero-shot super-resolution: train on every s-th voxel, score on all, "
+        "beside trilinear interpolation of the same voxels",
+    )
     parser.add_argument("--work", type=Path, default=None, help="reuse this work directory's preprocess/")
     args = parser.parse_args()
 
@@ -120,19 +128,38 @@ def main() -> None:
         work = args.work or Path(temporary) / "work"
         volume = preprocessed_volume(work, args.size)
         for model in args.models:
-            command = [sys.executable, "-c", CHILD, str(volume), model, str(args.seconds), str(args.points),
-                       str(args.eval_every), args.device, str(args.iterations), str(args.train_scale), args.preset]
+            command = [
+                sys.executable,
+                "-c",
+                CHILD,
+                str(volume),
+                model,
+                str(args.seconds),
+                str(args.points),
+                str(args.eval_every),
+                args.device,
+                str(args.iterations),
+                str(args.train_scale),
+                args.preset,
+            ]
             process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
             assert process.stdout is not None
-            print(f"\n== {model}, {args.preset} preset, on the bundled CT at {args.size}³ ({args.device}, train scale {args.train_scale}) ==")
+            print(
+                f"\n== {model}, {args.preset} preset, on the bundled CT at {args.size}³ ({args.device}, train scale {args.train_scale}) =="
+            )
             print(f"{'iteration':>9} {'train s':>8} {'loss':>10} {'PSNR est':>9} {'body':>7}")
             for line in process.stdout:
                 record = json.loads(line)
                 if record["event"] == "point":
-                    print(f"{record['iteration']:>9} {record['train_s']:>8.1f} {record['loss']:>10.3e} "
-                          f"{record['psnr_est']:>9.2f} {record['psnr_body_est']:>7.2f}", flush=True)
+                    print(
+                        f"{record['iteration']:>9} {record['train_s']:>8.1f} {record['loss']:>10.3e} "
+                        f"{record['psnr_est']:>9.2f} {record['psnr_body_est']:>7.2f}",
+                        flush=True,
+                    )
                 elif record["event"] == "end":
-                    summary = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in record.items() if k != "event"}
+                    summary = {
+                        k: (round(v, 4) if isinstance(v, float) else v) for k, v in record.items() if k != "event"
+                    }
                     print("summary:", json.dumps(summary))
             if process.wait() != 0:
                 raise SystemExit(f"the {model} run failed")

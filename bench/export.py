@@ -47,8 +47,10 @@ def time_renders(volume: np.ndarray, manifest: dict, args) -> None:
     cameras = orbit_cameras(OrbitSpec(views=args.views, resolution=args.resolution))
     transfer = resolve_transfer("tissue", manifest.get("intensity"))
     field = GridField(volume)
-    print(f"reference renders: {args.views} views at {args.resolution}² from {size}³, step 1 voxel, "
-          f"{torch.get_num_threads()} threads")
+    print(
+        f"reference renders: {args.views} views at {args.resolution}² from {size}³, step 1 voxel, "
+        f"{torch.get_num_threads()} threads"
+    )
     for kind in args.models.split(","):
         model = ImageModel(kind, transfer, step=2.0 / size)
         start = time.perf_counter()
@@ -73,8 +75,10 @@ def step_trade(volume: np.ndarray, manifest: dict, args) -> None:
         start = time.perf_counter()
         images = render_views(field, cameras, ImageModel("dvr", transfer, step=step * 2.0 / size))
         seconds = time.perf_counter() - start
-        print(f"  step {step:4.2f} voxel  {seconds:7.2f} s   PSNR {psnr(fine, images):6.2f} dB "
-              f"(foreground {psnr(fine, images, fine > 0):6.2f} dB)")
+        print(
+            f"  step {step:4.2f} voxel  {seconds:7.2f} s   PSNR {psnr(fine, images):6.2f} dB "
+            f"(foreground {psnr(fine, images, fine > 0):6.2f} dB)"
+        )
 
 
 def time_stage(work: Path, args) -> None:
@@ -87,13 +91,17 @@ def time_stage(work: Path, args) -> None:
     timings = manifest["timings_s"]
     if manifest.get("resumed", {}).get("views") or manifest.get("resumed", {}).get("bake"):
         print("warning: this run reused work of an interrupted export; delete WORK/.export.partial for clean timings")
-    print(f"export stage on {work} ({args.views} views at {args.resolution}², {manifest['metrics']['points']} points): {total:.1f} s")
+    print(
+        f"export stage on {work} ({args.views} views at {args.resolution}², {manifest['metrics']['points']} points): {total:.1f} s"
+    )
     for phase in ("load", "bake", "render_images", "render_reference", "point_cloud", "write", "hash_outputs"):
         print(f"  {phase:<17} {timings.get(phase, 0.0):7.2f} s")
     cunerf_part = timings["bake"] + timings["render_images"] + timings["point_cloud"]
     print(f"  CuNeRF renders + point cloud (bake, images, points): {cunerf_part:.1f} s")
-    print(f"  CuNeRF vs reference on test views: PSNR {manifest['metrics']['cunerf_vs_reference_psnr']:.2f} dB, "
-          f"SSIM {manifest['metrics']['cunerf_vs_reference_ssim']:.4f}")
+    print(
+        f"  CuNeRF vs reference on test views: PSNR {manifest['metrics']['cunerf_vs_reference_psnr']:.2f} dB, "
+        f"SSIM {manifest['metrics']['cunerf_vs_reference_ssim']:.4f}"
+    )
 
 
 def main() -> None:

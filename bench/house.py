@@ -42,7 +42,9 @@ def literal_field_defaults(settings_class: type) -> dict[str, bool]:
     tree = ast.parse(inspect.getsource(settings_class).replace("\n    ", "\n", 0))
     body = tree.body[0].body  # type: ignore[attr-defined]
     return {
-        node.target.id: not (isinstance(node.value, ast.Call) and getattr(node.value.func, "id", "") == "preset_default")
+        node.target.id: not (
+            isinstance(node.value, ast.Call) and getattr(node.value.func, "id", "") == "preset_default"
+        )
         for node in body
         if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and node.value is not None
     }
@@ -74,8 +76,10 @@ def main() -> None:
         print(f"  {lines:4d}  {name}")
     places = default_places()
     worst = max(places.values())
-    print(f"option defaults: {len(places)} settings fields, written in at most {worst} place(s); "
-          f"fields written more than once: {[k for k, v in places.items() if v > 1] or 'none'}")
+    print(
+        f"option defaults: {len(places)} settings fields, written in at most {worst} place(s); "
+        f"fields written more than once: {[k for k, v in places.items() if v > 1] or 'none'}"
+    )
     print(f"README.md: {len((ROOT / 'README.md').read_text().splitlines())} lines")
 
 

@@ -66,13 +66,18 @@ def main() -> None:
                 work = Path(tmp) / f"w{size}-{repeat}"
                 output = subprocess.run(
                     [sys.executable, "-c", CHILD, str(scan), str(work), str(size), args.fit, args.interpolation],
-                    capture_output=True, text=True, check=True, cwd=REPO,
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                    cwd=REPO,
                 )
                 runs.append(json.loads(output.stdout.strip().splitlines()[-1]))
                 subprocess.run(["rm", "-rf", str(work)], check=True)
             best = min(runs, key=lambda r: r["stage_s"])
             phases = " ".join(f"{k}={v:.2f}" for k, v in best["phases"].items() if k != "total")
-            print(f"{size:>5} {best['stage_s']:>8.2f} {best['process_s']:>10.2f} {max(r['peak_rss_mb'] for r in runs):>8.0f}  {phases}")
+            print(
+                f"{size:>5} {best['stage_s']:>8.2f} {best['process_s']:>10.2f} {max(r['peak_rss_mb'] for r in runs):>8.0f}  {phases}"
+            )
 
 
 if __name__ == "__main__":

@@ -55,7 +55,11 @@ def cloud_scene(path, count: int, seed: int = 0):
 def useful_pairs(projected, opacities, width, height) -> int:
     pairs = splat_pairs(projected, width, height)
     dx = (pairs.pixel % width).float() + 0.5 - projected.means2d[pairs.gaussian, 0].detach()
-    dy = torch.div(pairs.pixel, width, rounding_mode="floor").float() + 0.5 - projected.means2d[pairs.gaussian, 1].detach()
+    dy = (
+        torch.div(pairs.pixel, width, rounding_mode="floor").float()
+        + 0.5
+        - projected.means2d[pairs.gaussian, 1].detach()
+    )
     conic = projected.conics[pairs.gaussian].detach()
     power = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
     alpha = torch.clamp(opacities[pairs.gaussian] * torch.exp(-power), max=MAX_ALPHA)
@@ -70,15 +74,28 @@ def time_backend(projector, compositor, scene, cameras, width, repeats, antialia
     for _ in range(repeats + 1):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
         start = time.perf_counter()
-        projected = projector(inputs[0], torch.exp(inputs[1]), inputs[2], rotation, translation,
-                            float(cameras.focal), width, width, antialias=antialias)
+        projected = projector(
+            inputs[0],
+            torch.exp(inputs[1]),
+            inputs[2],
+            rotation,
+            translation,
+            float(cameras.focal),
+            width,
+            width,
+            antialias=antialias,
+        )
         projected_at = time.perf_counter()
         image, _ = compositor(projected, inputs[4], projected.effective_opacities(inputs[3]), width, width)
         forward_at = time.perf_counter()
         image.sum().backward()
         end = time.perf_counter()
-        for key, value in (("project", projected_at - start), ("forward", forward_at - projected_at),
-                           ("backward", end - forward_at), ("total", end - start)):
+        for key, value in (
+            ("project", projected_at - start),
+            ("forward", forward_at - projected_at),
+            ("backward", end - forward_at),
+            ("total", end - start),
+        ):
             splits[key].append(value)
     return {key: 1000 * statistics.median(values[1:]) for key, values in splits.items()}, projected
 
@@ -90,26 +107,43 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--skip-torch", action="store_true", help="time only the numba kernel")
     parser.add_argument("--cloud", help="an exported points3D.ply to initialise the scene from (default: random)")
-    parser.add_argument("--antialias", action="store_true", help="project through the 2D Mip filter, as anti-aliased training does")
+    parser.add_argument(
+        "--antialias", action="store_true", help="project through the 2D Mip filter, as anti-aliased training does"
+    )
     args = parser.parse_args()
 
     scene = cloud_scene(args.cloud, args.gaussians) if args.cloud else random_scene(args.gaussians)
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=args.resolution))
-    print(f"{len(scene[0])} Gaussians ({'from ' + args.cloud if args.cloud else 'random'}), {args.resolution}² view, {torch.get_num_threads()} threads, "
-          f"{'2D Mip filter' if args.antialias else '0.3 px² dilation'}; median of {args.repeats} forward + backward passes")
+    print(
+        f"{len(scene[0])} Gaussians ({'from ' + args.cloud if args.cloud else 'random'}), {args.resolution}² view, {torch.get_num_threads()} threads, "
+        f"{'2D Mip filter' if args.antialias else '0.3 px² dilation'}; median of {args.repeats} forward + backward passes"
+    )
     results = {}
     for name, projector, compositor in (("numba", project_cpu, composite_cpu), ("torch", project, composite)):
         if name == "torch" and args.skip_torch:
             continue
-        times, projected = time_backend(projector, compositor, scene, cameras, args.resolution,
-                                        args.repeats if name == "numba" else max(3, args.repeats // 5), args.antialias)
+        times, projected = time_backend(
+            projector,
+            compositor,
+            scene,
+            cameras,
+            args.resolution,
+            args.repeats if name == "numba" else max(3, args.repeats // 5),
+            args.antialias,
+        )
         results[name] = times
-        print(f"  {name:<6} total {times['total']:7.2f} ms  (project {times['project']:.2f}, "
-              f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f})")
+        print(
+            f"  {name:<6} total {times['total']:7.2f} ms  (project {times['project']:.2f}, "
+            f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f})"
+        )
     pairs = useful_pairs(projected, projected.effective_opacities(scene[3]), args.resolution, args.resolution)
-    print(f"  useful pairs (α ≥ 1/255): {pairs:,} -> {pairs / (results['numba']['total'] / 1000) / 1e6:.1f} M pairs/s (numba, fwd+bwd)")
+    print(
+        f"  useful pairs (α ≥ 1/255): {pairs:,} -> {pairs / (results['numba']['total'] / 1000) / 1e6:.1f} M pairs/s (numba, fwd+bwd)"
+    )
     if "torch" in results:
-        print(f"  speed-up of numba over the plain PyTorch path: {results['torch']['total'] / results['numba']['total']:.1f}x")
+        print(
+            f"  speed-up of numba over the plain PyTorch path: {results['torch']['total'] / results['numba']['total']:.1f}x"
+        )
 
 
 if __name__ == "__main__":

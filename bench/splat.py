@@ -19,19 +19,21 @@ from pathlib import Path
 
 import torch
 
+from cubecloud_cli.scene import read_point_cloud_ply
 from cubecloud_cli.splat.data import load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points
 from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.training import SplatTrainer, render
-from cubecloud_cli.scene import read_point_cloud_ply
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene", type=Path, help="an export directory (images.npy, sparse/0, points3D.ply)")
     parser.add_argument("--iterations", type=int, default=300)
-    parser.add_argument("--schedule-iterations", type=int, default=2000, help="the run length the schedule is scaled to")
+    parser.add_argument(
+        "--schedule-iterations", type=int, default=2000, help="the run length the schedule is scaled to"
+    )
     parser.add_argument("--max-gaussians", type=int, default=200_000)
     args = parser.parse_args()
 
@@ -39,15 +41,19 @@ def main() -> None:
     xyz, rgb, _ = read_point_cloud_ply(args.scene / "points3D.ply")
     settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
     trainer = SplatTrainer(gaussians_from_points(xyz, rgb[:, :1] / 255.0), scene, settings, torch.device("cpu"))
-    print(f"{scene.cameras.width}² views, {len(trainer.gaussians)} initial Gaussians, {torch.get_num_threads()} threads, "
-          f"rasterizer: {trainer.rasterizer.description}")
+    print(
+        f"{scene.cameras.width}² views, {len(trainer.gaussians)} initial Gaussians, {torch.get_num_threads()} threads, "
+        f"rasterizer: {trainer.rasterizer.description}"
+    )
     trainer.step()  # compiles the kernels
     started = time.perf_counter()
     for _ in range(args.iterations):
         trainer.step()
     elapsed = time.perf_counter() - started
-    print(f"  training: {args.iterations / elapsed:.1f} it/s over {args.iterations} iterations "
-          f"({len(trainer.gaussians)} Gaussians at the end)")
+    print(
+        f"  training: {args.iterations / elapsed:.1f} it/s over {args.iterations} iterations "
+        f"({len(trainer.gaussians)} Gaussians at the end)"
+    )
 
     splits = {"render forward": [], "loss": [], "backward": [], "optimizer": []}
     for _ in range(30):

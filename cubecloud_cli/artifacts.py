@@ -67,9 +67,7 @@ def stage_dir_name(stage: str, name: str | None = None) -> str:
     if name is None or name == "":
         return stage
     if not all(c.isalnum() or c in "-_" for c in name):
-        raise CubecloudError(
-            f"--name {name!r} may hold only letters, digits, '-' and '_'; pick a simpler name"
-        )
+        raise CubecloudError(f"--name {name!r} may hold only letters, digits, '-' and '_'; pick a simpler name")
     return f"{stage}-{name}"
 
 
@@ -97,9 +95,7 @@ def read_manifest(stage_dir: Path) -> dict[str, Any]:
     except FileNotFoundError:
         raise CubecloudError(f"{stage_dir} is incomplete: it has no {MANIFEST_NAME}") from None
     except (OSError, ValueError) as exc:
-        raise CubecloudError(
-            f"{path} is unreadable ({exc}); rerun the stage with --force to rebuild it"
-        ) from None
+        raise CubecloudError(f"{path} is unreadable ({exc}); rerun the stage with --force to rebuild it") from None
 
 
 def is_complete(stage_dir: Path) -> bool:
@@ -118,8 +114,7 @@ def require_stage(work: Path, stage: str, name: str | None = None) -> dict[str, 
         raise CubecloudError(f"{directory} does not exist: run `{fix}` first")
     if not is_complete(directory):
         raise CubecloudError(
-            f"{directory} is incomplete (no {MANIFEST_NAME}; an earlier run was interrupted): "
-            f"run `{fix} --force`"
+            f"{directory} is incomplete (no {MANIFEST_NAME}; an earlier run was interrupted): run `{fix} --force`"
         )
     manifest = read_manifest(directory)
     verify_stage_files(directory, manifest, f"{fix} --force")
@@ -174,12 +169,9 @@ class StageWriter:
         if self.final_dir.exists() and not self.force:
             if is_complete(self.final_dir):
                 raise CubecloudError(
-                    f"{self.final_dir} is already complete: pass --force to redo it, "
-                    f"or write to another work directory"
+                    f"{self.final_dir} is already complete: pass --force to redo it, or write to another work directory"
                 )
-            raise CubecloudError(
-                f"{self.final_dir} exists but has no {MANIFEST_NAME}: pass --force to replace it"
-            )
+            raise CubecloudError(f"{self.final_dir} exists but has no {MANIFEST_NAME}: pass --force to replace it")
 
     def _sweep_interrupted_cleanup(self) -> None:
         """Finish the cleanup of a commit that was interrupted after its rename: transient files
@@ -204,9 +196,7 @@ class StageWriter:
                 shutil.rmtree(self.directory)
             self.directory.mkdir(exist_ok=True)
         except OSError as exc:
-            raise CubecloudError(
-                f"cannot write in {self.work} ({exc.strerror}): pick a writable -o"
-            ) from None
+            raise CubecloudError(f"cannot write in {self.work} ({exc.strerror}): pick a writable -o") from None
         self._started = time.perf_counter()
         return self
 

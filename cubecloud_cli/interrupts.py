@@ -86,8 +86,9 @@ def checkpointed_loop(checkpoint: Path, divergence_fix: str) -> Iterator[dict]:
             raise CubecloudError(f"training diverged: {exc}; {divergence_fix}") from None
 
 
-def save_on_schedule(save: Callable[[Path], None], checkpoint: Path, iteration: int, every: int, total: int,
-                     interrupt: dict) -> None:
+def save_on_schedule(
+    save: Callable[[Path], None], checkpoint: Path, iteration: int, every: int, total: int, interrupt: dict
+) -> None:
     """Save every ``every`` iterations, after the last one (a resume then goes straight to the
     stage's end) and on Ctrl-C, then stop if Ctrl-C was pressed."""
     if iteration % every == 0 or iteration == total or interrupt["requested"]:
@@ -102,11 +103,15 @@ def checkpoint_to_resume(checkpoint: Path, resume: bool, force: bool) -> dict | 
     The stage then checks that the state fits its inputs and settings."""
     if resume:
         if not checkpoint.is_file():
-            raise CubecloudError(f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume")
+            raise CubecloudError(
+                f"there is no interrupted run to resume ({checkpoint} is missing): run without --resume"
+            )
         try:
             return torch.load(checkpoint, map_location="cpu", weights_only=False)
         except Exception as exc:  # torch raises many types for a damaged file
-            raise CubecloudError(f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force") from None
+            raise CubecloudError(
+                f"{checkpoint} is unreadable ({type(exc).__name__}): start again with --force"
+            ) from None
     if checkpoint.is_file() and not force:
         raise CubecloudError(
             f"an interrupted run is waiting in {checkpoint.parent}: pass --resume to continue it, or --force to start again"

@@ -143,15 +143,16 @@ def image_metrics(reference: np.ndarray, estimate: np.ndarray) -> dict[str, floa
         raise ValueError(f"need two (N, H, W) stacks of one shape, got {reference.shape} and {estimate.shape}")
     foreground = reference > 0
     per_view = [
-        (mse(r, e), mse(r, e, m) if m.any() else float("nan"))
-        for r, e, m in zip(reference, estimate, foreground)
+        (mse(r, e), mse(r, e, m) if m.any() else float("nan")) for r, e, m in zip(reference, estimate, foreground)
     ]
     result = {
         "psnr": float(np.mean([psnr_from_mse(m) for m, _ in per_view])),
         "mse": float(np.mean([m for m, _ in per_view])),
     }
     with_foreground = [f for _, f in per_view if np.isfinite(f)]
-    result["psnr_foreground"] = float(np.mean([psnr_from_mse(f) for f in with_foreground])) if with_foreground else float("nan")
+    result["psnr_foreground"] = (
+        float(np.mean([psnr_from_mse(f) for f in with_foreground])) if with_foreground else float("nan")
+    )
     result["mse_foreground"] = float(np.mean(with_foreground)) if with_foreground else float("nan")
     if min(reference.shape[1:]) >= 2 * SSIM_RADIUS + 1:
         result["ssim"] = ssim(reference, estimate)

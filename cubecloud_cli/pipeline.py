@@ -64,7 +64,11 @@ def stage_is_current(stage_dir: Path, params: dict, input_paths: list[Path]) -> 
     for path in input_paths:
         if sha256_of_path(path) not in recorded_hashes:
             # The first stage reads the scan; later ones read files of the stages before them.
-            changes.append("the input scan differs" if stage_dir.name == "preprocess" else f"its input {path.parent.name}/{path.name} changed")
+            changes.append(
+                "the input scan differs"
+                if stage_dir.name == "preprocess"
+                else f"its input {path.parent.name}/{path.name} changed"
+            )
     if changes:
         raise CubecloudError(
             f"{stage_dir} was made with other settings ({'; '.join(changes)}): pass --force to "
@@ -113,26 +117,64 @@ def stage_table(
         return work / f".{folder}{PARTIAL_SUFFIX}" / file
 
     stages = [
-        PipelineStage("preprocess", (), current("preprocess", preprocess_stage.recorded_params(preprocess), [Path(scan)]),
-                      lambda force, resume, on_progress: preprocess_scan(scan, work, preprocess, force=force, on_progress=on_progress)),
-        PipelineStage("cunerf", ("preprocess",), current("cunerf", cunerf.as_dict(), cunerf_stage.input_files(work)),
-                      lambda force, resume, on_progress: train_cunerf(work, cunerf, force=force, resume=resume, runtime=runtime, on_progress=on_progress),
-                      checkpoint=checkpoint("cunerf", cunerf_stage.CHECKPOINT_FILE)),
-        PipelineStage("export", ("cunerf",), current("export", export_stage.recorded_params(export), export_stage.input_files(work)),
-                      lambda force, resume, on_progress: export_scene(work, export, force=force, runtime=runtime, on_progress=on_progress),
-                      resumed=export_stage.resumed_views),
+        PipelineStage(
+            "preprocess",
+            (),
+            current("preprocess", preprocess_stage.recorded_params(preprocess), [Path(scan)]),
+            lambda force, resume, on_progress: preprocess_scan(
+                scan, work, preprocess, force=force, on_progress=on_progress
+            ),
+        ),
+        PipelineStage(
+            "cunerf",
+            ("preprocess",),
+            current("cunerf", cunerf.as_dict(), cunerf_stage.input_files(work)),
+            lambda force, resume, on_progress: train_cunerf(
+                work, cunerf, force=force, resume=resume, runtime=runtime, on_progress=on_progress
+            ),
+            checkpoint=checkpoint("cunerf", cunerf_stage.CHECKPOINT_FILE),
+        ),
+        PipelineStage(
+            "export",
+            ("cunerf",),
+            current("export", export_stage.recorded_params(export), export_stage.input_files(work)),
+            lambda force, resume, on_progress: export_scene(
+                work, export, force=force, runtime=runtime, on_progress=on_progress
+            ),
+            resumed=export_stage.resumed_views,
+        ),
     ]
-    runs = [("splat", None, splat)] + ([(f"splat-{BASELINE_NAME}", BASELINE_NAME, replace(splat, init="random"))] if baseline else [])
+    runs = [("splat", None, splat)] + (
+        [(f"splat-{BASELINE_NAME}", BASELINE_NAME, replace(splat, init="random"))] if baseline else []
+    )
     for folder, name, settings in runs:
-        stages.append(PipelineStage(
-            folder, ("export",), current(folder, splat_stage.recorded_params(settings, work / "export"), splat_stage.input_files(work / "export")),
-            lambda force, resume, on_progress, settings=settings, name=name: train_splat(
-                work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress),
-            checkpoint=checkpoint(folder, splat_stage.CHECKPOINT_FILE)))
+        stages.append(
+            PipelineStage(
+                folder,
+                ("export",),
+                current(
+                    folder,
+                    splat_stage.recorded_params(settings, work / "export"),
+                    splat_stage.input_files(work / "export"),
+                ),
+                lambda force, resume, on_progress, settings=settings, name=name: train_splat(
+                    work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress
+                ),
+                checkpoint=checkpoint(folder, splat_stage.CHECKPOINT_FILE),
+            )
+        )
     # eval is cheap and holds no choices worth protecting: one made with other settings or of
     # other runs (a splat-NAME/ the user trained beside them) is simply redone, never refused.
-    stages.append(PipelineStage("eval", tuple(stage.folder for stage in stages), lambda: eval_is_current(work, evaluation),
-                                lambda force, resume, on_progress: evaluate_work(work, evaluation, force=force, runtime=runtime, on_progress=on_progress)))
+    stages.append(
+        PipelineStage(
+            "eval",
+            tuple(stage.folder for stage in stages),
+            lambda: eval_is_current(work, evaluation),
+            lambda force, resume, on_progress: evaluate_work(
+                work, evaluation, force=force, runtime=runtime, on_progress=on_progress
+            ),
+        )
+    )
     return stages
 
 
@@ -183,6 +225,15 @@ def run_pipeline(
     on_stage: Callable[[StageOutcome], None] = lambda outcome: None,
 ) -> list[StageOutcome]:
     """Every stage on a scan (the random-init baseline too, unless ``baseline`` is False)."""
-    stages = stage_table(scan, work, preprocess_settings, cunerf_settings, export_settings, splat_settings,
-                         eval_settings, runtime, baseline)
+    stages = stage_table(
+        scan,
+        work,
+        preprocess_settings,
+        cunerf_settings,
+        export_settings,
+        splat_settings,
+        eval_settings,
+        runtime,
+        baseline,
+    )
     return run_stages(stages, work, force=force, progress=progress, on_stage=on_stage)

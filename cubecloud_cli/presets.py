@@ -30,12 +30,33 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # every side (a ring loses up to 11 dB off its plane), with the long (si) axis up. The
     # paper states no point budget nor points per cube.
     "export": {
-        "fast": {"resolution": 128, "cameras": "sphere", "views": 60, "axis": "si", "view": "dvr", "points_per_cube": 512,
-                 "max_points": 100_000},
-        "balanced": {"resolution": 192, "cameras": "sphere", "views": 60, "axis": "si", "view": "dvr", "points_per_cube": 512,
-                     "max_points": 150_000},
-        "paper": {"resolution": 512, "cameras": "orbit", "views": 60, "axis": "ap", "view": "slice", "points_per_cube": 64,
-                  "max_points": 0},
+        "fast": {
+            "resolution": 128,
+            "cameras": "sphere",
+            "views": 60,
+            "axis": "si",
+            "view": "dvr",
+            "points_per_cube": 512,
+            "max_points": 100_000,
+        },
+        "balanced": {
+            "resolution": 192,
+            "cameras": "sphere",
+            "views": 60,
+            "axis": "si",
+            "view": "dvr",
+            "points_per_cube": 512,
+            "max_points": 150_000,
+        },
+        "paper": {
+            "resolution": 512,
+            "cameras": "orbit",
+            "views": 60,
+            "axis": "ap",
+            "view": "slice",
+            "points_per_cube": 64,
+            "max_points": 0,
+        },
     },
     # splat: the paper trains 30 000 iterations (the reference's length) on a GPU; the CPU
     # presets train shorter, with the reference schedule scaled to their length. The paper's
@@ -58,18 +79,42 @@ CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "paper": "cunerf"}
 CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         "fast": {**_GRID, "iterations": 4000, "batch_size": 4096, "val_every": 1000, "checkpoint_every": 500},
-        "cunerf": {**_MLP, "warmup": 100, "iterations": 2000, "batch_size": 512, "samples_per_axis": 3,
-                   "importance": 32, "val_every": 500, "checkpoint_every": 100},
+        "cunerf": {
+            **_MLP,
+            "warmup": 100,
+            "iterations": 2000,
+            "batch_size": 512,
+            "samples_per_axis": 3,
+            "importance": 32,
+            "val_every": 500,
+            "checkpoint_every": 100,
+        },
     },
     "balanced": {
         "fast": {**_GRID, "iterations": 5000, "batch_size": 8192, "val_every": 1000, "checkpoint_every": 500},
-        "cunerf": {**_MLP, "warmup": 1000, "iterations": 10000, "batch_size": 1024, "samples_per_axis": 4,
-                   "importance": 64, "val_every": 1000, "checkpoint_every": 250},
+        "cunerf": {
+            **_MLP,
+            "warmup": 1000,
+            "iterations": 10000,
+            "batch_size": 1024,
+            "samples_per_axis": 4,
+            "importance": 64,
+            "val_every": 1000,
+            "checkpoint_every": 250,
+        },
     },
     "paper": {
         "fast": {**_GRID, "iterations": 20000, "batch_size": 8192, "val_every": 2000, "checkpoint_every": 1000},
-        "cunerf": {**_MLP, "warmup": 1000, "iterations": 200000, "batch_size": 1024, "samples_per_axis": 4,
-                   "importance": 64, "val_every": 10000, "checkpoint_every": 10000},
+        "cunerf": {
+            **_MLP,
+            "warmup": 1000,
+            "iterations": 200000,
+            "batch_size": 1024,
+            "samples_per_axis": 4,
+            "importance": 64,
+            "val_every": 10000,
+            "checkpoint_every": 10000,
+        },
     },
 }
 

@@ -14,7 +14,6 @@ import torch
 
 from cubecloud_cli.errors import CubecloudError
 
-
 DEVICES = ("auto", "cpu", "cuda")
 
 

@@ -5,8 +5,7 @@ from pathlib import Path
 
 SAMPLE_CT_NAME = "ct_abdomen_pelvis_3mm_totalseg.nii.gz"
 SAMPLE_CT_ATTRIBUTION = (
-    "bundled abdomen/pelvis CT from TotalSegmentator (Apache-2.0; Wasserthal et al., "
-    "Radiology: AI 2023)"
+    "bundled abdomen/pelvis CT from TotalSegmentator (Apache-2.0; Wasserthal et al., Radiology: AI 2023)"
 )
 
 

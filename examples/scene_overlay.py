@@ -31,8 +31,10 @@ def main() -> None:
     model = read_colmap_model(args.scene)
     xyz, _, _ = read_point_cloud_ply(args.scene / "sparse" / "0" / "points3D.ply")
     cameras, name = model.cameras, model.image_names[args.view]
-    print(f"{len(cameras)} PINHOLE views of {cameras.width}x{cameras.height}, focal {cameras.focal:.2f} px, "
-          f"{len(xyz)} points; drawing view {args.view} ({name})")
+    print(
+        f"{len(cameras)} PINHOLE views of {cameras.width}x{cameras.height}, focal {cameras.focal:.2f} px, "
+        f"{len(xyz)} points; drawing view {args.view} ({name})"
+    )
 
     image = np.asarray(Image.open(args.scene / "images" / name).convert("RGB")).copy()
     if len(xyz) > args.points:
@@ -46,8 +48,10 @@ def main() -> None:
     image[rows[bright], columns[bright]] = (0, 255, 0)
     image[rows[~bright], columns[~bright]] = (255, 0, 0)
     Image.fromarray(image).save(args.out)
-    print(f"{inside.sum()} of {len(xyz)} drawn points land inside the image, {bright.mean():.1%} of them on "
-          f"bright pixels; wrote {args.out}")
+    print(
+        f"{inside.sum()} of {len(xyz)} drawn points land inside the image, {bright.mean():.1%} of them on "
+        f"bright pixels; wrote {args.out}"
+    )
 
 
 if __name__ == "__main__":

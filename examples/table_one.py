@@ -58,7 +58,10 @@ STEPS = (
     ("splat-slice", ["splat", "--scene", "{work}/export-slice", "--name", "slice"]),
     ("splat-slice-random", ["splat", "--scene", "{work}/export-slice", "--init", "random", "--name", "slice-random"]),
     ("export-stack", ["export", "--cameras", "stack", "--view", "slice", "--axis", "lr", "--name", "stack"]),
-    ("splat-paper-baseline", ["splat", "--scene", "{work}/export-stack", "--init", "random", "--name", "paper-baseline"]),
+    (
+        "splat-paper-baseline",
+        ["splat", "--scene", "{work}/export-stack", "--init", "random", "--name", "paper-baseline"],
+    ),
 )
 
 
@@ -84,8 +87,11 @@ def run_study(args: argparse.Namespace) -> dict:
                 filled.append("--resume")
             cubecloud(filled[0], str(work), *filled[1:], *common, *extra.get(filled[0], []))
     cubecloud("eval", str(work), "--turntable-frames", "0", "--force", "-q")
-    return {"work": str(work), "seconds": time.perf_counter() - started,
-            "metrics": json.loads((work / "eval" / "metrics.json").read_text())}
+    return {
+        "work": str(work),
+        "seconds": time.perf_counter() - started,
+        "metrics": json.loads((work / "eval" / "metrics.json").read_text()),
+    }
 
 
 def table(study: dict) -> tuple[str, list[dict]]:
@@ -96,27 +102,46 @@ def table(study: dict) -> tuple[str, list[dict]]:
         scores = results.get(run)
         if scores is None:
             continue
-        rows.append({"setting": setting, "images": images, "cameras": cameras, "init": init,
-                     "iterations": scores.get("iterations"), "gaussians": scores.get("gaussians"),
-                     "novel_psnr": scores.get("novel_psnr"), "novel_psnr_std": scores.get("novel_psnr_std"),
-                     "novel_ssim": scores.get("novel_ssim"), "novel_views": scores.get("novel_views"),
-                     "test_views": scores["views"], "psnr": scores["psnr"], "psnr_std": scores["psnr_std"],
-                     "ssim": scores["ssim"], "mse": scores["mse"], "psnr_foreground": scores.get("psnr_foreground"),
-                     "train_s": scores.get("train_seconds")})
-    lines = ["| setting | images | cameras | init | iterations | Gaussians | novel PSNR (0.75–1.33×) | novel SSIM | "
-             "held-out views | held-out PSNR | held-out SSIM | MSE | PSNR in body |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        rows.append(
+            {
+                "setting": setting,
+                "images": images,
+                "cameras": cameras,
+                "init": init,
+                "iterations": scores.get("iterations"),
+                "gaussians": scores.get("gaussians"),
+                "novel_psnr": scores.get("novel_psnr"),
+                "novel_psnr_std": scores.get("novel_psnr_std"),
+                "novel_ssim": scores.get("novel_ssim"),
+                "novel_views": scores.get("novel_views"),
+                "test_views": scores["views"],
+                "psnr": scores["psnr"],
+                "psnr_std": scores["psnr_std"],
+                "ssim": scores["ssim"],
+                "mse": scores["mse"],
+                "psnr_foreground": scores.get("psnr_foreground"),
+                "train_s": scores.get("train_seconds"),
+            }
+        )
+    lines = [
+        "| setting | images | cameras | init | iterations | Gaussians | novel PSNR (0.75–1.33×) | novel SSIM | "
+        "held-out views | held-out PSNR | held-out SSIM | MSE | PSNR in body |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for row in rows:
         gaussians = f"{row['gaussians']:,}".replace(",", " ")
         lines.append(
             f"| {row['setting']} | {row['images']} | {row['cameras']} | {row['init']} | {row['iterations']} | "
             f"{gaussians} | {_number(row['novel_psnr'], 2)} ± {_number(row['novel_psnr_std'], 2)} | "
             f"{_number(row['novel_ssim'], 4)} | {row['test_views']} | {_number(row['psnr'], 2)} ± {_number(row['psnr_std'], 2)} | "
-            f"{_number(row['ssim'], 4)} | {_number(row['mse'], 2, 'e')} | {_number(row['psnr_foreground'], 2)} |")
+            f"{_number(row['ssim'], 4)} | {_number(row['mse'], 2, 'e')} | {_number(row['psnr_foreground'], 2)} |"
+        )
     for method, scores in paper.items():
         if isinstance(scores, dict) and "psnr" in scores:
-            lines.append(f"| paper (KiTS23, 512³, 30 000 iterations) | | | {method} | 30000 | | | | | "
-                         f"{scores['psnr']:.3f} | {scores['ssim']:.4f} | {scores['mse']:.4f} | |")
+            lines.append(
+                f"| paper (KiTS23, 512³, 30 000 iterations) | | | {method} | 30000 | | | | | "
+                f"{scores['psnr']:.3f} | {scores['ssim']:.4f} | {scores['mse']:.4f} | |"
+            )
     return "\n".join(lines) + "\n", rows
 
 
@@ -131,14 +156,20 @@ def main() -> None:
     parser.add_argument("--window", help="CT window for preprocess, e.g. lung for a chest CT")
     parser.add_argument("--preset", default="fast", choices=("fast", "balanced", "paper"))
     parser.add_argument("--out", type=Path, required=True, help="the work directory")
-    parser.add_argument("--stage-options", action="append", default=[], metavar="STAGE=OPTIONS",
-                        help='options every command of a stage gets, e.g. "splat=--iterations 4000"')
+    parser.add_argument(
+        "--stage-options",
+        action="append",
+        default=[],
+        metavar="STAGE=OPTIONS",
+        help='options every command of a stage gets, e.g. "splat=--iterations 4000"',
+    )
     args = parser.parse_args()
     study = run_study(args)
     markdown, rows = table(study)
     (args.out / "table_one.md").write_text(markdown)
-    (args.out / "table_one.json").write_text(json.dumps({"scan": str(args.scan or "bundled abdomen CT"),
-                                                         "preset": args.preset, "rows": rows}, indent=1))
+    (args.out / "table_one.json").write_text(
+        json.dumps({"scan": str(args.scan or "bundled abdomen CT"), "preset": args.preset, "rows": rows}, indent=1)
+    )
     print(markdown)
     print(f"{study['seconds']:.0f} s; wrote {args.out / 'table_one.md'}")
 

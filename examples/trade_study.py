@@ -87,12 +87,16 @@ def preset_values(preset: str, extra: dict[str, list[str]]) -> dict:
     """Each knob's value in the base configuration: the preset's, or the --stage-options one."""
     from cubecloud_cli.presets import PRESETS, resolve_cunerf
 
-    values = {"volume": PRESETS["preprocess"][preset]["size"], "views": PRESETS["export"][preset]["views"],
-              "cunerf_iterations": resolve_cunerf(preset, None, {})["iterations"],
-              "cameras": PRESETS["export"][preset]["cameras"],
-              "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
-              "iterations": PRESETS["splat"][preset]["iterations"], "budget": PRESETS["splat"][preset]["max_gaussians"],
-              "antialias": "on" if PRESETS["splat"][preset]["antialias"] else "off"}
+    values = {
+        "volume": PRESETS["preprocess"][preset]["size"],
+        "views": PRESETS["export"][preset]["views"],
+        "cunerf_iterations": resolve_cunerf(preset, None, {})["iterations"],
+        "cameras": PRESETS["export"][preset]["cameras"],
+        "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
+        "iterations": PRESETS["splat"][preset]["iterations"],
+        "budget": PRESETS["splat"][preset]["max_gaussians"],
+        "antialias": "on" if PRESETS["splat"][preset]["antialias"] else "off",
+    }
     for name, knob in KNOBS.items():
         options = extra.get(knob.stage, [])
         if knob.choices == ("on", "off"):  # the last flag given wins, as on the CLI
@@ -104,8 +108,14 @@ def preset_values(preset: str, extra: dict[str, list[str]]) -> dict:
     return values
 
 
-def stage_commands(scan: str | None, work: Path, preset: str, window: str | None, overrides: dict,
-                   extra: dict[str, list[str]] | None = None) -> dict[str, list[str]]:
+def stage_commands(
+    scan: str | None,
+    work: Path,
+    preset: str,
+    window: str | None,
+    overrides: dict,
+    extra: dict[str, list[str]] | None = None,
+) -> dict[str, list[str]]:
     """The command line of each stage for one configuration (``overrides``: the knob's options;
     ``extra``: options every configuration passes to a stage, e.g. shorter cunerf training)."""
     extra = extra or {}
@@ -113,8 +123,17 @@ def stage_commands(scan: str | None, work: Path, preset: str, window: str | None
     window_args = ["--window", window] if window else []
     splat = ["--preset", preset, *extra.get("splat", []), *overrides.get("splat", [])]
     return {
-        "preprocess": ["preprocess", *scan_args, "-o", str(work), "--preset", preset, *window_args,
-                       *extra.get("preprocess", []), *overrides.get("preprocess", [])],
+        "preprocess": [
+            "preprocess",
+            *scan_args,
+            "-o",
+            str(work),
+            "--preset",
+            preset,
+            *window_args,
+            *extra.get("preprocess", []),
+            *overrides.get("preprocess", []),
+        ],
         "cunerf": ["cunerf", str(work), "--preset", preset, *extra.get("cunerf", []), *overrides.get("cunerf", [])],
         "export": ["export", str(work), "--preset", preset, *extra.get("export", []), *overrides.get("export", [])],
         "splat": ["splat", str(work), *splat],
@@ -143,8 +162,9 @@ def configurations(knobs: list[str], base: dict, values: dict[str, list] | None 
     return configs
 
 
-def run_configuration(name: str, commands: dict[str, list[str]], keys: dict[str, tuple], work: Path,
-                      done: dict[tuple, Path]) -> None:
+def run_configuration(
+    name: str, commands: dict[str, list[str]], keys: dict[str, tuple], work: Path, done: dict[tuple, Path]
+) -> None:
     """Run the stages in order. A stage whose command chain (``keys``) an earlier configuration
     ran is hard-linked from it; one already here from the same chain is kept; anything else is
     (re)done, with every stage after it."""
@@ -192,15 +212,25 @@ def base_mismatches(base: Path, scan: str | None, preset: str, window: str | Non
     if missing:
         return [f"stages not complete: {', '.join(missing)}"]
     manifests = {stage: read_manifest(base / stage) for stage in STAGES}
-    wanted = {stage: dict(PRESETS[key][preset]) for stage, key in
-              (("preprocess", "preprocess"), ("export", "export"), ("splat", "splat"), ("splat-random", "splat"))}
+    wanted = {
+        stage: dict(PRESETS[key][preset])
+        for stage, key in (
+            ("preprocess", "preprocess"),
+            ("export", "export"),
+            ("splat", "splat"),
+            ("splat-random", "splat"),
+        )
+    }
     wanted["cunerf"] = resolve_cunerf(preset, None, {})
     if window:
         wanted["preprocess"]["window"] = window
     wanted["splat"]["init"], wanted["splat-random"]["init"] = "cloud", "random"
-    problems = [f"{stage} {key} is {manifests[stage]['params'].get(key)!r}, the preset's is {value!r}"
-                for stage, params in wanted.items() for key, value in params.items()
-                if manifests[stage]["params"].get(key) != value]
+    problems = [
+        f"{stage} {key} is {manifests[stage]['params'].get(key)!r}, the preset's is {value!r}"
+        for stage, params in wanted.items()
+        for key, value in params.items()
+        if manifests[stage]["params"].get(key) != value
+    ]
     scan_sha = sha256_of_path(Path(scan) if scan else sample_ct_path())
     if scan_sha not in manifests["preprocess"]["inputs"].values():
         problems.append(f"preprocess ran on another scan ({', '.join(manifests['preprocess']['inputs'])})")
@@ -224,24 +254,32 @@ def chain_keys(commands: dict[str, list[str]]) -> dict[str, tuple]:
 
 
 def collect(name: str, work: Path) -> list[dict]:
-    seconds = {stage: json.loads((work / stage / "manifest.json").read_text())["timings_s"]["total"] for stage in STAGES}
+    seconds = {
+        stage: json.loads((work / stage / "manifest.json").read_text())["timings_s"]["total"] for stage in STAGES
+    }
     results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
     rows = []
     for run in ("splat", "splat-random"):
         result = results[run]
         by_magnification = (result.get("novel") or {}).get("by_magnification", {})
-        rows.append({
-            "config": name, "method": result["method_name"],
-            "novel_psnr": result.get("novel_psnr"), "novel_ssim": result.get("novel_ssim"),
-            "novel_psnr_0.5x": by_magnification.get("0.5", {}).get("psnr"),
-            "novel_psnr_2x": by_magnification.get("2", {}).get("psnr"),
-            "psnr": result["psnr"], "ssim": result["ssim"],
-            "psnr_foreground": result["psnr_foreground"], "gaussians": result["gaussians"],
-            **{f"{stage}_s": round(seconds[stage], 1) for stage in ("preprocess", "cunerf", "export")},
-            "splat_s": round(seconds[run], 1),
-            # From the scan to this model: the shared stages and its own training.
-            "pipeline_s": round(seconds["preprocess"] + seconds["cunerf"] + seconds["export"] + seconds[run], 1),
-        })
+        rows.append(
+            {
+                "config": name,
+                "method": result["method_name"],
+                "novel_psnr": result.get("novel_psnr"),
+                "novel_ssim": result.get("novel_ssim"),
+                "novel_psnr_0.5x": by_magnification.get("0.5", {}).get("psnr"),
+                "novel_psnr_2x": by_magnification.get("2", {}).get("psnr"),
+                "psnr": result["psnr"],
+                "ssim": result["ssim"],
+                "psnr_foreground": result["psnr_foreground"],
+                "gaussians": result["gaussians"],
+                **{f"{stage}_s": round(seconds[stage], 1) for stage in ("preprocess", "cunerf", "export")},
+                "splat_s": round(seconds[run], 1),
+                # From the scan to this model: the shared stages and its own training.
+                "pipeline_s": round(seconds["preprocess"] + seconds["cunerf"] + seconds["export"] + seconds[run], 1),
+            }
+        )
     return rows
 
 
@@ -251,16 +289,35 @@ def main() -> None:
     parser.add_argument("--window", help="CT window for preprocess, e.g. lung for a chest CT")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--knobs", default=",".join(KNOBS), help="comma-separated subset of: " + ", ".join(KNOBS))
-    parser.add_argument("--values", action="append", default=[], metavar="KNOB=V1,V2",
-                        help="values of a knob instead of its defaults, e.g. iterations=500,1000 (repeatable)")
-    parser.add_argument("--stage-options", action="append", default=[], metavar="STAGE=OPTIONS",
-                        help='options every configuration passes to a stage, e.g. "cunerf=--iterations 1000"')
-    parser.add_argument("--include", action="append", default=[], metavar="NAME=WORK",
-                        help="add a finished `cubecloud run` work directory as a configuration, e.g. "
-                             "balanced=work-balanced from `cubecloud run -o work-balanced --preset balanced` (repeatable)")
-    parser.add_argument("--base", type=Path, metavar="WORK",
-                        help="a finished `cubecloud run -o WORK --preset PRESET` on the same scan: its stages become "
-                             "the preset configuration (hard-linked, times kept) instead of being rerun")
+    parser.add_argument(
+        "--values",
+        action="append",
+        default=[],
+        metavar="KNOB=V1,V2",
+        help="values of a knob instead of its defaults, e.g. iterations=500,1000 (repeatable)",
+    )
+    parser.add_argument(
+        "--stage-options",
+        action="append",
+        default=[],
+        metavar="STAGE=OPTIONS",
+        help='options every configuration passes to a stage, e.g. "cunerf=--iterations 1000"',
+    )
+    parser.add_argument(
+        "--include",
+        action="append",
+        default=[],
+        metavar="NAME=WORK",
+        help="add a finished `cubecloud run` work directory as a configuration, e.g. "
+        "balanced=work-balanced from `cubecloud run -o work-balanced --preset balanced` (repeatable)",
+    )
+    parser.add_argument(
+        "--base",
+        type=Path,
+        metavar="WORK",
+        help="a finished `cubecloud run -o WORK --preset PRESET` on the same scan: its stages become "
+        "the preset configuration (hard-linked, times kept) instead of being rerun",
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     knobs = [k.strip() for k in args.knobs.split(",") if k.strip()]
@@ -275,7 +332,12 @@ def main() -> None:
         values = {key: [KNOBS[key].parse(v) for v in texts] for key, texts in values.items()}
     except ValueError as exc:
         parser.error(f"--values: {exc}")
-    wrong = [f"{key}={v}" for key, texts in values.items() for v in texts if KNOBS[key].choices and v not in KNOBS[key].choices]
+    wrong = [
+        f"{key}={v}"
+        for key, texts in values.items()
+        for v in texts
+        if KNOBS[key].choices and v not in KNOBS[key].choices
+    ]
     if wrong:
         parser.error(f"--values not among the knob's choices: {', '.join(wrong)}")
 
@@ -300,7 +362,9 @@ def main() -> None:
         name, _, directory = item.partition("=")
         missing = [stage for stage in STAGES if not is_complete(Path(directory) / stage)]
         if not name or missing:
-            parser.error(f"--include {item}: needs NAME=WORK with every stage complete (missing: {', '.join(missing) or '-'})")
+            parser.error(
+                f"--include {item}: needs NAME=WORK with every stage complete (missing: {', '.join(missing) or '-'})"
+            )
         rows += collect(name, Path(directory))
 
     with open(args.out / "trade.csv", "w", newline="") as handle:
@@ -308,11 +372,17 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(rows)
     (args.out / "trade.json").write_text(json.dumps(rows, indent=2))
-    lines = ["| config | method | pipeline s | cunerf s | export s | splat s | novel PSNR | novel SSIM | novel 0.5× | "
-             "novel 2× | held-out PSNR | held-out SSIM | Gaussians |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['config']} | {r['method']} | {r['pipeline_s']:.0f} | {r['cunerf_s']:.0f} | {r['export_s']:.0f} | "
-              f"{r['splat_s']:.0f} | {_number(r['novel_psnr'])} | {_number(r['novel_ssim'], 4)} | {_number(r['novel_psnr_0.5x'])} | "
-              f"{_number(r['novel_psnr_2x'])} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['gaussians']} |" for r in rows]
+    lines = [
+        "| config | method | pipeline s | cunerf s | export s | splat s | novel PSNR | novel SSIM | novel 0.5× | "
+        "novel 2× | held-out PSNR | held-out SSIM | Gaussians |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['config']} | {r['method']} | {r['pipeline_s']:.0f} | {r['cunerf_s']:.0f} | {r['export_s']:.0f} | "
+        f"{r['splat_s']:.0f} | {_number(r['novel_psnr'])} | {_number(r['novel_ssim'], 4)} | {_number(r['novel_psnr_0.5x'])} | "
+        f"{_number(r['novel_psnr_2x'])} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['gaussians']} |"
+        for r in rows
+    ]
     (args.out / "trade.md").write_text("\n".join(lines) + "\n")
     write_plot(rows, args.out / "time_vs_psnr.svg")
     print("\n".join(lines))
@@ -328,9 +398,17 @@ def write_plot(rows: list[dict], path: Path) -> None:
         series.append((method, [r["pipeline_s"] for r in mine], [r["novel_psnr"] for r in mine]))
         labels[method] = [r["config"] for r in mine]
     if series:
-        path.write_text(line_plot_svg(
-            series, "novel-view PSNR (0.75–1.33×) against pipeline time", "pipeline time from the scan (s)",
-            "novel-view PSNR vs the volume's renders (dB)", markers_only=True, point_labels=labels, size=(960, 600)))
+        path.write_text(
+            line_plot_svg(
+                series,
+                "novel-view PSNR (0.75–1.33×) against pipeline time",
+                "pipeline time from the scan (s)",
+                "novel-view PSNR vs the volume's renders (dB)",
+                markers_only=True,
+                point_labels=labels,
+                size=(960, 600),
+            )
+        )
 
 
 def _number(value, digits: int = 2) -> str:

@@ -144,7 +144,9 @@ def test_orbits_stay_finite_and_hold_the_cube_at_the_extremes(radius, elevation,
     cameras = orbit_cameras(OrbitSpec(views, axis, radius, resolution, elevation))
     assert np.isfinite(cameras.rotations).all() and np.isfinite(cameras.translations).all()
     assert np.isfinite(cameras.focal) and cameras.focal > 0
-    np.testing.assert_allclose(np.einsum("nij,nkj->nik", cameras.rotations, cameras.rotations), np.tile(np.eye(3), (views, 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(
+        np.einsum("nij,nkj->nik", cameras.rotations, cameras.rotations), np.tile(np.eye(3), (views, 1, 1)), atol=1e-9
+    )
     for view in (0, views - 1):
         pixels, depth = cameras.project(view, CORNERS)
         assert (depth > 0).all()
@@ -159,6 +161,7 @@ def test_extreme_fields_of_view(fov):
 
 
 # -- the sphere (docs/design.md §2) --------------------------------------------------------------------
+
 
 def angles_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(a @ b.T, -1.0, 1.0))
@@ -212,8 +215,9 @@ def test_a_camera_exactly_on_a_pole_has_a_proper_pose():
     from cubecloud_cli.cameras.sphere import POLE_UP, poses_looking_at_origin
 
     for direction in ([0.0, 0.0, 1.0], [0.0, 0.0, -1.0]):
-        rotations, translations = poses_looking_at_origin(np.array([direction]), 4.0, np.array([0.0, 0.0, 1.0]),
-                                                          np.asarray(POLE_UP["si"]))
+        rotations, translations = poses_looking_at_origin(
+            np.array([direction]), 4.0, np.array([0.0, 0.0, 1.0]), np.asarray(POLE_UP["si"])
+        )
         assert np.isfinite(rotations).all() and np.linalg.det(rotations[0]) == pytest.approx(1.0)
         np.testing.assert_allclose(rotations[0][1], [0.0, -1.0, 0.0], atol=1e-12)  # image down = posterior
 
@@ -227,6 +231,7 @@ def test_elevation_is_refused_off_the_orbit():
 
 # -- the novel-view test ------------------------------------------------------------------------
 
+
 def test_novel_directions_are_fixed_and_start_at_the_poles():
     from cubecloud_cli.cameras.novel import novel_directions
 
@@ -238,8 +243,10 @@ def test_novel_directions_are_fixed_and_start_at_the_poles():
     assert novel_directions(0).shape == (0, 3)
 
 
-@pytest.mark.parametrize("cameras, views", [("sphere", 60), ("sphere", 30), ("sphere", 120), ("orbit", 60), ("orbit", 120),
-                                            ("orbit", 30), ("sphere", 240)])
+@pytest.mark.parametrize(
+    "cameras, views",
+    [("sphere", 60), ("sphere", 30), ("sphere", 120), ("orbit", 60), ("orbit", 120), ("orbit", 30), ("sphere", 240)],
+)
 def test_no_novel_view_is_a_training_view(cameras, views):
     from cubecloud_cli.cameras.novel import nearest_angles_deg, novel_directions
     from cubecloud_cli.export.settings import ExportSettings

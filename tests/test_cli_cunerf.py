@@ -13,8 +13,8 @@ import nibabel as nib
 import numpy as np
 import pytest
 import torch
-
 from cli_helpers import assert_one_line_error, invoke
+
 from cubecloud_cli.cunerf import CunerfField
 
 FAST = ["--iterations", "40", "--batch-size", "1024", "--val-every", "20", "--holdout", "2"]
@@ -63,7 +63,15 @@ def test_stage_writes_model_recon_preview_log_and_manifest(trained):
     assert not (stage / "checkpoint.pt").exists()
     manifest = json.loads((stage / "manifest.json").read_text())
     metrics = manifest["metrics"]
-    for key in ("psnr_3d", "ssim_3d", "psnr_body_3d", "val_psnr", "val_ssim", "seconds_per_1000_iterations", "peak_rss_mb"):
+    for key in (
+        "psnr_3d",
+        "ssim_3d",
+        "psnr_body_3d",
+        "val_psnr",
+        "val_ssim",
+        "seconds_per_1000_iterations",
+        "peak_rss_mb",
+    ):
         assert isinstance(metrics[key], float), key
     assert metrics["iterations"] == 40 and metrics["psnr_3d"] > 12
     assert manifest["params"]["model"] == "fast" and manifest["data"]["held_out_slices"]
@@ -294,8 +302,20 @@ def test_the_api_example_runs(trained, tmp_path):
 
     out = tmp_path / "x1_5.nii.gz"
     result = subprocess.run(
-        [sys.executable, str(REPO / "examples" / "cunerf_field.py"), str(trained), "--scale", "1.5", "--out", str(out), "--device", "cpu"],
-        capture_output=True, text=True, check=False,
+        [
+            sys.executable,
+            str(REPO / "examples" / "cunerf_field.py"),
+            str(trained),
+            "--scale",
+            "1.5",
+            "--out",
+            str(out),
+            "--device",
+            "cpu",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
     )
     assert result.returncode == 0, result.stderr
     assert "intensity" in result.stdout and nib.load(out).shape == (48, 48, 48)

@@ -7,7 +7,6 @@ import shutil
 
 import numpy as np
 import pytest
-
 from cli_helpers import assert_one_line_error, invoke
 
 QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "20", "-q"]
@@ -16,12 +15,28 @@ QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "20",
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     work = tmp_path_factory.mktemp("eval") / "work"
-    for args in (["preprocess", "-o", work, "--size", "32"],
-                 ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
-                 ["export", work, "--resolution", "32", "--views", "12", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500",
-                  "--novel-directions", "3"],
-                 ["splat", work, *QUICK],
-                 ["splat", work, *QUICK, "--init", "random", "--random-points", "500", "--name", "random"]):
+    for args in (
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
+        [
+            "export",
+            work,
+            "--resolution",
+            "32",
+            "--views",
+            "12",
+            "--cube",
+            "8",
+            "--points-per-cube",
+            "64",
+            "--max-points",
+            "1500",
+            "--novel-directions",
+            "3",
+        ],
+        ["splat", work, *QUICK],
+        ["splat", work, *QUICK, "--init", "random", "--random-points", "500", "--name", "random"],
+    ):
         result = invoke(*args, "-q")
         assert result.exit_code == 0, result.output
     result = invoke("eval", work, "--turntable-frames", "6", "-q")
@@ -34,12 +49,17 @@ def test_a_report_from_a_tiny_run(work):
     metrics = json.loads((eval_dir / "metrics.json").read_text())  # strict JSON: no NaN/Infinity literals
     results = metrics["results"]
     assert list(results) == ["splat", "splat-random", "cunerf", "cunerf-training-views"]
-    assert results["splat"]["method_name"] == "Cube-Cloud 3DGS" and results["splat-random"]["method_name"] == "3DGS, random init"
+    assert (
+        results["splat"]["method_name"] == "Cube-Cloud 3DGS"
+        and results["splat-random"]["method_name"] == "3DGS, random init"
+    )
     for row in ("splat", "splat-random"):
         result = results[row]
         assert result["views"] == 2 and result["view_names"] == ["view_000.png", "view_008.png"]
         assert 5 < result["psnr"] < 80 and 0 < result["ssim"] <= 1 and result["ms_per_frame"] > 0
-        assert result["gaussians"] > 0 and result["size_mb"] > 0 and "psnr_std" in result and "psnr_foreground" in result
+        assert (
+            result["gaussians"] > 0 and result["size_mb"] > 0 and "psnr_std" in result and "psnr_foreground" in result
+        )
     assert results["cunerf-training-views"]["views"] == 10
     # The CuNeRF row is the export's own figure, recomputed per view.
     export = json.loads((work / "export" / "manifest.json").read_text())
@@ -52,18 +72,39 @@ def test_a_report_from_a_tiny_run(work):
     assert {r["magnification"] for r in novel_rows} == {"0.5", "0.75", "1", "1.33", "2"}
     assert all(0 <= float(r["angle_deg"]) <= 180 and r["angle_bin"] for r in novel_rows)
     report = (eval_dir / "report.md").read_text()
-    for picture in ("views/view_000.png", "views/view_008.png", "turntable_splat.gif", "turntable_splat-random.gif",
-                    "psnr_vs_iteration.svg", "views/novel_m1_d00.png", "views/novel_m1_d01.png", "views/novel_m2_d02.png",
-                    "views/novel_m0.5_d02.png"):
+    for picture in (
+        "views/view_000.png",
+        "views/view_008.png",
+        "turntable_splat.gif",
+        "turntable_splat-random.gif",
+        "psnr_vs_iteration.svg",
+        "views/novel_m1_d00.png",
+        "views/novel_m1_d01.png",
+        "views/novel_m2_d02.png",
+        "views/novel_m0.5_d02.png",
+    ):
         assert f"]({picture})" in report and (eval_dir / picture).is_file()
-    assert "| paper | Cube-Cloud 3DGS | KiTS23, their protocol | – | – | – | 28.104 |" in report and "the paper's own numbers" in report
+    assert (
+        "| paper | Cube-Cloud 3DGS | KiTS23, their protocol | – | – | – | 28.104 |" in report
+        and "the paper's own numbers" in report
+    )
     assert "| `splat` | Cube-Cloud 3DGS | volume | " in report and "| angle from nearest training camera |" in report
     for row in ("splat", "splat-random"):
         novel = results[row]["novel"]
         # The headline is the mean over the 0.75–1.33× views, 3 directions each.
-        headline = [float(r["psnr"]) for r in novel_rows if r["row"] == row and r["magnification"] in ("0.75", "1", "1.33")]
-        assert results[row]["novel_views"] == 9 and results[row]["novel_psnr"] == pytest.approx(np.mean(headline), rel=1e-5)
-        assert sum(cell["views"] for cell in novel["cells"]) == 15 and set(novel["by_magnification"]) == {"0.5", "0.75", "1", "1.33", "2"}
+        headline = [
+            float(r["psnr"]) for r in novel_rows if r["row"] == row and r["magnification"] in ("0.75", "1", "1.33")
+        ]
+        assert results[row]["novel_views"] == 9 and results[row]["novel_psnr"] == pytest.approx(
+            np.mean(headline), rel=1e-5
+        )
+        assert sum(cell["views"] for cell in novel["cells"]) == 15 and set(novel["by_magnification"]) == {
+            "0.5",
+            "0.75",
+            "1",
+            "1.33",
+            "2",
+        }
     for row in ("cunerf", "cunerf-training-views"):
         assert "novel_psnr" not in results[row]
 
@@ -84,8 +125,19 @@ def test_compare_builds_one_table(work, tmp_path):
     other = tmp_path / "other"
     shutil.copytree(work, other, ignore=shutil.ignore_patterns("eval", "splat-random"))
     # WORK also named in --compare, under another spelling: evaluated once, listed once.
-    result = invoke("eval", work, "--compare", work.parent / ".." / work.parent.name / work.name, "--compare", other,
-                    "--output", tmp_path / "cmp", "--turntable-frames", "0", "-q")
+    result = invoke(
+        "eval",
+        work,
+        "--compare",
+        work.parent / ".." / work.parent.name / work.name,
+        "--compare",
+        other,
+        "--output",
+        tmp_path / "cmp",
+        "--turntable-frames",
+        "0",
+        "-q",
+    )
     assert result.exit_code == 0, result.output
     assert (other / "eval" / "metrics.json").is_file()  # evaluated on the way; work's current eval was kept
     records = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
@@ -99,7 +151,12 @@ def test_compare_builds_one_table(work, tmp_path):
     # A run retrained after its eval makes that eval stale: the comparison redoes it.
     stamp = (other / "eval" / "manifest.json").stat().st_mtime_ns
     assert invoke("splat", other, *QUICK, "--iterations", "30", "--force").exit_code == 0
-    assert invoke("eval", "--compare", work, "--compare", other, "--output", tmp_path / "cmp", "--turntable-frames", "0", "-q").exit_code == 0
+    assert (
+        invoke(
+            "eval", "--compare", work, "--compare", other, "--output", tmp_path / "cmp", "--turntable-frames", "0", "-q"
+        ).exit_code
+        == 0
+    )
     assert (other / "eval" / "manifest.json").stat().st_mtime_ns != stamp
     assert json.loads((tmp_path / "cmp" / "comparison.json").read_text())[1]["rows"]["splat"]["iterations"] == 30
 
@@ -116,7 +173,10 @@ def test_a_run_on_a_foreign_scene_is_marked_and_counted(work, tmp_path):
     evaluate_work(copy, EvalSettings(turntable_frames=5), on_progress=lambda *a: calls.append(a[1:3]))
     assert calls[-1][0] == calls[-1][1] and all(done <= total for done, total in calls)
     metrics = json.loads((copy / "eval" / "metrics.json").read_text())
-    assert metrics["results"]["splat-foreign"]["reference"] == "images" and metrics["results"]["splat"]["reference"] == "volume"
+    assert (
+        metrics["results"]["splat-foreign"]["reference"] == "images"
+        and metrics["results"]["splat"]["reference"] == "volume"
+    )
     assert "splat-foreign" in metrics["protocol"]["other scenes"]
     assert "| `splat-foreign` | Cube-Cloud 3DGS | own images |" in (copy / "eval" / "report.md").read_text()
     assert "cunerf" in metrics["results"]  # the work's own export still gives the CuNeRF rows
@@ -140,8 +200,25 @@ def test_bad_input(work, tmp_path):
     (no_reference / "export" / "reference.npy").unlink()
     assert_one_line_error(invoke("eval", no_reference), r"reference.npy is missing.*cubecloud export")
     changed = copy("changed")  # the export was redone after training: other views, other cameras
-    assert invoke("export", changed, "--resolution", "24", "--views", "16", "--cube", "8", "--points-per-cube", "64",
-                  "--max-points", "1500", "--force", "-q").exit_code == 0
+    assert (
+        invoke(
+            "export",
+            changed,
+            "--resolution",
+            "24",
+            "--views",
+            "16",
+            "--cube",
+            "8",
+            "--points-per-cube",
+            "64",
+            "--max-points",
+            "1500",
+            "--force",
+            "-q",
+        ).exit_code
+        == 0
+    )
     assert_one_line_error(invoke("eval", changed), r"export is gone or has changed since splat was trained.*--force")
     moved = copy("moved", ("eval", "export"))
     assert_one_line_error(invoke("eval", moved), r"export is gone or has changed")

@@ -7,10 +7,10 @@ import shutil
 
 import numpy as np
 import pytest
+from cli_helpers import assert_one_line_error, invoke
 from PIL import Image
 from plyfile import PlyData
 
-from cli_helpers import assert_one_line_error, invoke
 from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.metrics import psnr
 from cubecloud_cli.scene import read_point_cloud_ply
@@ -22,7 +22,10 @@ NAMES = [f"view_{i:03d}.png" for i in range(9)]
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     work = tmp_path_factory.mktemp("export") / "work"
-    for args in (["preprocess", "-o", work, "--size", "32"], ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"]):
+    for args in (
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
+    ):
         result = invoke(*args, "-q")
         assert result.exit_code == 0, result.output
     return work
@@ -161,7 +164,9 @@ def test_bad_options_are_one_line_errors(trained, tmp_path, args, pattern):
 def test_refuses_a_cunerf_trained_on_another_volume(trained, tmp_path):
     work = _copy_upstream(trained, tmp_path)
     assert invoke("preprocess", "-o", work, "--size", "32", "--window", "bone", "--force", "-q").exit_code == 0
-    assert_one_line_error(invoke("export", work, *SMALL), r"trained on an earlier preprocess/ volume: rerun `cubecloud cunerf")
+    assert_one_line_error(
+        invoke("export", work, *SMALL), r"trained on an earlier preprocess/ volume: rerun `cubecloud cunerf"
+    )
 
 
 def test_missing_or_incomplete_cunerf(trained, tmp_path):
@@ -256,7 +261,12 @@ def test_a_retrained_cunerf_discards_saved_views(trained, tmp_path, monkeypatch)
     _interrupt_after(monkeypatch, 4)
     assert invoke("export", work, *SMALL).exit_code == 130
     monkeypatch.undo()
-    assert invoke("cunerf", work, "--iterations", "30", "--batch-size", "1024", "--holdout", "2", "--force", "-q").exit_code == 0
+    assert (
+        invoke(
+            "cunerf", work, "--iterations", "30", "--batch-size", "1024", "--holdout", "2", "--force", "-q"
+        ).exit_code
+        == 0
+    )
     result = invoke("export", work, *SMALL)
     assert result.exit_code == 0 and "already rendered" not in result.stderr
     assert json.loads((work / "export" / "manifest.json").read_text())["resumed"]["views"] == 0
@@ -278,7 +288,9 @@ def test_a_damaged_saved_view_is_rendered_again(trained, exported, tmp_path, mon
 def test_a_failure_leaves_no_partial_without_saved_work(trained, tmp_path):
     work = _copy_upstream(trained, tmp_path)
     (work / "preprocess" / "volume.npy").write_bytes(b"x" * (work / "preprocess" / "volume.npy").stat().st_size)
-    assert_one_line_error(invoke("export", work, *SMALL), r"volume.npy changed since its stage was written: run `cubecloud preprocess")
+    assert_one_line_error(
+        invoke("export", work, *SMALL), r"volume.npy changed since its stage was written: run `cubecloud preprocess"
+    )
     assert not (work / ".export.partial").exists() and not (work / "export").exists()
 
 
@@ -302,7 +314,11 @@ def test_the_overlay_example_reads_the_scene(exported, tmp_path):
 
     script = Path(__file__).resolve().parents[1] / "examples" / "scene_overlay.py"
     out = tmp_path / "overlay.png"
-    result = subprocess.run([sys.executable, str(script), str(exported), "--view", "2", "--out", str(out)],
-                            capture_output=True, text=True, check=True)
+    result = subprocess.run(
+        [sys.executable, str(script), str(exported), "--view", "2", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert "9 PINHOLE views of 32x32" in result.stdout and "1500 drawn points land inside the image" in result.stdout
     assert Image.open(out).size == (32, 32)

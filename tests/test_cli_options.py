@@ -29,7 +29,11 @@ def test_run_takes_every_option_of_preprocess_as_preprocess_reads_it():
     preprocess, run = options_of("preprocess"), options_of("run")
     assert set(preprocess) <= set(run)
     for flag, param in preprocess.items():
-        assert (run[flag].help, run[flag].name, str(run[flag].type_descriptor.annotation)) == (param.help, param.name, str(param.type_descriptor.annotation)), flag
+        assert (run[flag].help, run[flag].name, str(run[flag].type_descriptor.annotation)) == (
+            param.help,
+            param.name,
+            str(param.type_descriptor.annotation),
+        ), flag
     arguments = [p.name for p in COMMANDS["run"].params if type(p).__name__ == "TyperArgument"]
     assert arguments == [p.name for p in COMMANDS["preprocess"].params if type(p).__name__ == "TyperArgument"]
 
@@ -85,3 +89,15 @@ def test_help_text_holds_no_citation_of_files_outside_the_repository():
     for command in COMMANDS.values():
         for param in command.params:
             assert "DESIGN" not in (getattr(param, "help", None) or ""), (command.name, param.name)
+
+
+def test_the_command_reference_shows_the_options_as_help_does():
+    from conftest import REPO
+
+    from cubecloud_cli.cli.reference import rewrite
+
+    text = (REPO / "docs" / "commands.md").read_text()
+    assert text.count("<!-- options: ") == len(COMMANDS)
+    assert rewrite(text) == text, (
+        "docs/commands.md is stale: run python -m cubecloud_cli.cli.reference docs/commands.md"
+    )

@@ -5,7 +5,6 @@ import sys
 import nibabel as nib
 import numpy as np
 import pytest
-
 from cli_helpers import assert_one_line_error, invoke
 from conftest import body_phantom, write_nifti
 
@@ -41,8 +40,17 @@ def test_preset_paper_and_overrides(phantom_nifti, tmp_path):
 
 def test_console_script_runs_as_a_process(tmp_path, phantom_nifti):
     result = subprocess.run(
-        [sys.executable, "-m", "cubecloud_cli", "preprocess", str(tmp_path / "missing.nii.gz"), "-o", str(tmp_path / "w")],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "cubecloud_cli",
+            "preprocess",
+            str(tmp_path / "missing.nii.gz"),
+            "-o",
+            str(tmp_path / "w"),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().count("\n") == 0 and "does not exist" in result.stderr
@@ -115,8 +123,20 @@ def test_int16_slope_intercept_does_not_overflow(tmp_path):
     image = nib.Nifti1Image(raw, np.eye(4))
     image.header.set_slope_inter(4.0, -1024.0)  # 32767*4-1024 does not fit int16
     nib.save(image, str(tmp_path / "s.nii.gz"))
-    result = invoke("preprocess", tmp_path / "s.nii.gz", "-o", tmp_path / "w", "--size", 16,
-                    "--window", "full", "--fit", "stretch", "--interpolation", "nearest")
+    result = invoke(
+        "preprocess",
+        tmp_path / "s.nii.gz",
+        "-o",
+        tmp_path / "w",
+        "--size",
+        16,
+        "--window",
+        "full",
+        "--fit",
+        "stretch",
+        "--interpolation",
+        "nearest",
+    )
     assert result.exit_code == 0, result.output
     volume = _load(tmp_path / "w")
     # Wrapped values would break the monotone ramp along the last axis.
@@ -135,12 +155,15 @@ def test_complete_stage_needs_force_and_survives_a_failed_rerun(tmp_path, phanto
     assert _load(work).shape == (24, 24, 24) and _no_partial_left(work)
 
 
-@pytest.mark.parametrize("args, pattern", [
-    (["--size", "0"], "--size 0"),
-    (["--percentiles", "99,1"], "--percentiles"),
-    (["--hu-min", "-100"], "both --hu-min and --hu-max"),
-    (["--modality", "mr", "--hu-min", "0", "--hu-max", "100"], "Hounsfield"),
-])
+@pytest.mark.parametrize(
+    "args, pattern",
+    [
+        (["--size", "0"], "--size 0"),
+        (["--percentiles", "99,1"], "--percentiles"),
+        (["--hu-min", "-100"], "both --hu-min and --hu-max"),
+        (["--modality", "mr", "--hu-min", "0", "--hu-max", "100"], "Hounsfield"),
+    ],
+)
 def test_bad_option_values(tmp_path, phantom_nifti, args, pattern):
     assert_one_line_error(invoke("preprocess", phantom_nifti, "-o", tmp_path / "w", *args), pattern)
 
@@ -173,8 +196,16 @@ def test_float32_scans_with_nan_in_read_only_buffers(tmp_path, fmt):
         import nrrd
 
         path = tmp_path / "f.nrrd"
-        nrrd.write(str(path), data, {"encoding": "gzip", "space": "left-posterior-superior",
-                                     "space directions": np.eye(3), "space origin": np.zeros(3)})
+        nrrd.write(
+            str(path),
+            data,
+            {
+                "encoding": "gzip",
+                "space": "left-posterior-superior",
+                "space directions": np.eye(3),
+                "space origin": np.zeros(3),
+            },
+        )
     result = invoke("preprocess", path, "-o", tmp_path / "w", "--size", 16)
     assert result.exit_code == 0, result.output
     assert "1 voxels were NaN" in result.stderr

@@ -1,5 +1,4 @@
 import numpy as np
-
 from cli_helpers import assert_one_line_error, invoke
 from conftest import body_phantom, write_nifti
 
@@ -48,7 +47,9 @@ def test_run_trains_the_baseline_and_evaluates_both(tmp_path, phantom_nifti):
     assert baseline["params"]["init"] == "random" and baseline["params"]["iterations"] == 3
     results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
     assert {"splat", "splat-random", "cunerf", "cunerf-training-views"} <= set(results)
-    assert "| `splat` | Cube-Cloud 3DGS |" in result.stderr and "| `splat-random` | 3DGS, random init |" in result.stderr
+    assert (
+        "| `splat` | Cube-Cloud 3DGS |" in result.stderr and "| `splat-random` | 3DGS, random init |" in result.stderr
+    )
     # A run the user trained beside them joins the next eval, which is redone rather than refused.
     shutil.copytree(work / "splat-random", work / "splat-mine")
     again = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
@@ -59,9 +60,26 @@ def test_run_trains_the_baseline_and_evaluates_both(tmp_path, phantom_nifti):
 def test_run_redoes_export_when_its_settings_change(tmp_path, phantom_nifti):
     work = tmp_path / "w"
     assert invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK).exit_code == 0
-    error = assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, *QUICK[6:]), "other settings")
+    error = assert_one_line_error(
+        invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, *QUICK[6:]),
+        "other settings",
+    )
     assert "resolution: 16 -> 20" in error
-    result = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, *QUICK[6:], "--view", "mip", "--force")
+    result = invoke(
+        "run",
+        phantom_nifti,
+        "-o",
+        work,
+        "--size",
+        16,
+        *QUICK[:4],
+        "--resolution",
+        20,
+        *QUICK[6:],
+        "--view",
+        "mip",
+        "--force",
+    )
     assert result.exit_code == 0, result.output
     assert np.load(work / "export" / "images.npy").shape == (4, 20, 20)
 
@@ -71,8 +89,22 @@ def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nift
 
     work = tmp_path / "w"
     interrupt_at_step(monkeypatch, 4)
-    options = ("run", phantom_nifti, "-o", work, "--size", 16, "--cunerf-iterations", 6, "--views", 3, "--resolution", 16,
-               "--splat-iterations", 3)
+    options = (
+        "run",
+        phantom_nifti,
+        "-o",
+        work,
+        "--size",
+        16,
+        "--cunerf-iterations",
+        6,
+        "--views",
+        3,
+        "--resolution",
+        16,
+        "--splat-iterations",
+        3,
+    )
     interrupted = invoke(*options)
     assert interrupted.exit_code == 130 and (work / "preprocess").is_dir() and not (work / "cunerf").exists()
     assert "resumes by itself" in interrupted.stderr
@@ -101,7 +133,9 @@ def test_run_continues_an_interrupted_export(tmp_path, phantom_nifti, monkeypatc
     monkeypatch.setattr(stage, "render_view", interrupted_render)
     options = ("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
     interrupted = invoke(*options)
-    assert interrupted.exit_code == 130 and "5 of 88 views are saved" in interrupted.stderr  # 8 + 16 novel directions × 5
+    assert (
+        interrupted.exit_code == 130 and "5 of 88 views are saved" in interrupted.stderr
+    )  # 8 + 16 novel directions × 5
     calls.clear()
     resumed = invoke(*options)
     assert resumed.exit_code == 0, resumed.output

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from cli_helpers import assert_one_line_error, invoke
+
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
@@ -27,11 +27,23 @@ def test_training_recovers_known_gaussians_from_their_images():
     cameras = orbit_cameras(OrbitSpec(views=16, resolution=32))
     g = torch.Generator().manual_seed(0)
     count = 6
-    truth = Gaussians(torch.rand(count, 3, generator=g) * 1.2 - 0.6, torch.log(torch.rand(count, 3, generator=g) * 0.15 + 0.08),
-                      torch.randn(count, 4, generator=g), torch.logit(torch.rand(count, generator=g) * 0.5 + 0.45),
-                      rgb_to_sh(torch.rand(count, 1, 1, generator=g)), torch.zeros(count, 0, 1))
-    scene = TrainingScene(Path("."), cameras, [str(i) for i in range(16)], torch.zeros(16, 32, 32, 1),
-                          [i for i in range(16) if i % 8], [0, 8], None)
+    truth = Gaussians(
+        torch.rand(count, 3, generator=g) * 1.2 - 0.6,
+        torch.log(torch.rand(count, 3, generator=g) * 0.15 + 0.08),
+        torch.randn(count, 4, generator=g),
+        torch.logit(torch.rand(count, generator=g) * 0.5 + 0.45),
+        rgb_to_sh(torch.rand(count, 1, 1, generator=g)),
+        torch.zeros(count, 0, 1),
+    )
+    scene = TrainingScene(
+        Path("."),
+        cameras,
+        [str(i) for i in range(16)],
+        torch.zeros(16, 32, 32, 1),
+        [i for i in range(16) if i % 8],
+        [0, 8],
+        None,
+    )
     with torch.no_grad():
         scene.images = torch.stack([render(truth, scene, view, 0, NUMBA).image for view in range(16)])
     rng = np.random.default_rng(0)
@@ -48,9 +60,24 @@ def test_training_recovers_known_gaussians_from_their_images():
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     work = tmp_path_factory.mktemp("splat") / "work"
-    for args in (["preprocess", "-o", work, "--size", "32"],
-                 ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
-                 ["export", work, "--resolution", "32", "--views", "12", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500"]):
+    for args in (
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
+        [
+            "export",
+            work,
+            "--resolution",
+            "32",
+            "--views",
+            "12",
+            "--cube",
+            "8",
+            "--points-per-cube",
+            "64",
+            "--max-points",
+            "1500",
+        ],
+    ):
         result = invoke(*args, "-q")
         assert result.exit_code == 0, result.output
     return work
@@ -131,12 +158,15 @@ def test_a_foreign_colmap_scene_with_png_images(exported, tmp_path):
     assert manifest["metrics"]["initial_gaussians"] == 1500  # from points3D.bin
 
 
-@pytest.mark.parametrize("args, pattern", [
-    (["--iterations", "0"], r"--iterations 0 must be at least 1"),
-    (["--channels", "2"], r"--channels 2 must be 1"),
-    (["--sh-degree", "4"], r"--sh-degree 4 must be within 0..3"),
-    (["--max-gaussians", "0"], r"--max-gaussians 0"),
-])
+@pytest.mark.parametrize(
+    "args, pattern",
+    [
+        (["--iterations", "0"], r"--iterations 0 must be at least 1"),
+        (["--channels", "2"], r"--channels 2 must be 1"),
+        (["--sh-degree", "4"], r"--sh-degree 4 must be within 0..3"),
+        (["--max-gaussians", "0"], r"--max-gaussians 0"),
+    ],
+)
 def test_bad_options(exported, tmp_path, args, pattern):
     work = _copy(exported, tmp_path)
     assert_one_line_error(invoke("splat", work, *args), pattern)
@@ -149,8 +179,12 @@ def test_missing_export_or_scene(exported, tmp_path):
     assert_one_line_error(invoke("splat", work, "--scene", tmp_path / "nowhere"), r"nowhere")
     empty = tmp_path / "no_points"
     shutil.copytree(exported / "export", empty)
-    for path in (empty / "points3D.ply", empty / "sparse" / "0" / "points3D.ply", empty / "sparse" / "0" / "points3D.bin",
-                 empty / "sparse" / "0" / "points3D.txt"):
+    for path in (
+        empty / "points3D.ply",
+        empty / "sparse" / "0" / "points3D.ply",
+        empty / "sparse" / "0" / "points3D.bin",
+        empty / "sparse" / "0" / "points3D.txt",
+    ):
         path.unlink()
     assert_one_line_error(invoke("splat", work, "--scene", empty, *QUICK), r"no point cloud .* use --init random")
 
@@ -219,9 +253,14 @@ def test_resume_refuses_another_scene(exported, tmp_path, monkeypatch):
     assert_one_line_error(invoke("splat", work, *QUICK, "--scene", other, "--resume"), r"other settings \(.*scene")
 
 
-@pytest.mark.parametrize("mode, dtype, expected", [
-    ("LA", np.uint8, 200 / 255), ("RGBA", np.uint8, 200 / 255), ("I;16", np.uint16, 51400 / 65535),
-])
+@pytest.mark.parametrize(
+    "mode, dtype, expected",
+    [
+        ("LA", np.uint8, 200 / 255),
+        ("RGBA", np.uint8, 200 / 255),
+        ("I;16", np.uint16, 51400 / 65535),
+    ],
+)
 def test_foreign_images_of_other_kinds(exported, tmp_path, mode, dtype, expected):
     from PIL import Image
 
@@ -259,7 +298,9 @@ def test_degenerate_scenes_are_refused(exported, tmp_path):
     for path in (same_centre / "sparse" / "0").glob("*.bin"):
         path.unlink()
     write_colmap_model(same_centre / "sparse" / "0", cameras, model.image_names, model.xyz, model.rgb, binary=False)
-    assert_one_line_error(invoke("splat", tmp_path / "w1", "--scene", same_centre, *QUICK), r"sit together at the world origin")
+    assert_one_line_error(
+        invoke("splat", tmp_path / "w1", "--scene", same_centre, *QUICK), r"sit together at the world origin"
+    )
     nan_points = tmp_path / "nan_points"
     shutil.copytree(exported / "export", nan_points)
     from cubecloud_cli.scene import read_point_cloud_ply, write_point_cloud_ply
@@ -278,7 +319,9 @@ def test_a_nan_gaussian_is_culled_not_a_crash():
     means = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [0.1, 0.1, 0.1]])
     scales = torch.tensor([[0.1] * 3, [0.1] * 3, [1e20] * 3])  # the last overflows to inf
     quaternions = torch.tensor([[1.0, 0, 0, 0]] * 3)
-    rotation, translation = (torch.tensor(a, dtype=torch.float32) for a in (cameras.rotations[0], cameras.translations[0]))
+    rotation, translation = (
+        torch.tensor(a, dtype=torch.float32) for a in (cameras.rotations[0], cameras.translations[0])
+    )
     for projector in (project, project_cpu):
         projected = projector(means, scales, quaternions, rotation, translation, float(cameras.focal), 16, 16)
         assert projected.radii[1] == 0 and projected.radii[2] == 0

@@ -63,13 +63,17 @@ def test_grid_lookup_equals_grid_sample_with_border_padding():
     for level, r in enumerate((4, 7)):
         rows = field.table[field.offsets[level] : field.offsets[level] + r**3].reshape(r, r, r, 3)
         grid = rows.permute(3, 2, 1, 0)[None]  # (1, F, z, y, x) for grid_sample's (x, y, z)
-        expected = F.grid_sample(grid, points.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=False)
+        expected = F.grid_sample(
+            grid, points.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=False
+        )
         ours = field.encode(points)[:, 3 * level : 3 * level + 3]
         np.testing.assert_allclose(ours.detach().numpy(), expected.reshape(3, -1).t().detach().numpy(), atol=1e-12)
 
 
 def test_grid_vertices_sit_at_voxel_centres():
-    index, weight = trilinear_corners(torch.tensor([[(2 * 2 + 1) / 8 - 1, (2 * 0 + 1) / 8 - 1, (2 * 7 + 1) / 8 - 1]]), 8)
+    index, weight = trilinear_corners(
+        torch.tensor([[(2 * 2 + 1) / 8 - 1, (2 * 0 + 1) / 8 - 1, (2 * 7 + 1) / 8 - 1]]), 8
+    )
     hit = index[0, weight[0].argmax()].item()
     assert hit == (2 * 8 + 0) * 8 + 7 and weight.max().item() == pytest.approx(1.0)
 

@@ -102,8 +102,14 @@ def test_a_mostly_air_scan_still_learns_its_body():
 
 @pytest.mark.parametrize("model", ["fast", "cunerf"])
 def test_all_air_batches_and_cubes_reaching_outside_stay_finite(model):
-    settings = _settings(model=model, lr=2e-3 if model == "cunerf" else 0.05, batch_size=64, importance=8,
-                         cube_radius=4.0, samples_per_axis=2)
+    settings = _settings(
+        model=model,
+        lr=2e-3 if model == "cunerf" else 0.05,
+        batch_size=64,
+        importance=8,
+        cube_radius=4.0,
+        samples_per_axis=2,
+    )
     trainer = _trainer(np.zeros((8, 8, 8), np.float32), settings)
     for _ in range(3):
         assert math.isfinite(trainer.step())
@@ -121,7 +127,9 @@ def test_the_official_switch_picks_the_official_samplers(official, monkeypatch):
     layouts, directions = [], []
     original_offsets, original_directions = model_module.cube_offsets, model_module.sphere_directions
     monkeypatch.setattr(model_module, "cube_offsets", lambda *a, **k: layouts.append(a[2]) or original_offsets(*a, **k))
-    monkeypatch.setattr(model_module, "sphere_directions", lambda *a, **k: directions.append(a[1]) or original_directions(*a, **k))
+    monkeypatch.setattr(
+        model_module, "sphere_directions", lambda *a, **k: directions.append(a[1]) or original_directions(*a, **k)
+    )
     trainer = _trainer(_ball(8), _settings(official=official, importance=8, samples_per_axis=4))
     generator = torch.Generator().manual_seed(0)
     for train in (True, False):

@@ -38,8 +38,17 @@ def test_gradients_are_averaged_in_ndc_units():
 def test_clone_split_prune_and_keep():
     means, log_scales, quaternions, logits = model([0.01, 0.05, 0.01, 0.05, 0.01], [0.5, 0.5, 0.5, 0.5, 0.001])
     gradients = torch.tensor([1e-3, 1e-3, 1e-5, 1e-5, 1e-3])
-    plan = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(), EXTENT, False,
-                              torch.Generator().manual_seed(0))
+    plan = plan_densification(
+        means,
+        log_scales,
+        quaternions,
+        logits,
+        gradients,
+        DensifySettings(),
+        EXTENT,
+        False,
+        torch.Generator().manual_seed(0),
+    )
     assert plan.clone.tolist() == [0] and plan.split.tolist() == [1]
     assert plan.keep.tolist() == [True, False, True, True, False]  # split parent and transparent one go
     assert plan.new_count == 3 + 1 + 2
@@ -54,8 +63,17 @@ def test_clone_split_prune_and_keep():
 def test_a_large_gaussian_with_a_high_gradient_is_split_before_the_size_rule():
     # max scale 0.3: above 0.1 × extent (0.2) but its children (0.1875) are not: they survive.
     means, log_scales, quaternions, logits = model([0.3, 0.5], [0.5, 0.5])
-    plan = plan_densification(means, log_scales, quaternions, logits, torch.tensor([1e-3, 1e-3]), DensifySettings(),
-                              EXTENT, True, torch.Generator().manual_seed(0))
+    plan = plan_densification(
+        means,
+        log_scales,
+        quaternions,
+        logits,
+        torch.tensor([1e-3, 1e-3]),
+        DensifySettings(),
+        EXTENT,
+        True,
+        torch.Generator().manual_seed(0),
+    )
     assert plan.split.tolist() == [0, 1] and plan.keep.tolist() == [False, False]
     assert plan.child_keep.tolist() == [True, True, False, False]  # 0.5 / 1.6 is still too large
     assert plan.new_count == 2 and apply_plan(plan, logits).shape == (2,)
@@ -76,11 +94,22 @@ def test_split_children_are_drawn_from_the_parent():
     angle = math.pi / 6  # a rotation about z
     quaternions = torch.tensor([[math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]]).repeat(count, 1)
     logits = torch.zeros(count)
-    plan = plan_densification(means, log_scales, quaternions, logits, torch.ones(count), DensifySettings(), EXTENT, False,
-                              torch.Generator().manual_seed(1))
+    plan = plan_densification(
+        means,
+        log_scales,
+        quaternions,
+        logits,
+        torch.ones(count),
+        DensifySettings(),
+        EXTENT,
+        False,
+        torch.Generator().manual_seed(1),
+    )
     assert plan.split.numel() == count and plan.child_means.shape == (2 * count, 3)
     covariance = torch.cov(plan.child_means.T)
-    rotation = torch.tensor([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1.0]])
+    rotation = torch.tensor(
+        [[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1.0]]
+    )
     expected = rotation @ torch.diag(torch.tensor([0.09, 0.01, 0.0025])) @ rotation.T
     assert torch.allclose(covariance, expected, atol=4e-3)
 
@@ -88,9 +117,13 @@ def test_split_children_are_drawn_from_the_parent():
 def test_the_budget_takes_the_largest_gradients_and_prunes_down():
     means, log_scales, quaternions, logits = model([0.01] * 6, [0.5, 0.6, 0.7, 0.4, 0.2, 0.9])
     gradients = torch.tensor([1e-3, 5e-3, 2e-3, 0.0, 0.0, 0.0])
-    plan = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=7), EXTENT, False)
+    plan = plan_densification(
+        means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=7), EXTENT, False
+    )
     assert plan.clone.tolist() == [1] and plan.new_count == 7  # room for one: the largest gradient
-    over = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=4), EXTENT, False)
+    over = plan_densification(
+        means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=4), EXTENT, False
+    )
     assert over.keep.tolist() == [True, True, True, False, False, True]  # the two least opaque go
     assert over.clone.numel() == 0 and over.new_count == 4
 
@@ -106,9 +139,19 @@ def test_the_reference_schedule_scales_to_the_run_length():
     from cubecloud_cli.splat.settings import SplatSettings
 
     assert SplatSettings(iterations=30_000).schedule() == {
-        "densify_from": 500, "densify_until": 15_000, "densify_every": 100, "reset_every": 3000, "sh_up_every": 1000}
+        "densify_from": 500,
+        "densify_until": 15_000,
+        "densify_every": 100,
+        "reset_every": 3000,
+        "sh_up_every": 1000,
+    }
     assert SplatSettings(iterations=2000).schedule() == {
-        "densify_from": 33, "densify_until": 1000, "densify_every": 10, "reset_every": 200, "sh_up_every": 67}
+        "densify_from": 33,
+        "densify_until": 1000,
+        "densify_every": 10,
+        "reset_every": 200,
+        "sh_up_every": 67,
+    }
 
 
 def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
@@ -125,12 +168,18 @@ def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
     cameras = orbit_cameras(OrbitSpec(views=4, resolution=16))
     scene = TrainingScene(Path("."), cameras, list("abcd"), torch.rand(4, 16, 16, 1), [1, 2, 3], [0], None)
     rng = np.random.default_rng(0)
-    trainer = SplatTrainer(gaussians_from_points(rng.uniform(-1, 1, (50, 3)), rng.uniform(0, 1, (50, 1))), scene,
-                           SplatSettings(iterations=200), torch.device("cpu"))
+    trainer = SplatTrainer(
+        gaussians_from_points(rng.uniform(-1, 1, (50, 3)), rng.uniform(0, 1, (50, 1))),
+        scene,
+        SplatSettings(iterations=200),
+        torch.device("cpu"),
+    )
     events = []
     monkeypatch.setattr(trainer, "_reset_opacity", lambda: events.append(("reset", trainer.iteration)))
     original = trainer._densify
-    monkeypatch.setattr(trainer, "_densify", lambda prune_large: (events.append(("densify", trainer.iteration)), original(prune_large)))
+    monkeypatch.setattr(
+        trainer, "_densify", lambda prune_large: (events.append(("densify", trainer.iteration)), original(prune_large))
+    )
     for _ in range(200):
         trainer.step()
     resets = [it for kind, it in events if kind == "reset"]

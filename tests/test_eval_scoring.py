@@ -28,7 +28,9 @@ def test_scores_agree_with_scikit_image():
     scores = score_view(reference, estimate)
     assert scores["psnr"] == pytest.approx(peak_signal_noise_ratio(reference, estimate, data_range=1), abs=1e-6)
     assert scores["mse"] == pytest.approx(mean_squared_error(reference, estimate), abs=1e-9)
-    ssim = structural_similarity(reference, estimate, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)
+    ssim = structural_similarity(
+        reference, estimate, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1
+    )
     assert scores["ssim"] == pytest.approx(ssim, abs=1e-6)
     foreground = reference > 0
     assert scores["mse_foreground"] == pytest.approx(float(((reference - estimate)[foreground] ** 2).mean()), abs=1e-9)
@@ -43,15 +45,21 @@ def test_known_answers_are_not_errors():
     assert constant["mse"] == pytest.approx(0.04) and constant["psnr"] == pytest.approx(10 * math.log10(1 / 0.04))
     assert math.isfinite(constant["ssim"])
     black = score_view(np.zeros((20, 20)), np.full((20, 20), 0.1))  # no foreground at all
-    assert math.isnan(black["psnr_foreground"]) and math.isnan(black["ssim_foreground"]) and black["psnr"] == pytest.approx(20.0)
+    assert (
+        math.isnan(black["psnr_foreground"])
+        and math.isnan(black["ssim_foreground"])
+        and black["psnr"] == pytest.approx(20.0)
+    )
     tiny = score_view(np.ones((4, 4)) * 0.5, np.ones((4, 4)) * 0.25)  # below SSIM's 11×11 window
     assert math.isnan(tiny["ssim"]) and tiny["psnr"] == pytest.approx(10 * math.log10(16))
 
 
 def test_summaries_keep_infinity_and_skip_missing_views():
     reference, estimate = fixed_images()
-    rows = score_views(np.stack([reference, reference, np.zeros_like(reference)]),
-                       np.stack([estimate, reference, np.zeros_like(reference) + 0.1]))
+    rows = score_views(
+        np.stack([reference, reference, np.zeros_like(reference)]),
+        np.stack([estimate, reference, np.zeros_like(reference) + 0.1]),
+    )
     summary = summarize(rows)
     assert summary["views"] == 3 and summary["psnr"] == math.inf and math.isnan(summary["psnr_std"])
     assert summary["psnr_foreground_views"] == 2  # the black view has no foreground
@@ -73,7 +81,9 @@ def test_scores_are_finite_or_infinite_never_errors(level, other, dtype):
 
 def test_colour_map_runs_from_black_to_pale_yellow_and_clips():
     colours = colour_map(np.array([0.0, 0.5, 1.0, 7.0, np.nan]), vmax=1.0)
-    assert tuple(colours[0]) == (0, 0, 4) and tuple(colours[2]) == (252, 255, 164) and tuple(colours[3]) == (252, 255, 164)
+    assert (
+        tuple(colours[0]) == (0, 0, 4) and tuple(colours[2]) == (252, 255, 164) and tuple(colours[3]) == (252, 255, 164)
+    )
     assert tuple(colours[4]) == (0, 0, 4) and colours[1].sum() > colours[0].sum()
     assert tuple(colour_map(np.array([1.0]), vmax=0.0)[0]) == (252, 255, 164)  # a zero scale is guarded
 
@@ -107,7 +117,7 @@ def test_point_labels_never_overlap_each_other_or_a_point_and_stay_in_the_frame(
     assert len(boxes) >= 20  # 33 names in a 200 × 150 px crowd: most find a spot
     for i, a in enumerate(boxes):
         assert bounds[0] <= a[0] and a[2] <= bounds[2] and bounds[1] <= a[1] and a[3] <= bounds[3]
-        for b in boxes[i + 1:]:
+        for b in boxes[i + 1 :]:
             assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])
         for x, y in anchors:
             assert not (a[0] < x + 3.5 and x - 3.5 < a[2] and a[1] < y + 3.5 and y - 3.5 < a[3])

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from conftest import write_nifti
+
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 
 
@@ -22,7 +22,9 @@ def _one_bright_voxel():
 
 
 def _tiny_cube():
-    return np.array([[[-1000, 0], [100, 200]], [[300, 400], [500, 1000]]], np.int16), np.eye(4) * 5 + np.diag([0, 0, 0, -4])
+    return np.array([[[-1000, 0], [100, 200]], [[300, 400], [500, 1000]]], np.int16), np.eye(4) * 5 + np.diag(
+        [0, 0, 0, -4]
+    )
 
 
 def _float16():
@@ -40,7 +42,9 @@ def test_extreme_scans_give_finite_unit_volumes(tmp_path, make, fit):
     else:
         path = write_nifti(tmp_path / "scan.nii.gz", data, affine)
         spacing = None
-    manifest = preprocess_scan(path, tmp_path / "w", PreprocessSettings(size=64, fit=fit, window="full", spacing=spacing))
+    manifest = preprocess_scan(
+        path, tmp_path / "w", PreprocessSettings(size=64, fit=fit, window="full", spacing=spacing)
+    )
     volume = np.load(tmp_path / "w" / "preprocess" / "volume.npy")
     assert volume.shape == (64, 64, 64)
     assert np.all(np.isfinite(volume)) and volume.min() >= 0 and volume.max() <= 1

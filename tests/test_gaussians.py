@@ -88,7 +88,9 @@ def test_ply_round_trip_in_the_reference_layout(tmp_path, channels, degree):
     assert all(p.val_dtype in ("f4", "float32") for p in vertex.properties)
     assert len(attribute_names(3)) == 62  # the reference's 248 bytes per Gaussian at degree 3
     # What the reference loader does: f_rest sorted by number, channel-major, pre-activation.
-    rest = sorted((p.name for p in vertex.properties if p.name.startswith("f_rest_")), key=lambda n: int(n.split("_")[-1]))
+    rest = sorted(
+        (p.name for p in vertex.properties if p.name.startswith("f_rest_")), key=lambda n: int(n.split("_")[-1])
+    )
     assert len(rest) == 3 * (degree + 1) ** 2 - 3
     if rest:
         features = np.stack([vertex[n] for n in rest], 1).reshape(64, 3, -1)

@@ -20,7 +20,9 @@ def dense_reference_ssim(image, target):
 
         mx, my = blur(x), blur(y)
         vx, vy, cxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
-        scores.append(((2 * mx * my + 1e-4) * (2 * cxy + 9e-4) / ((mx * mx + my * my + 1e-4) * (vx + vy + 9e-4))).mean())
+        scores.append(
+            ((2 * mx * my + 1e-4) * (2 * cxy + 9e-4) / ((mx * mx + my * my + 1e-4) * (vx + vy + 9e-4))).mean()
+        )
     return torch.stack(scores).mean()
 
 
@@ -39,4 +41,6 @@ def test_loss_is_zero_for_a_perfect_image_and_differentiable():
     loss = photometric_loss(image, torch.zeros(16, 16, 1))
     loss.backward()
     assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
-    assert float(photometric_loss(image, torch.zeros(16, 16, 1), dssim_weight=0.0).detach()) == float(image.abs().mean().detach())
+    assert float(photometric_loss(image, torch.zeros(16, 16, 1), dssim_weight=0.0).detach()) == float(
+        image.abs().mean().detach()
+    )

@@ -18,7 +18,9 @@ def blob_volume(size=24, seed=0):
     rng = np.random.default_rng(seed)
     grid = np.linspace(-1, 1, size)
     x, y, z = np.meshgrid(grid, grid, grid, indexing="ij")
-    volume = np.exp(-((x - 0.2) ** 2 + y**2 + (z + 0.1) ** 2) / 0.2) + 0.3 * rng.uniform(size=(size,) * 3) * (x * x + y * y < 0.5)
+    volume = np.exp(-((x - 0.2) ** 2 + y**2 + (z + 0.1) ** 2) / 0.2) + 0.3 * rng.uniform(size=(size,) * 3) * (
+        x * x + y * y < 0.5
+    )
     return np.clip(volume, 0, 1).astype(np.float32)
 
 
@@ -55,8 +57,16 @@ def rows_for(test: NovelTest, psnr_of) -> list[dict]:
     rows = []
     for name, direction, magnification in test.views.entries():
         value = psnr_of(direction, magnification)
-        rows.append({"psnr": value, "ssim": 0.99, "mse": 10 ** (-value / 10), "psnr_foreground": value - 5,
-                     "ssim_foreground": 0.98, "mse_foreground": 1e-4})
+        rows.append(
+            {
+                "psnr": value,
+                "ssim": 0.99,
+                "mse": 10 ** (-value / 10),
+                "psnr_foreground": value - 5,
+                "ssim_foreground": 0.98,
+                "mse_foreground": 1e-4,
+            }
+        )
     return rows
 
 
@@ -80,7 +90,14 @@ def test_cells_and_headline():
 
 def test_angle_bins_at_their_edges():
     assert [angle_bin(a) for a in (0.0, 9.999, 10.0, 20.0, 44.9, 45.0, 180.0)] == [
-        "0–10°", "0–10°", "10–20°", "20–45°", "20–45°", "≥ 45°", "≥ 45°"]
+        "0–10°",
+        "0–10°",
+        "10–20°",
+        "20–45°",
+        "20–45°",
+        "≥ 45°",
+        "≥ 45°",
+    ]
     assert angle_bin(math.nan) == "unknown" and angle_bin(-1.0) == "unknown"
 
 

@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 import pytest
-
 from cli_helpers import assert_one_line_error, invoke
+
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, stack_cameras, stack_offsets
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export import ExportSettings
@@ -18,7 +18,9 @@ from cubecloud_cli.splat.data import TrainingScene
 @pytest.mark.parametrize("axis, looking", [("lr", (1, 0, 0)), ("ap", (0, -1, 0)), ("si", (0, 0, 1))])
 def test_one_pose_for_every_slice(axis, looking):
     cameras = stack_cameras(OrbitSpec(views=7, axis=axis, resolution=16))
-    assert np.allclose(cameras.rotations, cameras.rotations[0]) and np.allclose(cameras.translations, cameras.translations[0])
+    assert np.allclose(cameras.rotations, cameras.rotations[0]) and np.allclose(
+        cameras.translations, cameras.translations[0]
+    )
     assert np.allclose(cameras.rotations[0][2], looking)  # the optical axis is the slice normal
     assert np.allclose(cameras.centres()[0], -4.0 * np.asarray(looking))
     offsets = stack_offsets(7)
@@ -36,7 +38,9 @@ def test_each_view_shows_its_own_slice():
     centre = images[:, 8:16, 8:16]
     # The camera at −x (the patient's left) looks along +x, so the plane at offset d is x = d.
     expected = (1.0 + offsets) / 2.0
-    assert np.allclose(centre.min(axis=(1, 2)), expected, atol=1e-5) and np.allclose(centre.max(axis=(1, 2)), expected, atol=1e-5)
+    assert np.allclose(centre.min(axis=(1, 2)), expected, atol=1e-5) and np.allclose(
+        centre.max(axis=(1, 2)), expected, atol=1e-5
+    )
     through_origin = render_views(GridField(volume), cameras, ImageModel("slice"))
     assert np.allclose(through_origin[:, 8:16, 8:16], 0.5, atol=1e-5)
 
@@ -59,7 +63,9 @@ def test_one_camera_place_gets_the_orbit_extent():
     scene = TrainingScene(None, cameras, [str(i) for i in range(4)], None, [1, 2, 3], [0], None)
     assert scene.single_centre and scene.extent == pytest.approx(3.3)
     # Poses that went through a text file differ by rounding: still one place.
-    jittered = PinholeCameras(cameras.rotations, cameras.translations + 1e-7 * np.arange(12).reshape(4, 3), 8, 8, cameras.focal)
+    jittered = PinholeCameras(
+        cameras.rotations, cameras.translations + 1e-7 * np.arange(12).reshape(4, 3), 8, 8, cameras.focal
+    )
     scene = TrainingScene(None, jittered, [str(i) for i in range(4)], None, [1, 2, 3], [0], None)
     assert scene.single_centre and scene.extent == pytest.approx(3.3, rel=1e-6)
     orbit = orbit_cameras(OrbitSpec(views=4, radius=3.0, resolution=8))
@@ -83,12 +89,32 @@ def test_run_accepts_exports_made_before_the_cameras_option():
 
 def test_the_paper_baseline_end_to_end(tmp_path):
     work = tmp_path / "work"
-    for args in (["preprocess", "-o", work, "--size", "32"],
-                 ["cunerf", work, "--iterations", "40", "--batch-size", "1024", "--holdout", "2"],
-                 ["export", work, "--cameras", "stack", "--view", "slice", "--axis", "lr", "--resolution", "32",
-                  "--views", "16", "--cube", "8", "--points-per-cube", "32", "--max-points", "800"],
-                 ["splat", work, "--init", "random", "--random-points", "2000", "--iterations", "30", "--eval-every", "15"],
-                 ["eval", work, "--turntable-frames", "4", "--turntable-resolution", "24"]):
+    for args in (
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", "40", "--batch-size", "1024", "--holdout", "2"],
+        [
+            "export",
+            work,
+            "--cameras",
+            "stack",
+            "--view",
+            "slice",
+            "--axis",
+            "lr",
+            "--resolution",
+            "32",
+            "--views",
+            "16",
+            "--cube",
+            "8",
+            "--points-per-cube",
+            "32",
+            "--max-points",
+            "800",
+        ],
+        ["splat", work, "--init", "random", "--random-points", "2000", "--iterations", "30", "--eval-every", "15"],
+        ["eval", work, "--turntable-frames", "4", "--turntable-resolution", "24"],
+    ):
         result = invoke(*args, "-q")
         assert result.exit_code == 0, result.output
         # splat warns that the cameras share one place; eval, which trains nothing, does not repeat it.

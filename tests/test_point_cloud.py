@@ -97,7 +97,9 @@ def test_structure_weights_of_a_flat_field_are_uniform():
     seed=st.integers(0, 1000),
 )
 def test_weighted_choice_is_distinct_sorted_and_finite_at_extreme_weights(weights, count, seed):
-    chosen = weighted_choice(torch.tensor(weights, dtype=torch.float32).clamp_min(1e-30), count, torch.Generator().manual_seed(seed))
+    chosen = weighted_choice(
+        torch.tensor(weights, dtype=torch.float32).clamp_min(1e-30), count, torch.Generator().manual_seed(seed)
+    )
     assert chosen.numel() == min(count, len(weights))
     assert torch.equal(chosen, torch.unique(chosen))
 

@@ -6,11 +6,10 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import composite, covariances, project
 from cubecloud_cli.raster.backends import NUMBA, TORCH
 from cubecloud_cli.raster.cpu import composite_cpu
@@ -81,8 +80,9 @@ def literal_loop(projected, colours, opacities, background):
 def test_compositing_follows_the_reference_rules(seed, backend):
     means, log_scales, quaternions, opacities, colours = scene(seed=seed)
     background = torch.tensor([0.2, 0.0], dtype=torch.float64)
-    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours, background=background,
-                                          compositor=COMPOSITORS[backend])
+    (image, coverage), projected = render(
+        means, log_scales, quaternions, opacities, colours, background=background, compositor=COMPOSITORS[backend]
+    )
     expected = literal_loop(projected, colours, opacities, background.numpy())
     np.testing.assert_allclose(image.detach().numpy(), expected, atol=1e-10)
     assert coverage.min() >= 0 and coverage.max() <= 1
@@ -96,8 +96,15 @@ def test_an_opaque_stack_stops_early(backend):
     quaternions = torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).repeat(20, 1)
     opacities = torch.full((20,), 0.99, dtype=torch.float64)
     colours = torch.rand(20, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    (image, coverage), projected = render(means, log_scales, quaternions, opacities, colours,
-                                          background=torch.ones(1, dtype=torch.float64), compositor=COMPOSITORS[backend])
+    (image, coverage), projected = render(
+        means,
+        log_scales,
+        quaternions,
+        opacities,
+        colours,
+        background=torch.ones(1, dtype=torch.float64),
+        compositor=COMPOSITORS[backend],
+    )
     expected = literal_loop(projected, colours, opacities, np.ones(1))
     np.testing.assert_allclose(image.detach().numpy(), expected, atol=1e-10)
     assert 0.9998 < coverage[H // 2, W // 2] <= 1 - TRANSMITTANCE_STOP  # two blended; a third would pass T 1e-4
@@ -108,7 +115,16 @@ def test_projection_matches_the_cameras():
     means = torch.tensor([[0.3, -0.2, 0.5], [0.0, 0.0, 0.0]], dtype=torch.float64)
     scale = 0.05
     identity = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64)
-    projected = project(means, torch.full((2, 3), scale, dtype=torch.float64), identity, rotation, translation, float(cameras.focal), W, H)
+    projected = project(
+        means,
+        torch.full((2, 3), scale, dtype=torch.float64),
+        identity,
+        rotation,
+        translation,
+        float(cameras.focal),
+        W,
+        H,
+    )
     pixels, depth = cameras.project(2, means.numpy())
     # Width and height differ here only through cx, cy; the orbit's cameras are square.
     pixels[:, 1] += (H - W) / 2
@@ -147,12 +163,30 @@ def test_culling_near_plane_and_off_screen():
     cameras, rotation, translation = camera(0)
     centre = torch.tensor(cameras.centres()[0], dtype=torch.float64)
     forward = rotation[2]
-    means = torch.stack([centre + 0.1 * forward, centre - forward, centre + 3 * forward, torch.tensor([0.0, 0.0, 50.0], dtype=torch.float64)])
+    means = torch.stack(
+        [
+            centre + 0.1 * forward,
+            centre - forward,
+            centre + 3 * forward,
+            torch.tensor([0.0, 0.0, 50.0], dtype=torch.float64),
+        ]
+    )
     identity = torch.tensor([[1.0, 0, 0, 0]] * 4, dtype=torch.float64)
-    projected = project(means, torch.full((4, 3), 0.01, dtype=torch.float64), identity, rotation, translation, float(cameras.focal), W, H)
+    projected = project(
+        means,
+        torch.full((4, 3), 0.01, dtype=torch.float64),
+        identity,
+        rotation,
+        translation,
+        float(cameras.focal),
+        W,
+        H,
+    )
     assert projected.radii.tolist()[:2] == [0, 0] and projected.radii[2] > 0 and projected.radii[3] == 0
     assert torch.isfinite(projected.means2d).all() and torch.isfinite(projected.conics).all()
-    image, coverage = composite(projected, torch.ones(4, 1, dtype=torch.float64), torch.ones(4, dtype=torch.float64), W, H)
+    image, coverage = composite(
+        projected, torch.ones(4, 1, dtype=torch.float64), torch.ones(4, dtype=torch.float64), W, H
+    )
     assert torch.isfinite(image).all()
 
 
@@ -160,8 +194,19 @@ def test_a_gaussian_is_drawn_where_its_mean_projects():
     cameras, rotation, translation = camera(1)
     point = torch.tensor([[0.35, -0.4, 0.25]], dtype=torch.float64)
     identity = torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64)
-    projected = project(point, torch.full((1, 3), 0.02, dtype=torch.float64), identity, rotation, translation, float(cameras.focal), W, H)
-    image, _ = composite(projected, torch.ones(1, 1, dtype=torch.float64), torch.full((1,), 0.9, dtype=torch.float64), W, H)
+    projected = project(
+        point,
+        torch.full((1, 3), 0.02, dtype=torch.float64),
+        identity,
+        rotation,
+        translation,
+        float(cameras.focal),
+        W,
+        H,
+    )
+    image, _ = composite(
+        projected, torch.ones(1, 1, dtype=torch.float64), torch.full((1,), 0.9, dtype=torch.float64), W, H
+    )
     row, column = np.unravel_index(int(torch.argmax(image[..., 0])), (H, W))
     assert (column, row) == tuple(int(c) for c in torch.floor(projected.means2d[0]).tolist())
 
@@ -169,9 +214,24 @@ def test_a_gaussian_is_drawn_where_its_mean_projects():
 def test_empty_views_render_the_background():
     cameras, rotation, translation = camera(0)
     empty = torch.zeros(0, 3, dtype=torch.float64)
-    projected = project(empty, torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 4, dtype=torch.float64), rotation, translation, float(cameras.focal), W, H)
-    image, coverage = composite(projected, torch.zeros(0, 1, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), W, H,
-                                torch.tensor([0.25], dtype=torch.float64))
+    projected = project(
+        empty,
+        torch.zeros(0, 3, dtype=torch.float64),
+        torch.zeros(0, 4, dtype=torch.float64),
+        rotation,
+        translation,
+        float(cameras.focal),
+        W,
+        H,
+    )
+    image, coverage = composite(
+        projected,
+        torch.zeros(0, 1, dtype=torch.float64),
+        torch.zeros(0, dtype=torch.float64),
+        W,
+        H,
+        torch.tensor([0.25], dtype=torch.float64),
+    )
     assert torch.all(image == 0.25) and not coverage.any()
 
 
@@ -207,9 +267,21 @@ def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype, antia
     results = {}
     for backend in (TORCH, NUMBA):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
-        rendered = backend.render(inputs[0], torch.exp(inputs[1]), inputs[2], inputs[3], inputs[4], rotation, translation,
-                                  float(cameras.focal), W, H, background=torch.tensor([0.1, 0.3], dtype=dtype),
-                                  retain_screen_grad=True, antialias=antialias)
+        rendered = backend.render(
+            inputs[0],
+            torch.exp(inputs[1]),
+            inputs[2],
+            inputs[3],
+            inputs[4],
+            rotation,
+            translation,
+            float(cameras.focal),
+            W,
+            H,
+            background=torch.tensor([0.1, 0.3], dtype=dtype),
+            retain_screen_grad=True,
+            antialias=antialias,
+        )
         (rendered.image * weights).sum().backward()
         results[backend.name] = (rendered.image.detach(), rendered.screen_gradient(), [t.grad for t in inputs])
     tolerance = 1e-4 if dtype == torch.float64 else 2e-3
@@ -224,13 +296,21 @@ def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype, antia
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_the_numba_compositor_reports_coverage_like_the_oracle(dtype):
     means, log_scales, quaternions, opacities, colours = (t.to(dtype) for t in scene(count=60, seed=5))
-    coverages = [render(means, log_scales, quaternions, opacities, colours, compositor=c)[0][1] for c in COMPOSITORS.values()]
+    coverages = [
+        render(means, log_scales, quaternions, opacities, colours, compositor=c)[0][1] for c in COMPOSITORS.values()
+    ]
     torch.testing.assert_close(coverages[1], coverages[0], rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)
 
 
 @settings(max_examples=40, deadline=None)
 @example([0.0, -0.0, 2.0, -0.0, 2.0])
-@given(st.lists(st.sampled_from([0.0, -0.0, 1e-300, -1.5, 2.0, 2.0, 3.25, 1e300, -1e300, 7.0]) | st.floats(-1e6, 1e6), min_size=0, max_size=300))
+@given(
+    st.lists(
+        st.sampled_from([0.0, -0.0, 1e-300, -1.5, 2.0, 2.0, 3.25, 1e300, -1e300, 7.0]) | st.floats(-1e6, 1e6),
+        min_size=0,
+        max_size=300,
+    )
+)
 def test_radix_depth_order_is_a_stable_sort(depths):
     depths = np.asarray(depths, dtype=np.float64)
     candidates = np.arange(depths.size, dtype=np.int64)
@@ -260,10 +340,19 @@ def test_the_mip_filter_replaces_the_dilation_and_plain_3dgs_is_untouched():
 def test_the_mip_filter_conserves_a_splats_mass_and_never_brightens(log_scale, anisotropy, opacity):
     """ρ·√det(Σ₂ + vI) = √det Σ₂ (the filter spreads a splat, it adds no mass) until ρ reaches its
     floor, and the opacity never grows: a zoomed-out splat cannot outshine what it was."""
-    scales = torch.tensor([[10.0 ** log_scale, 10.0 ** log_scale * anisotropy, 10.0 ** log_scale]], dtype=torch.float64)
+    scales = torch.tensor([[10.0**log_scale, 10.0**log_scale * anisotropy, 10.0**log_scale]], dtype=torch.float64)
     cameras, rotation, translation = camera(1)
-    projected = project(torch.zeros(1, 3, dtype=torch.float64), scales, torch.tensor([[1.0, 0.2, -0.3, 0.1]], dtype=torch.float64),
-                        rotation, translation, float(cameras.focal), W, H, antialias=True)
+    projected = project(
+        torch.zeros(1, 3, dtype=torch.float64),
+        scales,
+        torch.tensor([[1.0, 0.2, -0.3, 0.1]], dtype=torch.float64),
+        rotation,
+        translation,
+        float(cameras.focal),
+        W,
+        H,
+        antialias=True,
+    )
     rho = float(projected.compensations[0])
     a, b, c = (float(v) for v in projected.covariances2d[0])
     raw = (a - 0.1) * (c - 0.1) - b * b

@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import project
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_inputs, rasterizer_for
-from cubecloud_cli.raster.cpu import project_cpu
 from cubecloud_cli.raster.constants import TILE
+from cubecloud_cli.raster.cpu import project_cpu
 from cubecloud_cli.raster.cpu_binning import bin_tiles, splat_boxes, sum_per_gaussian
 from cubecloud_cli.raster.cpu_kernels import exp_negative
 from cubecloud_cli.raster.pairs import pixel_bounds
@@ -65,7 +65,9 @@ def compare_projection(means, scales, quaternions, view=1, antialias=False):
     assert bool(((fast.radii - reference.radii).abs() <= 1 + 1e-6 * reference.radii).all())
     torch.testing.assert_close(fast.depths, reference.depths.detach())
     for name in ("means2d", "conics", "covariances2d") + (("compensations",) if antialias else ()):
-        torch.testing.assert_close(getattr(fast, name)[drawn].detach(), getattr(reference, name)[drawn].detach(), rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(
+            getattr(fast, name)[drawn].detach(), getattr(reference, name)[drawn].detach(), rtol=1e-9, atol=1e-9
+        )
     tolerance = 1e-7
     for oracle, kernel in zip(*grads):
         rows = drawn & torch.isfinite(oracle).all(dim=1)
@@ -94,7 +96,7 @@ def test_projection_kernels_at_the_extremes(mean, log_scale, quaternion, anisotr
     shape, with any quaternion including zero, with or without the Mip filter (a point-sized
     splat sits at the compensation's floor): the kernels agree with autograd and stay finite."""
     means = torch.tensor([mean], dtype=torch.float64)
-    scales = torch.tensor([[10.0 ** log_scale, 10.0 ** log_scale * anisotropy, 10.0 ** log_scale]], dtype=torch.float64)
+    scales = torch.tensor([[10.0**log_scale, 10.0**log_scale * anisotropy, 10.0**log_scale]], dtype=torch.float64)
     compare_projection(means, scales, torch.tensor([quaternion], dtype=torch.float64), antialias=antialias)
 
 
@@ -114,8 +116,14 @@ def projected_scene(count=300, seed=3):
 
 def test_splat_boxes_are_the_oracles_pixel_bounds():
     projected, opacities = projected_scene()
-    bounds, levels = splat_boxes(projected.means2d.detach().numpy(), projected.covariances2d.detach().numpy(),
-                                 projected.radii.numpy(), opacities.numpy(), W, H)
+    bounds, levels = splat_boxes(
+        projected.means2d.detach().numpy(),
+        projected.covariances2d.detach().numpy(),
+        projected.radii.numpy(),
+        opacities.numpy(),
+        W,
+        H,
+    )
     np.testing.assert_array_equal(bounds, pixel_bounds(projected, W, H, opacities).numpy())
     np.testing.assert_allclose(levels, np.log(np.maximum(255 * opacities.numpy(), 1e-30)).clip(min=0))
 
@@ -130,9 +138,15 @@ def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
     by_depth = np.argsort(depths, kind="stable")
     for tile in range(tiles_x * tiles_y):
         left, top = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
-        touches = [g for g in by_depth if bounds[g, 1] >= max(bounds[g, 0], left) and bounds[g, 0] <= left + TILE - 1
-                   and bounds[g, 3] >= max(bounds[g, 2], top) and bounds[g, 2] <= top + TILE - 1]
-        assert entries[offsets[tile]:offsets[tile + 1]].tolist() == touches
+        touches = [
+            g
+            for g in by_depth
+            if bounds[g, 1] >= max(bounds[g, 0], left)
+            and bounds[g, 0] <= left + TILE - 1
+            and bounds[g, 3] >= max(bounds[g, 2], top)
+            and bounds[g, 2] <= top + TILE - 1
+        ]
+        assert entries[offsets[tile] : offsets[tile + 1]].tolist() == touches
     values = np.random.default_rng(0).normal(size=(entries.size, 3))
     expected = np.zeros((500, 3))
     np.add.at(expected, entries, values)
@@ -159,8 +173,22 @@ def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch, antialias
     if the adapter got a convention wrong, the images differ."""
     calls = {}
 
-    def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, eps2d,
-                      packed, rasterize_mode, backgrounds):
+    def rasterization(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        near_plane,
+        eps2d,
+        packed,
+        rasterize_mode,
+        backgrounds,
+    ):
         calls.update(near_plane=near_plane, eps2d=eps2d, mode=rasterize_mode, viewmats=viewmats.shape, Ks=Ks.shape)
         rotation, translation = viewmats[0, :3, :3], viewmats[0, :3, 3]
         focal, cx, cy = float(Ks[0, 0, 0]), float(Ks[0, 0, 2]), float(Ks[0, 1, 2])
@@ -177,9 +205,14 @@ def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch, antialias
             opacities = opacities * torch.sqrt((raw / determinant).clamp_min(0.005**2))
         from cubecloud_cli.raster.pairs import composite
 
-        image, alpha = composite(projected, colors, opacities, width, height, None if backgrounds is None else backgrounds[0])
-        return image[None], alpha[None, ..., None], {"means2d": projected.means2d[None],
-                                                      "radii": torch.stack([projected.radii] * 2, dim=-1)[None]}
+        image, alpha = composite(
+            projected, colors, opacities, width, height, None if backgrounds is None else backgrounds[0]
+        )
+        return (
+            image[None],
+            alpha[None, ..., None],
+            {"means2d": projected.means2d[None], "radii": torch.stack([projected.radii] * 2, dim=-1)[None]},
+        )
 
     monkeypatch.setitem(sys.modules, "gsplat", types.SimpleNamespace(rasterization=rasterization))
     means, scales, quaternions = gaussians(50, 5)
@@ -192,8 +225,13 @@ def test_the_gsplat_adapter_passes_our_camera_conventions(monkeypatch, antialias
     torch.testing.assert_close(theirs.image, ours.image)
     drawn = ours.radii > 0  # radii from the stand-in's plain projection: the same splats are drawn
     assert torch.equal(theirs.radii > 0, drawn)
-    assert calls == {"near_plane": 0.2, "eps2d": 0.1 if antialias else 0.3, "mode": "antialiased" if antialias else "classic",
-                     "viewmats": (1, 4, 4), "Ks": (1, 3, 3)}
+    assert calls == {
+        "near_plane": 0.2,
+        "eps2d": 0.1 if antialias else 0.3,
+        "mode": "antialiased" if antialias else "classic",
+        "viewmats": (1, 4, 4),
+        "Ks": (1, 3, 3),
+    }
     viewmats, _ = gsplat_inputs(rotation, translation, float(CAMERAS.focal), W, H)
     assert torch.equal(viewmats[0, 3], torch.tensor([0, 0, 0, 1.0], dtype=torch.float64))
 
@@ -218,8 +256,14 @@ def test_opacities_outside_the_contract_match_the_oracle_or_are_culled():
     opacities = torch.full((40,), 0.5, dtype=torch.float64)
     opacities[3], opacities[4] = float("nan"), float("inf")
     projected = project(means, scales, quaternions, *args)
-    bounds, _ = splat_boxes(projected.means2d.detach().numpy(), projected.covariances2d.detach().numpy(),
-                            projected.radii.numpy(), opacities.numpy(), W, H)
+    bounds, _ = splat_boxes(
+        projected.means2d.detach().numpy(),
+        projected.covariances2d.detach().numpy(),
+        projected.radii.numpy(),
+        opacities.numpy(),
+        W,
+        H,
+    )
     assert (bounds[3] == [0, -1, 0, -1]).all() and (bounds[4] == [0, -1, 0, -1]).all()
     assert torch.isfinite(NUMBA.render(means, scales, quaternions, opacities, colours, *args).image).all()
 
@@ -229,6 +273,14 @@ def test_a_radius_too_large_for_an_integer_is_culled():
     quaternions = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
     rotation, translation = pose()
     for scale, drawn in ((1e3, True), (1e20, False), (float("inf"), False)):
-        projected = project_cpu(means, torch.full((1, 3), scale, dtype=torch.float64), quaternions, rotation, translation,
-                                float(CAMERAS.focal), W, H)
+        projected = project_cpu(
+            means,
+            torch.full((1, 3), scale, dtype=torch.float64),
+            quaternions,
+            rotation,
+            translation,
+            float(CAMERAS.focal),
+            W,
+            H,
+        )
         assert bool(projected.radii[0] > 0) == drawn

@@ -4,8 +4,8 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import pytest
-
 from conftest import body_phantom, shared_scan, write_nifti
+
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.volume.readers import read_scan
 
@@ -36,7 +36,9 @@ def test_nifti_in_metres_is_converted_to_mm(tmp_path):
 
 
 def test_4d_needs_a_volume_index(tmp_path):
-    path = write_nifti(tmp_path / "t.nii.gz", np.stack([np.zeros((3, 3, 3)), np.ones((3, 3, 3))], -1).astype(np.float32))
+    path = write_nifti(
+        tmp_path / "t.nii.gz", np.stack([np.zeros((3, 3, 3)), np.ones((3, 3, 3))], -1).astype(np.float32)
+    )
     with pytest.raises(CubecloudError, match="--volume-index 0..1"):
         read_scan(path)
     assert np.all(read_scan(path, volume_index=1).data == 1)

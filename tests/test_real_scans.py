@@ -10,8 +10,8 @@ import json
 import nibabel as nib
 import numpy as np
 import pytest
-
 from conftest import shared_scan
+
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.sample_data import sample_ct_path
 from cubecloud_cli.volume.readers import read_scan
@@ -92,8 +92,14 @@ def test_default_settings_on_real_scans(tmp_path, key):
     assert np.allclose(np.array(geometry["voxel_size_mm"]) * 48, extent.max(), rtol=1e-6)
     assert np.allclose(geometry["mm_per_world_unit"], extent.max() / 2, rtol=1e-6)
     source_affine = np.array(source["affine"])
-    corners = np.array([[i, j, k, 1] for i in (-0.5, source["shape"][0] - 0.5)
-                        for j in (-0.5, source["shape"][1] - 0.5) for k in (-0.5, source["shape"][2] - 0.5)])
+    corners = np.array(
+        [
+            [i, j, k, 1]
+            for i in (-0.5, source["shape"][0] - 0.5)
+            for j in (-0.5, source["shape"][1] - 0.5)
+            for k in (-0.5, source["shape"][2] - 0.5)
+        ]
+    )
     world = (np.linalg.inv(np.array(geometry["world_to_scanner"])) @ (source_affine @ corners.T))[:3]
     assert np.all(np.abs(world) <= 1 + 1e-6)
     assert np.isclose(np.abs(world).max(), 1.0, atol=1e-6)  # the longest axis touches the faces
@@ -121,11 +127,17 @@ def test_oblique_scan_lies_over_the_original(tmp_path):
     affine[:3, 3] = (40, -60, 100)
     data = body_phantom((30, 26, 14), seed=3)
     path = write_nifti(tmp_path / "oblique.nii.gz", data, affine)
-    manifest = preprocess_scan(path, tmp_path / "w", PreprocessSettings(size=36, window="full", interpolation="nearest"))
+    manifest = preprocess_scan(
+        path, tmp_path / "w", PreprocessSettings(size=36, window="full", interpolation="nearest")
+    )
     output = nib.load(str(tmp_path / "w" / "preprocess" / "volume.nii.gz"))
     image = nib.load(str(path))
     assert_nearest_voxels_over_source(
-        np.asarray(output.dataobj), output.affine, np.asarray(image.dataobj, np.float32), image.affine, manifest["intensity"]
+        np.asarray(output.dataobj),
+        output.affine,
+        np.asarray(image.dataobj, np.float32),
+        image.affine,
+        manifest["intensity"],
     )
 
 

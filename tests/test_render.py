@@ -160,7 +160,9 @@ def test_rays_parallel_to_box_faces():
     assert near[2] >= far[2]  # points away from it, never backwards
 
 
-@pytest.mark.parametrize("bad", [ImageModel(kind="xray"), ImageModel(step=0.0), ImageModel(transfer=TransferFunction(0.8, 0.2))])
+@pytest.mark.parametrize(
+    "bad", [ImageModel(kind="xray"), ImageModel(step=0.0), ImageModel(transfer=TransferFunction(0.8, 0.2))]
+)
 def test_invalid_image_models_are_refused(bad):
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=4))
     with pytest.raises(ValueError):

@@ -38,7 +38,14 @@ from cubecloud_cli.scene import (
 TEXT_FILES = ("cameras.txt", "images.txt", "points3D.txt")
 # (axis, elevation °, width): every orbit axis, raised cameras, cameras over the sphere (poles
 # included), and non-square images so that a swapped cx/cy or width/height cannot pass unnoticed.
-SCENES = [("si", 0.0, 32), ("si", 25.0, 32), ("ap", -30.0, 32), ("lr", 40.0, 40), ("sphere", 0.0, 32), ("sphere", 0.0, 40)]
+SCENES = [
+    ("si", 0.0, 32),
+    ("si", 25.0, 32),
+    ("ap", -30.0, 32),
+    ("lr", 40.0, 40),
+    ("sphere", 0.0, 32),
+    ("sphere", 0.0, 40),
+]
 
 
 def make_scene(axis: str, elevation: float, width: int, points: int = 300, seed: int = 0):
@@ -420,8 +427,12 @@ def opensplat_fast_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     sizes = {"float": 4, "float32": 4, "uchar": 1, "uint8": 1, "double": 8, "int": 4, "int32": 4}
     actual = sum(sizes[p[1]] for p in properties)
     assert actual == assumed, f"OpenSplat reads {assumed}-byte points, the file has {actual}-byte ones"
-    record = np.dtype([("xyz", "<f4", 3)] + ([("normal", "<f4", 3)] if normals else [])
-                      + ([("rgb", "u1", 3)] if colours else []) + ([("views", "u1")] if views else []))
+    record = np.dtype(
+        [("xyz", "<f4", 3)]
+        + ([("normal", "<f4", 3)] if normals else [])
+        + ([("rgb", "u1", 3)] if colours else [])
+        + ([("views", "u1")] if views else [])
+    )
     points = np.frombuffer(data, dtype=record, count=count, offset=header_end)
     return points["xyz"], points["rgb"] if colours else None
 

@@ -13,7 +13,13 @@ from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphe
 from cubecloud_cli.raster.backends import NUMBA, TORCH
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
-from cubecloud_cli.splat.smoothing import FILTER_SCALE, filter_variances, sampling_intervals, smoothed_scales, smoothing_attenuation
+from cubecloud_cli.splat.smoothing import (
+    FILTER_SCALE,
+    filter_variances,
+    sampling_intervals,
+    smoothed_scales,
+    smoothing_attenuation,
+)
 from cubecloud_cli.splat.training import render_camera
 
 
@@ -27,10 +33,15 @@ def two_cameras_on_z(near: float, far: float, focal: float = 100.0) -> PinholeCa
 
 def test_the_interval_is_that_of_the_nearest_camera_that_sees_the_point():
     cameras = two_cameras_on_z(4.0, 8.0)
-    means = torch.tensor([[0.0, 0.0, 0.0],  # seen by both: the nearer one samples it more finely
-                          [0.0, 0.0, 1.0],  # depth 3 and 7
-                          [3.0, 0.0, 0.0],  # outside the near camera's view (x/z·f = 75 > 1.15·32), inside the far one's
-                          [0.0, 0.0, 20.0]], dtype=torch.float64)  # behind both: seen by none
+    means = torch.tensor(
+        [
+            [0.0, 0.0, 0.0],  # seen by both: the nearer one samples it more finely
+            [0.0, 0.0, 1.0],  # depth 3 and 7
+            [3.0, 0.0, 0.0],  # outside the near camera's view (x/z·f = 75 > 1.15·32), inside the far one's
+            [0.0, 0.0, 20.0],
+        ],
+        dtype=torch.float64,
+    )  # behind both: seen by none
     intervals = sampling_intervals(means, cameras)
     torch.testing.assert_close(intervals[:3], torch.tensor([4.0, 3.0, 8.0], dtype=torch.float64) / 100.0)
     assert float(intervals[3]) == pytest.approx(8.0 / 100.0)  # the largest interval of those seen

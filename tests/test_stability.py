@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from cli_helpers import invoke
+from conftest import write_nifti
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from cli_helpers import invoke
-from conftest import write_nifti
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import covariances
 from cubecloud_cli.raster.backends import NUMBA, TORCH
@@ -25,21 +25,28 @@ def test_covariances_stay_symmetric_and_positive(log_a, log_b, q):
     # Below 1e-12 in norm a quaternion is degenerate and normalised only approximately (the
     # guard that keeps its gradient finite); exactly zero is the identity.
     assume(sum(c * c for c in q) >= 1e-24 or all(c == 0 for c in q))
-    scales = torch.tensor([[10.0 ** log_a, 10.0 ** log_b, 10.0 ** ((log_a + log_b) / 2)]], dtype=torch.float64)
+    scales = torch.tensor([[10.0**log_a, 10.0**log_b, 10.0 ** ((log_a + log_b) / 2)]], dtype=torch.float64)
     sigma = covariances(scales, torch.tensor([q], dtype=torch.float64))[0]
     assert torch.isfinite(sigma).all() and torch.allclose(sigma, sigma.T)
     eigenvalues = torch.linalg.eigvalsh(sigma)
     assert float(eigenvalues.min()) >= -1e-12 * max(1.0, float(eigenvalues.max()))
-    assert math.isclose(float(torch.trace(sigma)), float((scales ** 2).sum()), rel_tol=1e-9)  # rotations keep the trace
+    assert math.isclose(float(torch.trace(sigma)), float((scales**2).sum()), rel_tol=1e-9)  # rotations keep the trace
 
 
 @settings(max_examples=40, deadline=None)
 @given(
-    st.lists(st.tuples(st.floats(-1.5, 1.5), st.floats(-1.5, 1.5), st.floats(-1.5, 1.5),  # means, some behind the camera
-                       st.floats(-7, 1),  # log10 scale: from a point to the whole view
-                       st.sampled_from([0.0, 1e-6, 1.0 / 255.0, 0.5, 0.99, 1.0 - 1e-7, 1.0]),  # opacity
-                       quaternion),
-             min_size=1, max_size=6),
+    st.lists(
+        st.tuples(
+            st.floats(-1.5, 1.5),
+            st.floats(-1.5, 1.5),
+            st.floats(-1.5, 1.5),  # means, some behind the camera
+            st.floats(-7, 1),  # log10 scale: from a point to the whole view
+            st.sampled_from([0.0, 1e-6, 1.0 / 255.0, 0.5, 0.99, 1.0 - 1e-7, 1.0]),  # opacity
+            quaternion,
+        ),
+        min_size=1,
+        max_size=6,
+    ),
     st.sampled_from([torch.float32, torch.float64]),
 )
 def test_the_rasterizers_stay_finite_and_agree_at_the_extremes(gaussians, dtype):
@@ -52,8 +59,9 @@ def test_the_rasterizers_stay_finite_and_agree_at_the_extremes(gaussians, dtype)
     images = []
     for backend in (TORCH, NUMBA):
         inputs = [t.clone().requires_grad_(True) for t in (means, scales, opacities, colours)]
-        image = backend.render(inputs[0], inputs[1], quaternions, inputs[2], inputs[3], rotation, translation,
-                               float(CAMERAS.focal), 24, 24).image
+        image = backend.render(
+            inputs[0], inputs[1], quaternions, inputs[2], inputs[3], rotation, translation, float(CAMERAS.focal), 24, 24
+        ).image
         image.sum().backward()
         values = image.detach()
         assert torch.isfinite(values).all() and 0.0 <= float(values.min()) and float(values.max()) <= 1.0 + 1e-6
@@ -77,8 +85,14 @@ def _scan(tmp_path, kind):
     data, affine = {
         "constant": (np.full((12, 12, 12), 40, np.int16), np.eye(4)),
         "one voxel": (np.where(np.indices((16, 16, 16)).sum(0) == 24, 1000, -1000).astype(np.int16), np.eye(4)),
-        "two slices": (np.random.default_rng(0).integers(-1000, 1000, (20, 20, 2)).astype(np.int16), np.diag([1.0, 1.0, 3.0, 1.0])),
-        "anisotropic": (np.random.default_rng(1).integers(-1000, 1000, (40, 40, 4)).astype(np.int16), np.diag([0.3, 0.3, 10.0, 1.0])),
+        "two slices": (
+            np.random.default_rng(0).integers(-1000, 1000, (20, 20, 2)).astype(np.int16),
+            np.diag([1.0, 1.0, 3.0, 1.0]),
+        ),
+        "anisotropic": (
+            np.random.default_rng(1).integers(-1000, 1000, (40, 40, 4)).astype(np.int16),
+            np.diag([0.3, 0.3, 10.0, 1.0]),
+        ),
     }[kind]
     return write_nifti(tmp_path / "scan.nii.gz", data, affine), ()
 

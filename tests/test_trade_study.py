@@ -12,17 +12,33 @@ SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "trade_study.py"
 
 def test_a_toy_trade_study(tmp_path, monkeypatch, capsys):
     out = tmp_path / "trade"
-    command = [sys.executable, str(SCRIPT), "--knobs", "iterations", "--values", "iterations=12,24", "--out", str(out),
-               "--stage-options", "preprocess=--size 16", "--stage-options", "cunerf=--iterations 20 --batch-size 512",
-               "--stage-options", "export=--views 4 --resolution 16 --cube 8 --points-per-cube 32",
-               "--stage-options", "splat=--iterations 6 --random-points 300 --eval-every 3 --checkpoint-every 3"]
+    command = [
+        sys.executable,
+        str(SCRIPT),
+        "--knobs",
+        "iterations",
+        "--values",
+        "iterations=12,24",
+        "--out",
+        str(out),
+        "--stage-options",
+        "preprocess=--size 16",
+        "--stage-options",
+        "cunerf=--iterations 20 --batch-size 512",
+        "--stage-options",
+        "export=--views 4 --resolution 16 --cube 8 --points-per-cube 32",
+        "--stage-options",
+        "splat=--iterations 6 --random-points 300 --eval-every 3 --checkpoint-every 3",
+    ]
     result = subprocess.run(command, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
     with open(out / "trade.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert [(r["config"], r["method"]) for r in rows] == [
-        (config, method) for config in ("preset", "iterations=12", "iterations=24")
-        for method in ("Cube-Cloud 3DGS", "3DGS, random init")]
+        (config, method)
+        for config in ("preset", "iterations=12", "iterations=24")
+        for method in ("Cube-Cloud 3DGS", "3DGS, random init")
+    ]
     for row in rows:
         assert float(row["pipeline_s"]) > float(row["splat_s"]) > 0 and 0 < float(row["psnr"]) < 100
         assert 0 < float(row["novel_psnr"]) < 100 and 0 < float(row["novel_psnr_0.5x"]) < 100
@@ -56,9 +72,19 @@ def test_a_toy_trade_study(tmp_path, monkeypatch, capsys):
 def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys):
     """--base WORK: a run with the preset's parameters becomes the preset line, hard-linked and
     not rerun; one with other parameters, another scan or extra stage options is refused."""
-    base = [sys.executable, str(SCRIPT), "--knobs", "iterations", "--values", "iterations=12", "--out", str(tmp_path / "b")]
-    with_options = subprocess.run([*base, "--base", str(finished), "--stage-options", "preprocess=--size 16"],
-                                  capture_output=True, text=True)
+    base = [
+        sys.executable,
+        str(SCRIPT),
+        "--knobs",
+        "iterations",
+        "--values",
+        "iterations=12",
+        "--out",
+        str(tmp_path / "b"),
+    ]
+    with_options = subprocess.run(
+        [*base, "--base", str(finished), "--stage-options", "preprocess=--size 16"], capture_output=True, text=True
+    )
     assert with_options.returncode == 2 and "--base with --stage-options" in with_options.stderr
     # The toy run is not a `--preset fast` run: the refusal names what differs.
     other = subprocess.run([*base, "--base", str(finished)], capture_output=True, text=True)
@@ -78,8 +104,12 @@ def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys
         monkeypatch.setitem(presets.CUNERF_PRESETS["fast"][model], key, value)
     assert trade.base_mismatches(finished, None, "fast", None) == []
     (tmp_path / "scan.nii.gz").write_bytes(b"another scan")
-    assert any("another scan" in p for p in trade.base_mismatches(finished, str(tmp_path / "scan.nii.gz"), "fast", None))
-    assert trade.base_mismatches(finished, None, "fast", "lung") == ["preprocess window is 'abdomen', the preset's is 'lung'"]
+    assert any(
+        "another scan" in p for p in trade.base_mismatches(finished, str(tmp_path / "scan.nii.gz"), "fast", None)
+    )
+    assert trade.base_mismatches(finished, None, "fast", "lung") == [
+        "preprocess window is 'abdomen', the preset's is 'lung'"
+    ]
 
     work = tmp_path / "seeded" / "preset"
     keys = trade.chain_keys(trade.stage_commands(None, Path("WORK"), "fast", None, {}))
@@ -103,11 +133,27 @@ def _load_script():
 
 def test_default_knob_values_follow_the_preset():
     trade = _load_script()
-    names = lambda preset: [name for name, _ in trade.configurations(list(trade.KNOBS), trade.preset_values(preset, {}))]
-    assert names("fast") == ["preset", "volume=96", "volume=192", "cunerf_iterations=500", "cunerf_iterations=1000",
-                             "cunerf_iterations=2000", "cameras=orbit", "views=30", "views=120", "points_per_cube=128",
-                             "points_per_cube=2048", "iterations=1000", "iterations=4000", "budget=25000", "budget=50000",
-                             "antialias=off"]
+    names = lambda preset: [
+        name for name, _ in trade.configurations(list(trade.KNOBS), trade.preset_values(preset, {}))
+    ]
+    assert names("fast") == [
+        "preset",
+        "volume=96",
+        "volume=192",
+        "cunerf_iterations=500",
+        "cunerf_iterations=1000",
+        "cunerf_iterations=2000",
+        "cameras=orbit",
+        "views=30",
+        "views=120",
+        "points_per_cube=128",
+        "points_per_cube=2048",
+        "iterations=1000",
+        "iterations=4000",
+        "budget=25000",
+        "budget=50000",
+        "antialias=off",
+    ]
     balanced = names("balanced")
     assert "volume=144" in balanced and "iterations=14000" in balanced and "budget=37500" in balanced
     assert not [name for name in names("paper") if name.startswith("budget")]  # the paper sets no budget to vary
@@ -120,18 +166,28 @@ def test_the_camera_antialias_and_cunerf_knobs():
     base = study.preset_values("fast", {})
     assert (base["cameras"], base["antialias"], base["cunerf_iterations"]) == ("sphere", "on", 4000)
     assert study.configurations(["cameras", "antialias", "cunerf_iterations"], base) == [
-        ("preset", {}), ("cameras=orbit", {"export": ["--cameras", "orbit"]}), ("antialias=off", {"splat": ["--no-antialias"]}),
-        ("cunerf_iterations=500", {"cunerf": ["--iterations", "500"]}), ("cunerf_iterations=1000", {"cunerf": ["--iterations", "1000"]}),
-        ("cunerf_iterations=2000", {"cunerf": ["--iterations", "2000"]})]
+        ("preset", {}),
+        ("cameras=orbit", {"export": ["--cameras", "orbit"]}),
+        ("antialias=off", {"splat": ["--no-antialias"]}),
+        ("cunerf_iterations=500", {"cunerf": ["--iterations", "500"]}),
+        ("cunerf_iterations=1000", {"cunerf": ["--iterations", "1000"]}),
+        ("cunerf_iterations=2000", {"cunerf": ["--iterations", "2000"]}),
+    ]
     moved = study.preset_values("fast", {"splat": ["--antialias", "--no-antialias"], "export": ["--cameras", "orbit"]})
     assert (moved["antialias"], moved["cameras"]) == ("off", "orbit")
     assert study.configurations(["antialias"], moved) == [("preset", {}), ("antialias=on", {"splat": ["--antialias"]})]
-    assert study.preset_values("paper", {})["cameras"] == "orbit" and study.preset_values("paper", {})["antialias"] == "off"
+    assert (
+        study.preset_values("paper", {})["cameras"] == "orbit"
+        and study.preset_values("paper", {})["antialias"] == "off"
+    )
     commands = study.stage_commands(None, Path("W"), "fast", None, {"cunerf": ["--iterations", "500"]})
     assert commands["cunerf"] == ["cunerf", "W", "--preset", "fast", "--iterations", "500"]
 
 
 def test_a_value_outside_a_knobs_choices_is_refused(tmp_path):
-    result = subprocess.run([sys.executable, str(SCRIPT), "--knobs", "cameras", "--values", "cameras=cube", "--out",
-                             str(tmp_path / "t")], capture_output=True, text=True)
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), "--knobs", "cameras", "--values", "cameras=cube", "--out", str(tmp_path / "t")],
+        capture_output=True,
+        text=True,
+    )
     assert result.returncode == 2 and "cameras=cube" in result.stderr

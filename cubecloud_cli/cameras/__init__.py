@@ -7,4 +7,12 @@ from cubecloud_cli.cameras.pinhole import PinholeCameras
 from cubecloud_cli.cameras.sphere import sphere_cameras
 from cubecloud_cli.cameras.stack import stack_cameras, stack_offsets
 
-__all__ = ["ORBIT_AXES", "OrbitSpec", "PinholeCameras", "orbit_cameras", "sphere_cameras", "stack_cameras", "stack_offsets"]
+__all__ = [
+    "ORBIT_AXES",
+    "OrbitSpec",
+    "PinholeCameras",
+    "orbit_cameras",
+    "sphere_cameras",
+    "stack_cameras",
+    "stack_offsets",
+]

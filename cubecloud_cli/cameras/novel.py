@@ -67,8 +67,9 @@ class NovelViewSet:
 
     def cameras(self, magnification: float) -> PinholeCameras:
         """The D views at ``magnification``."""
-        return PinholeCameras(self.rotations, self.translations, self.resolution, self.resolution,
-                              self.base_focal * magnification)
+        return PinholeCameras(
+            self.rotations, self.translations, self.resolution, self.resolution, self.base_focal * magnification
+        )
 
     def entries(self) -> list[tuple[str, int, float]]:
         """(name, direction index, magnification) of every view, in storage order (magnification-major)."""
@@ -77,7 +78,7 @@ class NovelViewSet:
     def as_json(self) -> dict:
         return {
             "rule": "fixed directions (superior, inferior, then seeded uniform random) at each magnification, from the "
-                    "export's camera distance; magnification 1 fits the whole cube in every direction",
+            "export's camera distance; magnification 1 fits the whole cube in every direction",
             "resolution": self.resolution,
             "base_focal": self.base_focal,
             "magnifications": list(self.magnifications),
@@ -91,10 +92,14 @@ class NovelViewSet:
 
     @classmethod
     def from_json(cls, data: dict) -> "NovelViewSet":
-        return cls(np.asarray(data["directions"], dtype=np.float64).reshape(-1, 3),
-                   np.asarray(data["rotations"], dtype=np.float64).reshape(-1, 3, 3),
-                   np.asarray(data["translations"], dtype=np.float64).reshape(-1, 3),
-                   int(data["resolution"]), float(data["base_focal"]), tuple(float(m) for m in data["magnifications"]))
+        return cls(
+            np.asarray(data["directions"], dtype=np.float64).reshape(-1, 3),
+            np.asarray(data["rotations"], dtype=np.float64).reshape(-1, 3, 3),
+            np.asarray(data["translations"], dtype=np.float64).reshape(-1, 3),
+            int(data["resolution"]),
+            float(data["base_focal"]),
+            tuple(float(m) for m in data["magnifications"]),
+        )
 
 
 def nearest_angles_deg(directions: np.ndarray, camera_centres: np.ndarray) -> np.ndarray:

@@ -46,7 +46,9 @@ class OrbitSpec:
         if self.axis not in ORBIT_AXES:
             raise CubecloudError(f"--axis {self.axis!r} must be one of {', '.join(ORBIT_AXES)}")
         if math.isfinite(self.radius) and self.radius > MAX_RADIUS:
-            raise CubecloudError(f"--radius {self.radius:g} is beyond {MAX_RADIUS:g} world units: use e.g. 4 (a narrow --fov zooms)")
+            raise CubecloudError(
+                f"--radius {self.radius:g} is beyond {MAX_RADIUS:g} world units: use e.g. 4 (a narrow --fov zooms)"
+            )
         if not math.isfinite(self.radius) or self.radius <= CUBE_RADIUS * 1.01:
             raise CubecloudError(
                 f"--radius {self.radius:g} puts the cameras inside the volume (it fills [-1, 1]^3, "
@@ -107,4 +109,6 @@ def spec_focal(spec: OrbitSpec, rotations: np.ndarray, translations: np.ndarray)
 def orbit_cameras(spec: OrbitSpec) -> PinholeCameras:
     spec.validate()
     rotations, translations = orbit_poses(spec)
-    return PinholeCameras(rotations, translations, spec.resolution, spec.resolution, spec_focal(spec, rotations, translations))
+    return PinholeCameras(
+        rotations, translations, spec.resolution, spec.resolution, spec_focal(spec, rotations, translations)
+    )

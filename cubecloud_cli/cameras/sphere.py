@@ -40,7 +40,9 @@ def fibonacci_directions(count: int, axis: np.ndarray, first: np.ndarray) -> np.
     ring = np.sqrt(np.clip(1.0 - height * height, 0.0, None))
     azimuth = k * GOLDEN_ANGLE
     second = np.cross(axis, first)
-    return (ring * np.cos(azimuth))[:, None] * first + (ring * np.sin(azimuth))[:, None] * second + height[:, None] * axis
+    return (
+        (ring * np.cos(azimuth))[:, None] * first + (ring * np.sin(azimuth))[:, None] * second + height[:, None] * axis
+    )
 
 
 def image_up(direction: np.ndarray, axis: np.ndarray, pole_up: np.ndarray) -> np.ndarray:
@@ -49,8 +51,9 @@ def image_up(direction: np.ndarray, axis: np.ndarray, pole_up: np.ndarray) -> np
     return pole_up if near_pole else axis
 
 
-def poses_looking_at_origin(directions: np.ndarray, radius: float, axis: np.ndarray,
-                            pole_up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def poses_looking_at_origin(
+    directions: np.ndarray, radius: float, axis: np.ndarray, pole_up: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera rotations (N, 3, 3) and translations (N, 3) of cameras at ``radius`` along
     each unit direction, looking at the origin."""
     rotations, translations = [], []
@@ -69,4 +72,6 @@ def sphere_cameras(spec: OrbitSpec) -> PinholeCameras:
     axis, first = (np.asarray(v, dtype=np.float64) for v in ORBIT_AXES[spec.axis])
     directions = fibonacci_directions(spec.views, axis, first)
     rotations, translations = poses_looking_at_origin(directions, spec.radius, axis, np.asarray(POLE_UP[spec.axis]))
-    return PinholeCameras(rotations, translations, spec.resolution, spec.resolution, spec_focal(spec, rotations, translations))
+    return PinholeCameras(
+        rotations, translations, spec.resolution, spec.resolution, spec_focal(spec, rotations, translations)
+    )

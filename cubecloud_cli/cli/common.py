@@ -146,9 +146,16 @@ def preprocess_settings(
 ) -> PreprocessSettings:
     """The settings the scan options ask for, the preset filling what they leave unset."""
     options = {
-        "size": size, "fit": fit, "window": window, "hu_min": hu_min, "hu_max": hu_max, "modality": modality,
-        "percentiles": parse_floats(percentiles, 2, "--percentiles"), "interpolation": interpolation,
-        "spacing": parse_floats(spacing, 3, "--spacing"), "volume_index": volume_index,
+        "size": size,
+        "fit": fit,
+        "window": window,
+        "hu_min": hu_min,
+        "hu_max": hu_max,
+        "modality": modality,
+        "percentiles": parse_floats(percentiles, 2, "--percentiles"),
+        "interpolation": interpolation,
+        "spacing": parse_floats(spacing, 3, "--spacing"),
+        "volume_index": volume_index,
     }
     return build_settings(PreprocessSettings, preset, options)
 

@@ -35,7 +35,12 @@ def _option(name: str, *flags: str):
 
 
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ (from `cubecloud preprocess`).")]
-NameOption = Annotated[Optional[str], typer.Option("--name", help="Write WORK/cunerf-NAME/ instead of WORK/cunerf/, for runs side by side.", show_default=False)]
+NameOption = Annotated[
+    Optional[str],
+    typer.Option(
+        "--name", help="Write WORK/cunerf-NAME/ instead of WORK/cunerf/, for runs side by side.", show_default=False
+    ),
+]
 IterationsOption = Annotated[Optional[int], _option("iterations")]
 
 
@@ -90,17 +95,37 @@ def cunerf_command(
     """
     configure_logging(quiet)
     options = {
-        "model": model, "iterations": iterations, "batch_size": batch_size, "lr": lr, "lr_final": lr_final,
-        "warmup": warmup, "cube_radius": cube_radius, "samples_per_axis": samples_per_axis, "importance": importance,
-        "train_layout": train_layout, "official": official_quirks, "density": density, "grid_levels": grid_levels,
-        "grid_base": grid_base, "grid_features": grid_features, "grid_hidden": grid_hidden,
-        "train_scale": train_scale, "holdout": holdout, "val_every": val_every, "checkpoint_every": checkpoint_every,
-        "body_fraction": body_fraction, "export_scale": export_scale, "skip_air": skip_air, "seed": seed,
+        "model": model,
+        "iterations": iterations,
+        "batch_size": batch_size,
+        "lr": lr,
+        "lr_final": lr_final,
+        "warmup": warmup,
+        "cube_radius": cube_radius,
+        "samples_per_axis": samples_per_axis,
+        "importance": importance,
+        "train_layout": train_layout,
+        "official": official_quirks,
+        "density": density,
+        "grid_levels": grid_levels,
+        "grid_base": grid_base,
+        "grid_features": grid_features,
+        "grid_hidden": grid_hidden,
+        "train_scale": train_scale,
+        "holdout": holdout,
+        "val_every": val_every,
+        "checkpoint_every": checkpoint_every,
+        "body_fraction": body_fraction,
+        "export_scale": export_scale,
+        "skip_air": skip_air,
+        "seed": seed,
     }
     settings = build_settings(CunerfSettings, preset, options)
     runtime = runtime_from_options(device, threads)
     with stage_bar(stage_dir_name("cunerf", name)) as on_progress:
-        manifest = train_cunerf(work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress)
+        manifest = train_cunerf(
+            work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress
+        )
     log.info(f"wrote {Path(work) / stage_dir_name('cunerf', name)}: {describe_metrics(manifest)}")
 
 

@@ -18,19 +18,29 @@ from cubecloud_cli.cli.common import (
     runtime_from_options,
 )
 from cubecloud_cli.cli.fields import build_settings, settings_option
+from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
-from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.eval.compare import compare_works
-from cubecloud_cli.cli.progress import stage_bar
+from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
 
-WorkArgument = Annotated[Optional[Path], typer.Argument(help="Work directory with splat runs (splat/, splat-random/, ...).")]
-CompareOption = Annotated[Optional[list[Path]], typer.Option(
-    "--compare", metavar="WORK", help="Build one table across these work directories (repeat the option), WORK included; each is evaluated first when its eval/ is missing or older than its runs (all with --force).")]
-OutputOption = Annotated[Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")]
+WorkArgument = Annotated[
+    Optional[Path], typer.Argument(help="Work directory with splat runs (splat/, splat-random/, ...).")
+]
+CompareOption = Annotated[
+    Optional[list[Path]],
+    typer.Option(
+        "--compare",
+        metavar="WORK",
+        help="Build one table across these work directories (repeat the option), WORK included; each is evaluated first when its eval/ is missing or older than its runs (all with --force).",
+    ),
+]
+OutputOption = Annotated[
+    Path, typer.Option("--output", help="Where --compare writes comparison.md and comparison.json.")
+]
 FramesOption = Annotated[Optional[int], settings_option(EvalSettings, "turntable_frames")]
 TurntableResolutionOption = Annotated[Optional[int], settings_option(EvalSettings, "turntable_resolution")]
 
@@ -70,7 +80,9 @@ def eval_command(
     """
     configure_logging(quiet)
     if work is None and not compare:
-        raise CubecloudError("give a work directory (cubecloud eval work), or work directories to compare with --compare")
+        raise CubecloudError(
+            "give a work directory (cubecloud eval work), or work directories to compare with --compare"
+        )
     options = {"turntable_frames": turntable_frames, "turntable_resolution": turntable_resolution}
     settings = build_settings(EvalSettings, None, options)
     runtime = runtime_from_options(device, threads)

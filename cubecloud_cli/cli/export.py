@@ -45,8 +45,13 @@ def export_settings(preset: str, **options) -> ExportSettings:
 
 
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory holding preprocess/ and cunerf/.")]
-CunerfNameOption = Annotated[Optional[str], typer.Option("--cunerf-name", help="Export WORK/cunerf-NAME/ instead of WORK/cunerf/.", show_default=False)]
-NameOption = Annotated[Optional[str], typer.Option("--name", help="Write WORK/export-NAME/ instead of WORK/export/.", show_default=False)]
+CunerfNameOption = Annotated[
+    Optional[str],
+    typer.Option("--cunerf-name", help="Export WORK/cunerf-NAME/ instead of WORK/cunerf/.", show_default=False),
+]
+NameOption = Annotated[
+    Optional[str], typer.Option("--name", help="Write WORK/export-NAME/ instead of WORK/export/.", show_default=False)
+]
 
 
 @reports_errors
@@ -65,7 +70,9 @@ def export_command(
     resolution: ResolutionOption = None,
     elevation: Annotated[Optional[float], _option("elevation")] = None,
     view: ViewOption = None,
-    transfer: Annotated[Optional[Literal[tuple(TRANSFER_PRESETS)]], _option("transfer", extra=f"({_TRANSFERS})")] = None,  # type: ignore[misc]
+    transfer: Annotated[
+        Optional[Literal[tuple(TRANSFER_PRESETS)]], _option("transfer", extra=f"({_TRANSFERS})")
+    ] = None,  # type: ignore[misc]
     tf_low: Annotated[Optional[float], _option("tf_low")] = None,
     tf_high: Annotated[Optional[float], _option("tf_high")] = None,
     tf_density: Annotated[Optional[float], _option("tf_density")] = None,
@@ -100,16 +107,33 @@ def export_command(
     configure_logging(quiet)
     settings = export_settings(
         preset,
-        cube=cube, points_per_cube=points_per_cube, max_points=max_points, air_threshold=air_threshold,
-        cameras=cameras, views=views, axis=axis, radius=radius, fov=fov, resolution=resolution,
-        elevation=elevation, view=view, transfer=transfer, tf_low=tf_low, tf_high=tf_high,
-        tf_density=tf_density, step=step, render_from=render_from, bake_size=bake_size, seed=seed,
+        cube=cube,
+        points_per_cube=points_per_cube,
+        max_points=max_points,
+        air_threshold=air_threshold,
+        cameras=cameras,
+        views=views,
+        axis=axis,
+        radius=radius,
+        fov=fov,
+        resolution=resolution,
+        elevation=elevation,
+        view=view,
+        transfer=transfer,
+        tf_low=tf_low,
+        tf_high=tf_high,
+        tf_density=tf_density,
+        step=step,
+        render_from=render_from,
+        bake_size=bake_size,
+        seed=seed,
         novel_directions=novel_directions,
     )
     runtime = runtime_from_options(device, threads)
     with stage_bar(stage_dir_name("export", name)) as on_progress:
-        manifest = export_scene(work, settings, force=force, runtime=runtime, name=name, cunerf_name=cunerf_name,
-                                on_progress=on_progress)
+        manifest = export_scene(
+            work, settings, force=force, runtime=runtime, name=name, cunerf_name=cunerf_name, on_progress=on_progress
+        )
     log.info(f"wrote {Path(work) / stage_dir_name('export', name)}: {describe_export(manifest)}")
 
 

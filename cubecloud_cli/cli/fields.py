@@ -41,7 +41,7 @@ def field_docs(settings_class: type) -> dict[str, str]:
 
 
 def default_note(settings_class: type, name: str) -> str:
-    """"(preset: ...)" for a field the presets set, "(default: ...)" otherwise, "" for a None default
+    """ "(preset: ...)" for a field the presets set, "(default: ...)" otherwise, "" for a None default
     (the docstring says what leaving it out means)."""
     stage = getattr(settings_class, "STAGE", None)
     if stage is not None and is_preset_key(stage, name):

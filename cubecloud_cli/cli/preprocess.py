@@ -67,8 +67,17 @@ def preprocess_command(
     """
     configure_logging(quiet)
     settings = preprocess_settings(
-        preset, size=size, fit=fit, window=window, hu_min=hu_min, hu_max=hu_max, modality=modality,
-        percentiles=percentiles, interpolation=interpolation, spacing=spacing, volume_index=volume_index,
+        preset,
+        size=size,
+        fit=fit,
+        window=window,
+        hu_min=hu_min,
+        hu_max=hu_max,
+        modality=modality,
+        percentiles=percentiles,
+        interpolation=interpolation,
+        spacing=spacing,
+        volume_index=volume_index,
     )
     with stage_bar("preprocess") as on_progress:
         manifest = preprocess_scan(scan_or_sample(scan), output, settings, force=force, on_progress=on_progress)

@@ -14,7 +14,6 @@ from types import TracebackType
 from typing import ContextManager, Iterator
 
 from rich.console import Console
-from rich.text import Text
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -24,6 +23,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.text import Text
 
 from cubecloud_cli.progress import ProgressCallback, ProgressFields
 
@@ -91,9 +91,7 @@ class PipelineProgress:
 class ProgressBar:
     """``with ProgressBar(total, "training") as bar: bar.advance(1, loss=0.1)``; silent when disabled."""
 
-    def __init__(
-        self, total: float, description: str, unit: str | None = "it", enabled: bool | None = None
-    ):
+    def __init__(self, total: float, description: str, unit: str | None = "it", enabled: bool | None = None):
         """``unit=None`` hides the rate and the M/N count (for bars in arbitrary work units)."""
         self.enabled = terminal_wants_progress() if enabled is None else enabled
         self.total = total
@@ -111,8 +109,9 @@ class ProgressBar:
             self._progress.__enter__()
             self._owned = True
         if self._progress is not None:
-            self._task = self._progress.add_task(self.description, total=self.total, rate="", status="",
-                                                 counts=bool(self.unit))
+            self._task = self._progress.add_task(
+                self.description, total=self.total, rate="", status="", counts=bool(self.unit)
+            )
         return self
 
     def update(self, done: float, description: str | None = None, **fields: float | str) -> None:

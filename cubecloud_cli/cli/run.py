@@ -41,8 +41,8 @@ from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import PipelineProgress, stage_bar
 from cubecloud_cli.cli.splat import describe_splat
 from cubecloud_cli.cunerf import CunerfSettings
-from cubecloud_cli.eval.report import table_rows
 from cubecloud_cli.eval import EvalSettings
+from cubecloud_cli.eval.report import table_rows
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.pipeline import run_stages, stage_table
 from cubecloud_cli.presets import DEFAULT_PRESET
@@ -66,8 +66,12 @@ def run_command(
     interpolation: InterpolationOption = None,
     spacing: SpacingOption = None,
     volume_index: VolumeIndexOption = None,
-    cunerf_iterations: Annotated[Optional[int], settings_option(CunerfSettings, "iterations", "--cunerf-iterations")] = None,
-    splat_iterations: Annotated[Optional[int], settings_option(SplatSettings, "iterations", "--splat-iterations")] = None,
+    cunerf_iterations: Annotated[
+        Optional[int], settings_option(CunerfSettings, "iterations", "--cunerf-iterations")
+    ] = None,
+    splat_iterations: Annotated[
+        Optional[int], settings_option(SplatSettings, "iterations", "--splat-iterations")
+    ] = None,
     views: ViewsOption = None,
     resolution: ResolutionOption = None,
     view: ViewOption = None,
@@ -88,17 +92,37 @@ def run_command(
     """
     configure_logging(quiet)
     preprocess = preprocess_settings(
-        preset, size=size, fit=fit, window=window, hu_min=hu_min, hu_max=hu_max, modality=modality,
-        percentiles=percentiles, interpolation=interpolation, spacing=spacing, volume_index=volume_index,
+        preset,
+        size=size,
+        fit=fit,
+        window=window,
+        hu_min=hu_min,
+        hu_max=hu_max,
+        modality=modality,
+        percentiles=percentiles,
+        interpolation=interpolation,
+        spacing=spacing,
+        volume_index=volume_index,
     )
     cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})
     splat = build_settings(SplatSettings, preset, {"iterations": splat_iterations})
-    stages = stage_table(scan_or_sample(scan), output, preprocess, cunerf, export, splat, EvalSettings(),
-                         runtime_from_options(device, threads))
+    stages = stage_table(
+        scan_or_sample(scan),
+        output,
+        preprocess,
+        cunerf,
+        export,
+        splat,
+        EvalSettings(),
+        runtime_from_options(device, threads),
+    )
     with PipelineProgress(len(stages), "run " + " → ".join(stage.folder for stage in stages)) as display:
         outcomes = run_stages(
-            stages, output, force=force, progress=stage_bar,
+            stages,
+            output,
+            force=force,
+            progress=stage_bar,
             on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
         )
     _report(outcomes, output)
@@ -116,4 +140,6 @@ def _report(outcomes: list, output: Path) -> None:
     log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
     table = "\n".join(table_rows(results))
-    log.info(f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}")
+    log.info(
+        f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}"
+    )

@@ -38,8 +38,22 @@ def splat_settings(preset: str, **options) -> SplatSettings:
 
 
 WorkArgument = Annotated[Path, typer.Argument(help="Work directory; its export/ is the scene unless --scene is given.")]
-SceneOption = Annotated[Optional[Path], typer.Option("--scene", help="Train on this COLMAP scene folder instead (sparse/0 + images/, PINHOLE or SIMPLE_PINHOLE).", show_default=False)]
-NameOption = Annotated[Optional[str], typer.Option("--name", help="Write WORK/splat-NAME/ instead of WORK/splat/ (e.g. --name random for the baseline).", show_default=False)]
+SceneOption = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--scene",
+        help="Train on this COLMAP scene folder instead (sparse/0 + images/, PINHOLE or SIMPLE_PINHOLE).",
+        show_default=False,
+    ),
+]
+NameOption = Annotated[
+    Optional[str],
+    typer.Option(
+        "--name",
+        help="Write WORK/splat-NAME/ instead of WORK/splat/ (e.g. --name random for the baseline).",
+        show_default=False,
+    ),
+]
 IterationsOption = Annotated[Optional[int], _option("iterations")]
 
 
@@ -83,14 +97,32 @@ def splat_command(
     """
     configure_logging(quiet)
     settings = splat_settings(
-        preset, iterations=iterations, max_gaussians=max_gaussians, init=init, random_points=random_points,
-        channels=channels, sh_degree=sh_degree, dssim_weight=dssim_weight, refine=refine, antialias=antialias,
-        eval_every=eval_every, checkpoint_every=checkpoint_every, seed=seed,
+        preset,
+        iterations=iterations,
+        max_gaussians=max_gaussians,
+        init=init,
+        random_points=random_points,
+        channels=channels,
+        sh_degree=sh_degree,
+        dssim_weight=dssim_weight,
+        refine=refine,
+        antialias=antialias,
+        eval_every=eval_every,
+        checkpoint_every=checkpoint_every,
+        seed=seed,
     )
     runtime = runtime_from_options(device, threads)
     with stage_bar(stage_dir_name("splat", name)) as on_progress:
-        manifest = train_splat(work, settings, scene_dir=scene, force=force, resume=resume, runtime=runtime, name=name,
-                               on_progress=on_progress)
+        manifest = train_splat(
+            work,
+            settings,
+            scene_dir=scene,
+            force=force,
+            resume=resume,
+            runtime=runtime,
+            name=name,
+            on_progress=on_progress,
+        )
     log.info(f"wrote {Path(work) / stage_dir_name('splat', name)}: {describe_splat(manifest)}")
 
 
@@ -98,5 +130,7 @@ def describe_splat(manifest: dict) -> str:
     metrics = manifest["metrics"]
     psnr = metrics.get("test_psnr")
     psnr_text = f"{psnr:.2f} dB" if isinstance(psnr, (int, float)) else str(psnr)
-    return (f"test PSNR {psnr_text} on {metrics['test_views']} views, {metrics['gaussians']} Gaussians, "
-            f"{metrics['iterations_per_second']:.1f} it/s, {manifest['timings_s']['total']:.0f} s")
+    return (
+        f"test PSNR {psnr_text} on {metrics['test_views']} views, {metrics['gaussians']} Gaussians, "
+        f"{metrics['iterations_per_second']:.1f} it/s, {manifest['timings_s']['total']:.0f} s"
+    )

@@ -81,16 +81,30 @@ class CunerfField:
         except FileNotFoundError:
             raise CubecloudError(f"{path} does not exist: run `cubecloud cunerf WORK` first") from None
         except Exception as exc:  # torch raises many types for a damaged file
-            raise CubecloudError(f"{path} is not a readable cubecloud model ({type(exc).__name__}): rerun `cubecloud cunerf WORK --force`") from None
+            raise CubecloudError(
+                f"{path} is not a readable cubecloud model ({type(exc).__name__}): rerun `cubecloud cunerf WORK --force`"
+            ) from None
         if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
-            raise CubecloudError(f"{path} is not a cubecloud model of format {MODEL_FORMAT}: rerun `cubecloud cunerf WORK --force`")
+            raise CubecloudError(
+                f"{path} is not a cubecloud model of format {MODEL_FORMAT}: rerun `cubecloud cunerf WORK --force`"
+            )
         model = CubeModel(FieldConfig.from_dict(payload["field"]), RenderConfig(**payload["render"]))
         model.load_state_dict(payload["model"])
         model.to(target).eval()
         occupancy = None
         if payload.get("occupancy") is not None:
-            occupancy = Occupancy(payload["occupancy"]["blocks"].to(target), int(payload["occupancy"]["block"]), int(payload["volume_size"]))
-        return cls(model, int(payload["volume_size"]), np.asarray(payload["voxel_to_scanner"]), occupancy, payload.get("settings"))
+            occupancy = Occupancy(
+                payload["occupancy"]["blocks"].to(target),
+                int(payload["occupancy"]["block"]),
+                int(payload["volume_size"]),
+            )
+        return cls(
+            model,
+            int(payload["volume_size"]),
+            np.asarray(payload["voxel_to_scanner"]),
+            occupancy,
+            payload.get("settings"),
+        )
 
     @classmethod
     def load(cls, work: Path, name: str | None = None, device: str = "auto") -> "CunerfField":

@@ -60,9 +60,7 @@ class CubeModel(nn.Module):
         """The field whose values the prediction is made of (fine when there is one)."""
         return self.fine if self.fine is not None else self.coarse
 
-    def render(
-        self, centres: torch.Tensor, train: bool, generator: torch.Generator | None = None
-    ) -> CubeOutput:
+    def render(self, centres: torch.Tensor, train: bool, generator: torch.Generator | None = None) -> CubeOutput:
         """Render cubes centred at ``centres`` (B, 3) world points."""
         config = self.render_config
         official = config.official

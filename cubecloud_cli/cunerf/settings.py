@@ -33,11 +33,15 @@ class CunerfSettings:
     """Learning rate at the last iteration, reached by log-linear decay."""
     warmup: int = preset_default("cunerf", "warmup")  # iterations of sine warm-up from 1% of lr (official: 1000)
     """Iterations of sine warm-up from 1% of --lr (the official code: 1000)."""
-    cube_radius: float = preset_default("cunerf", "cube_radius")  # cube half-size in voxels of the training lattice (official: 1)
+    cube_radius: float = preset_default(
+        "cunerf", "cube_radius"
+    )  # cube half-size in voxels of the training lattice (official: 1)
     """Cube half-size in voxels, times --train-scale (the paper: 1; 0.5 is the voxel itself)."""
     samples_per_axis: int = preset_default("cunerf", "samples_per_axis")  # n: n³ points per cube (official: 4 → 64)
     """n: n³ points per cube (the paper: 4, so 64 points)."""
-    importance: int = preset_default("cunerf", "importance")  # fine points per cube from the coarse weights (official: 64)
+    importance: int = preset_default(
+        "cunerf", "importance"
+    )  # fine points per cube from the coarse weights (official: 64)
     """Fine points per cube drawn from the coarse weights; 0 = no fine pass (the paper: 64)."""
     train_layout: TrainLayout = "stratified"
     """Training points: stratified (one per sub-cell) or uniform (i.i.d. in the cube)."""
@@ -109,7 +113,9 @@ class CunerfSettings:
             raise bad(f"--export-scale {self.export_scale:g} must be within 0.05..8")
         if volume_size is not None:
             if volume_size // self.train_scale < 2:
-                raise bad(f"--train-scale {self.train_scale} leaves fewer than 2 voxels per axis of a {volume_size}³ volume")
+                raise bad(
+                    f"--train-scale {self.train_scale} leaves fewer than 2 voxels per axis of a {volume_size}³ volume"
+                )
             out = round(volume_size * self.export_scale)
             if not 2 <= out <= 2048:
                 raise bad(f"--export-scale {self.export_scale:g} gives a {out}³ reconstruction: keep it within 2..2048")

@@ -28,7 +28,6 @@ from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
-from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.interrupts import (
     CubecloudInterrupted,
@@ -41,6 +40,7 @@ from cubecloud_cli.interrupts import (
 )
 from cubecloud_cli.metrics import volume_metrics
 from cubecloud_cli.preprocess.preview import write_preview_rows
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.volume.nifti import write_nifti
 
@@ -52,12 +52,12 @@ CHECKPOINT_FILE = "checkpoint.pt"
 def input_files(work: Path) -> list[Path]:
     """The files a cunerf stage is trained from; with its settings, they make it current."""
     return [Path(work) / "preprocess" / "volume.npy"]
+
+
 RECON_FILE = "recon.nii.gz"
 PREVIEW_FILE = "preview.png"
 LOG_FILE = "log.csv"
 LOG_COLUMNS = ("iteration", "seconds", "loss", "lr", "val_psnr", "val_ssim", "val_psnr_body", "val_ssim_body")
-
-
 
 
 def _check_memory(settings: CunerfSettings, size: int, device: torch.device) -> None:
@@ -103,9 +103,7 @@ def _check_resume(
                 f"or start again with --force"
             )
         if state.get("context", {}).get("volume_sha256") != volume_sha256:
-            raise CubecloudError(
-                "preprocess/ changed since the interrupted run started: start again with --force"
-            )
+            raise CubecloudError("preprocess/ changed since the interrupted run started: start again with --force")
         changed = [k for k, v in settings.as_dict().items() if k != "iterations" and recorded.get(k) != v]
         if changed:
             raise CubecloudError(
@@ -257,7 +255,11 @@ def _out_of_memory_advice(phase: str, settings: CunerfSettings, checkpoint: Path
             f"(now {settings.batch_size}), --samples-per-axis or --importance, and pass --force"
         )
     saved = saved_iteration(checkpoint) if checkpoint.is_file() else None
-    where = f"training is saved (iteration {saved}): free memory and rerun with --resume" if saved else "free memory and rerun"
+    where = (
+        f"training is saved (iteration {saved}): free memory and rerun with --resume"
+        if saved
+        else "free memory and rerun"
+    )
     return f"out of memory while rendering the trained field; {where}"
 
 
@@ -271,8 +273,13 @@ def _reconstruct_and_write(
 ) -> tuple[CunerfField, dict, int]:
     """Render the field at every voxel, score it, and write the stage's files."""
     settings, model, size = trainer.settings, trainer.model, voxels.size
-    field = CunerfField(model, size, np.asarray(preprocess["geometry"]["voxel_to_scanner"]),
-                        voxels.occupancy() if settings.skip_air else None, settings.as_dict())
+    field = CunerfField(
+        model,
+        size,
+        np.asarray(preprocess["geometry"]["voxel_to_scanner"]),
+        voxels.occupancy() if settings.skip_air else None,
+        settings.as_dict(),
+    )
     with writer.phase("reconstruct"):
         recon = field.bake(size, on_progress=lambda f: on_progress("reconstruct", int(f * 100), 100, {}))
         metrics = volume_metrics(volume_np, recon)
@@ -282,11 +289,16 @@ def _reconstruct_and_write(
     with writer.phase("write"):
         on_progress("write", 0, 1, {})
         field.to_file(writer.directory / MODEL_FILE)
-        write_nifti(exported, field.bake_affine(export_size), writer.directory / RECON_FILE,
-                    f"cubecloud cunerf x{settings.export_scale:g}")
+        write_nifti(
+            exported,
+            field.bake_affine(export_size),
+            writer.directory / RECON_FILE,
+            f"cubecloud cunerf x{settings.export_scale:g}",
+        )
         difference = np.clip(4.0 * np.abs(recon - volume_np), 0.0, 1.0)
-        write_preview_rows([("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)],
-                           writer.directory / PREVIEW_FILE)
+        write_preview_rows(
+            [("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)], writer.directory / PREVIEW_FILE
+        )
         write_csv_log(writer.directory / LOG_FILE, LOG_COLUMNS, trainer.history)
     return field, metrics, export_size
 
@@ -307,8 +319,13 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
                 row = {**latest}
             if row is not None or it % log_every == 0:
                 trainer.history.append(
-                    {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": running,
-                     "lr": trainer.optimizer.param_groups[0]["lr"], **(row or {})}
+                    {
+                        "iteration": it,
+                        "seconds": round(trainer.elapsed_s, 3),
+                        "loss": running,
+                        "lr": trainer.optimizer.param_groups[0]["lr"],
+                        **(row or {}),
+                    }
                 )
             fields = {"loss": running}
             if "val_psnr" in latest:

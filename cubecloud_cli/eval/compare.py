@@ -23,15 +23,21 @@ def _stage_seconds(manifest: dict | None) -> float | None:
 def _load_metrics(work: Path) -> dict:
     metrics_file = work / "eval" / "metrics.json"
     if not eval_is_current(work) or not metrics_file.is_file():
-        raise CubecloudError(f"{work}/eval is missing or older than its splat runs: run `cubecloud eval {work} --force`")
+        raise CubecloudError(
+            f"{work}/eval is missing or older than its splat runs: run `cubecloud eval {work} --force`"
+        )
     try:
         metrics = json.loads(metrics_file.read_text())
     except (OSError, ValueError) as exc:
-        raise CubecloudError(f"{metrics_file} is unreadable ({type(exc).__name__}): run `cubecloud eval {work} --force`") from None
+        raise CubecloudError(
+            f"{metrics_file} is unreadable ({type(exc).__name__}): run `cubecloud eval {work} --force`"
+        ) from None
     results = metrics.get("results") if isinstance(metrics, dict) else None
     if not isinstance(results, dict) or not all(isinstance(r, dict) for r in results.values()):
-        raise CubecloudError(f"{metrics_file} is not an eval result ({{\"results\": {{row: scores}}}}): "
-                             f"run `cubecloud eval {work} --force`")
+        raise CubecloudError(
+            f'{metrics_file} is not an eval result ({{"results": {{row: scores}}}}): '
+            f"run `cubecloud eval {work} --force`"
+        )
     return results
 
 
@@ -62,8 +68,11 @@ def describe_work(work: Path) -> dict:
         rows[row] = {
             "method": result.get("method_name"),
             "scene": "this work's export" if on_own_export else result.get("scene"),
-            "novel_psnr": result.get("novel_psnr"), "novel_ssim": result.get("novel_ssim"),
-            "psnr": result.get("psnr"), "ssim": result.get("ssim"), "mse": result.get("mse"),
+            "novel_psnr": result.get("novel_psnr"),
+            "novel_ssim": result.get("novel_ssim"),
+            "psnr": result.get("psnr"),
+            "ssim": result.get("ssim"),
+            "mse": result.get("mse"),
             "psnr_foreground": result.get("psnr_foreground"),
             "gaussians": result.get("gaussians"),
             "iterations": (splat or {}).get("params", {}).get("iterations"),
@@ -71,7 +80,9 @@ def describe_work(work: Path) -> dict:
             "splat_seconds": splat_seconds,
             # From the scan to this row: the shared stages plus its own training (splat rows on
             # this work's export only; others came from elsewhere).
-            "pipeline_seconds": upstream + splat_seconds if splat and on_own_export and upstream is not None and splat_seconds is not None else None,
+            "pipeline_seconds": upstream + splat_seconds
+            if splat and on_own_export and upstream is not None and splat_seconds is not None
+            else None,
         }
     return {"work": str(work), "setup": setup, "stage_seconds": seconds, "rows": rows}
 
@@ -87,20 +98,40 @@ def _cell(value, digits: int = 2) -> str:
 
 
 def comparison_markdown(records: list[dict]) -> str:
-    lines = ["| work | row | method | cameras | volume | views × res | pts/cube | iterations | budget | novel PSNR ↑ | "
-             "novel SSIM ↑ | held-out PSNR ↑ | SSIM ↑ | PSNR fg | Gaussians | splat s | pipeline s |", "|" + "---|" * 17]
+    lines = [
+        "| work | row | method | cameras | volume | views × res | pts/cube | iterations | budget | novel PSNR ↑ | "
+        "novel SSIM ↑ | held-out PSNR ↑ | SSIM ↑ | PSNR fg | Gaussians | splat s | pipeline s |",
+        "|" + "---|" * 17,
+    ]
     for record in records:
         setup = record["setup"]
         for row, values in record["rows"].items():
             own = values["scene"] == "this work's export"
-            lines.append("| " + " | ".join([
-                f"`{record['work']}`", f"`{row}`", _cell(values["method"]), _cell(setup["cameras"]) if own else "–",
-                _cell(setup["volume"]) if own else "other scene",
-                f"{_cell(setup['views'])} × {_cell(setup['resolution'])}²" if own else "–", _cell(setup["points_per_cube"]) if own else "–",
-                _cell(values["iterations"]), _cell(values["max_gaussians"]), _cell(values.get("novel_psnr")),
-                _cell(values.get("novel_ssim"), 4), _cell(values["psnr"]), _cell(values["ssim"], 4),
-                _cell(values["psnr_foreground"]), _cell(values["gaussians"]), _cell(values["splat_seconds"], 0),
-                _cell(values["pipeline_seconds"], 0)]) + " |")
+            lines.append(
+                "| "
+                + " | ".join(
+                    [
+                        f"`{record['work']}`",
+                        f"`{row}`",
+                        _cell(values["method"]),
+                        _cell(setup["cameras"]) if own else "–",
+                        _cell(setup["volume"]) if own else "other scene",
+                        f"{_cell(setup['views'])} × {_cell(setup['resolution'])}²" if own else "–",
+                        _cell(setup["points_per_cube"]) if own else "–",
+                        _cell(values["iterations"]),
+                        _cell(values["max_gaussians"]),
+                        _cell(values.get("novel_psnr")),
+                        _cell(values.get("novel_ssim"), 4),
+                        _cell(values["psnr"]),
+                        _cell(values["ssim"], 4),
+                        _cell(values["psnr_foreground"]),
+                        _cell(values["gaussians"]),
+                        _cell(values["splat_seconds"], 0),
+                        _cell(values["pipeline_seconds"], 0),
+                    ]
+                )
+                + " |"
+            )
     return "\n".join(lines)
 
 
@@ -110,9 +141,11 @@ def compare_works(works: list[Path], output: Path) -> str:
     table = comparison_markdown(records)
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
-    header = ("# cubecloud comparison\n\nNovel-view (0.75–1.33×) and held-out scores (eval/metrics.json of each work "
-              "directory) against the setup and wall time of each stage. `pipeline s`: preprocess + cunerf + export + "
-              "that row's splat.\n\n")
+    header = (
+        "# cubecloud comparison\n\nNovel-view (0.75–1.33×) and held-out scores (eval/metrics.json of each work "
+        "directory) against the setup and wall time of each stage. `pipeline s`: preprocess + cunerf + export + "
+        "that row's splat.\n\n"
+    )
     _write_atomically(output / "comparison.md", header + table + "\n")
     _write_atomically(output / "comparison.json", json.dumps(to_jsonable(records), indent=2, allow_nan=False) + "\n")
     return table

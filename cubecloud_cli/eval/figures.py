@@ -71,16 +71,20 @@ def error_grid(reference: np.ndarray, renders: dict[str, np.ndarray], title: str
     panel = _enlarge(grey_to_rgb(reference))
     width, height = panel.size
     bar = _colour_bar(height, vmax, font)
-    grid = Image.new("RGB", (3 * width + bar.width + 8, LABEL_HEIGHT + len(renders) * (height + LABEL_HEIGHT)), BACKGROUND)
+    grid = Image.new(
+        "RGB", (3 * width + bar.width + 8, LABEL_HEIGHT + len(renders) * (height + LABEL_HEIGHT)), BACKGROUND
+    )
     draw = ImageDraw.Draw(grid)
     draw.text((2, 2), title, fill=TEXT, font=font)
     for row, (name, render) in enumerate(renders.items()):
         top = LABEL_HEIGHT + row * (height + LABEL_HEIGHT)
-        for column, (label, image) in enumerate((
-            ("reference", grey_to_rgb(reference)),
-            (name, grey_to_rgb(render)),
-            (f"|{name} - reference|", colour_map(np.abs(render - reference), vmax)),
-        )):
+        for column, (label, image) in enumerate(
+            (
+                ("reference", grey_to_rgb(reference)),
+                (name, grey_to_rgb(render)),
+                (f"|{name} - reference|", colour_map(np.abs(render - reference), vmax)),
+            )
+        ):
             draw.text((column * width + 2, top + 2), label, fill=TEXT, font=font)
             grid.paste(_enlarge(image), (column * width, top + LABEL_HEIGHT))
         grid.paste(bar, (3 * width + 6, top))
@@ -114,8 +118,9 @@ def _overlaps(a: Box, b: Box) -> bool:
     return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
-def place_labels(anchors: list[tuple[float, float]], texts: list[str], bounds: Box,
-                 marker_radius: float = 3.5) -> list[tuple[float, float, str, Box] | None]:
+def place_labels(
+    anchors: list[tuple[float, float]], texts: list[str], bounds: Box, marker_radius: float = 3.5
+) -> list[tuple[float, float, str, Box] | None]:
     """Where each non-empty label goes beside its point: ``(x, y, text-anchor, box)``, or None when
     no spot is free. Labels are placed greedily, each at the first of a fixed list of spots
     around its point (right, left, above, below, then further out) whose box stays inside
@@ -153,9 +158,15 @@ def _padded_range(values: list[float]) -> tuple[float, float]:
     return low - pad, high + pad
 
 
-def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str, x_label: str, y_label: str,
-                  markers_only: bool = False, point_labels: dict[str, list[str]] | None = None,
-                  size: tuple[int, int] = (640, 400)) -> str:
+def line_plot_svg(
+    series: list[tuple[str, list[float], list[float]]],
+    title: str,
+    x_label: str,
+    y_label: str,
+    markers_only: bool = False,
+    point_labels: dict[str, list[str]] | None = None,
+    size: tuple[int, int] = (640, 400),
+) -> str:
     """An SVG plot of ``(label, xs, ys)`` series: lines (or points), axes with ticks, a legend.
     Non-finite points are left out. ``point_labels`` names points of a series; a name is drawn
     where it overlaps no other name or point, further out with a leader line when it must, and
@@ -175,19 +186,27 @@ def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str
     def sy(y: float) -> float:
         return height - bottom - (y - y0) / (y1 - y0) * (height - top - bottom)
 
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="12">',
-             f'<rect width="{width}" height="{height}" fill="white"/>',
-             f'<text x="{width / 2 - right / 2:.0f}" y="22" text-anchor="middle" font-size="14">{escape(title)}</text>',
-             f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
-             f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>']
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="12">',
+        f'<rect width="{width}" height="{height}" fill="white"/>',
+        f'<text x="{width / 2 - right / 2:.0f}" y="22" text-anchor="middle" font-size="14">{escape(title)}</text>',
+        f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
+        f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>',
+    ]
     for x in x_ticks:
-        parts.append(f'<line x1="{sx(x):.1f}" y1="{height - bottom}" x2="{sx(x):.1f}" y2="{height - bottom + 5}" stroke="black"/>'
-                     f'<text x="{sx(x):.1f}" y="{height - bottom + 18}" text-anchor="middle">{x:g}</text>')
+        parts.append(
+            f'<line x1="{sx(x):.1f}" y1="{height - bottom}" x2="{sx(x):.1f}" y2="{height - bottom + 5}" stroke="black"/>'
+            f'<text x="{sx(x):.1f}" y="{height - bottom + 18}" text-anchor="middle">{x:g}</text>'
+        )
     for y in y_ticks:
-        parts.append(f'<line x1="{left - 5}" y1="{sy(y):.1f}" x2="{width - right}" y2="{sy(y):.1f}" stroke="#e5e5e5"/>'
-                     f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{y:g}</text>')
-    parts.append(f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(x_label)}</text>'
-                 f'<text transform="translate(18 {(top + height - bottom) / 2:.0f}) rotate(-90)" text-anchor="middle">{escape(y_label)}</text>')
+        parts.append(
+            f'<line x1="{left - 5}" y1="{sy(y):.1f}" x2="{width - right}" y2="{sy(y):.1f}" stroke="#e5e5e5"/>'
+            f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{y:g}</text>'
+        )
+    parts.append(
+        f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(x_label)}</text>'
+        f'<text transform="translate(18 {(top + height - bottom) / 2:.0f}) rotate(-90)" text-anchor="middle">{escape(y_label)}</text>'
+    )
     anchors, texts = [], []
     for index, (label, xs, ys) in enumerate(series):
         colour = SERIES_COLOURS[index % len(SERIES_COLOURS)]
@@ -201,8 +220,10 @@ def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str
             anchors.append((sx(x), sy(y), colour))
             texts.append(names[i] if i < len(names) else "")
         legend_y = top + 10 + 18 * index
-        parts.append(f'<rect x="{width - right + 12}" y="{legend_y - 9}" width="12" height="12" fill="{colour}"/>'
-                     f'<text x="{width - right + 30}" y="{legend_y + 1}">{escape(label)}</text>')
+        parts.append(
+            f'<rect x="{width - right + 12}" y="{legend_y - 9}" width="12" height="12" fill="{colour}"/>'
+            f'<text x="{width - right + 30}" y="{legend_y + 1}">{escape(label)}</text>'
+        )
     bounds = (left + 1, top - 10, width - right + 4, height - bottom - 1)
     for (x, y, colour), text, spot in zip(anchors, texts, place_labels([(x, y) for x, y, _ in anchors], texts, bounds)):
         if spot is None:
@@ -210,9 +231,13 @@ def line_plot_svg(series: list[tuple[str, list[float], list[float]]], title: str
         tx, ty, anchor, box = spot
         near_x, near_y = min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3])
         if math.hypot(near_x - x, near_y - y) > 8:  # moved out of its point's reach: a leader line says whose it is
-            parts.append(f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{near_x:.1f}" y2="{near_y:.1f}" stroke="{colour}" '
-                         'stroke-width="0.7" opacity="0.6"/>')
-        parts.append(f'<text x="{tx:.1f}" y="{ty:.1f}" font-size="{LABEL_FONT_PX}" text-anchor="{anchor}" '
-                     f'fill="{colour}">{escape(text)}</text>')
+            parts.append(
+                f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{near_x:.1f}" y2="{near_y:.1f}" stroke="{colour}" '
+                'stroke-width="0.7" opacity="0.6"/>'
+            )
+        parts.append(
+            f'<text x="{tx:.1f}" y="{ty:.1f}" font-size="{LABEL_FONT_PX}" text-anchor="{anchor}" '
+            f'fill="{colour}">{escape(text)}</text>'
+        )
     parts.append("</svg>")
     return "\n".join(parts)

@@ -23,8 +23,12 @@ NOVEL_DIR, VIEWS_FILE, REFERENCE_FILE = "novel", "views.json", "reference.npy"
 # a ring leaves the poles 90° away.
 ANGLE_BINS = (0.0, 10.0, 20.0, 45.0, 180.0)
 # What the report shows as pictures: (label, direction index, magnification).
-PICTURED = (("from above (the head)", 0, 1.0), ("from below (the feet)", 1, 1.0), ("zoomed in 2x", 2, 2.0),
-            ("zoomed out 0.5x", 2, 0.5))  # ASCII: the pictures' font has no ×
+PICTURED = (
+    ("from above (the head)", 0, 1.0),
+    ("from below (the feet)", 1, 1.0),
+    ("zoomed in 2x", 2, 2.0),
+    ("zoomed out 0.5x", 2, 0.5),
+)  # ASCII: the pictures' font has no ×
 
 
 @dataclass
@@ -71,8 +75,15 @@ def annotate(rows: list[dict], test: NovelTest, angles: np.ndarray) -> list[dict
     """Per-view score rows (in storage order) with their name, magnification, angle and cell."""
     annotated = []
     for row, (name, direction, magnification) in zip(rows, test.views.entries()):
-        annotated.append({**row, "view": name, "magnification": magnification, "angle_deg": float(angles[direction]),
-                          "angle_bin": angle_bin(float(angles[direction]))})
+        annotated.append(
+            {
+                **row,
+                "view": name,
+                "magnification": magnification,
+                "angle_deg": float(angles[direction]),
+                "angle_bin": angle_bin(float(angles[direction])),
+            }
+        )
     return annotated
 
 

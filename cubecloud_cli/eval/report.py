@@ -18,7 +18,18 @@ PAPER_TABLE_I = {
     },
 }
 
-PER_VIEW_COLUMNS = ("row", "method", "set", "view", "magnification", "angle_deg", "angle_bin", *METRICS, "against", "scene")
+PER_VIEW_COLUMNS = (
+    "row",
+    "method",
+    "set",
+    "view",
+    "magnification",
+    "angle_deg",
+    "angle_bin",
+    *METRICS,
+    "against",
+    "scene",
+)
 
 
 def write_per_view_csv(path: Path, rows: list[dict]) -> None:
@@ -26,7 +37,9 @@ def write_per_view_csv(path: Path, rows: list[dict]) -> None:
         writer = csv.DictWriter(handle, fieldnames=PER_VIEW_COLUMNS, extrasaction="ignore")
         writer.writeheader()
         for row in rows:
-            writer.writerow({key: (f"{value:.6g}" if isinstance(value, float) else value) for key, value in row.items()})
+            writer.writerow(
+                {key: (f"{value:.6g}" if isinstance(value, float) else value) for key, value in row.items()}
+            )
 
 
 def _number(value, digits: int = 2, scientific: bool = False) -> str:
@@ -42,16 +55,25 @@ def _number(value, digits: int = 2, scientific: bool = False) -> str:
 def cell_table(novel: dict, metric: str = "psnr") -> list[str]:
     """A markdown table of one run's novel cells: angle bins down, magnifications across."""
     magnifications = list(novel["by_magnification"])
-    lines = ["| angle from nearest training camera | " + " | ".join(f"{m}×" for m in magnifications) + " |",
-             "|---|" + "---|" * len(magnifications)]
+    lines = [
+        "| angle from nearest training camera | " + " | ".join(f"{m}×" for m in magnifications) + " |",
+        "|---|" + "---|" * len(magnifications),
+    ]
     for label in novel["angle_bins"]:
         cells = []
         for m in magnifications:
             cell = next((c for c in novel["cells"] if c["angle"] == label and f"{c['magnification']:g}" == m), None)
             cells.append("–" if cell is None else f"{_number(cell[metric], _digits(metric))} ({cell['views']})")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines.append("| all | " + " | ".join(f"{_number(novel['by_magnification'][m][metric], _digits(metric))} "
-                                         f"({novel['by_magnification'][m]['views']})" for m in magnifications) + " |")
+    lines.append(
+        "| all | "
+        + " | ".join(
+            f"{_number(novel['by_magnification'][m][metric], _digits(metric))} "
+            f"({novel['by_magnification'][m]['views']})"
+            for m in magnifications
+        )
+        + " |"
+    )
     return lines
 
 
@@ -70,58 +92,102 @@ def _with_std(result: dict, metric: str, digits: int, scientific: bool = False) 
 def table_rows(results: dict[str, dict], paper: bool = False) -> list[str]:
     """The Table I layout: one line per row of ``results``, the novel-view headline first (and,
     with ``paper``, the paper's two lines after them, marked as the paper's)."""
-    lines = ["| row | method | against | novel PSNR ↑ (0.75–1.33×) | novel SSIM ↑ | held-out views | PSNR ↑ (dB) | SSIM ↑ | "
-             "MSE ↓ | PSNR fg | SSIM fg | render ms/frame | training | Gaussians | size MB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| row | method | against | novel PSNR ↑ (0.75–1.33×) | novel SSIM ↑ | held-out views | PSNR ↑ (dB) | SSIM ↑ | "
+        "MSE ↓ | PSNR fg | SSIM fg | render ms/frame | training | Gaussians | size MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for row, result in results.items():
         training = result.get("train_seconds")
-        lines.append(" | ".join([
-            f"| `{row}`", result["method_name"], "volume" if result.get("reference") == "volume" else "own images",
-            _with_std(result, "novel_psnr", 2), _with_std(result, "novel_ssim", 4),
-            str(result["views"]), _with_std(result, "psnr", 2), _with_std(result, "ssim", 4),
-            _with_std(result, "mse", 2, scientific=True), _with_std(result, "psnr_foreground", 2),
-            _with_std(result, "ssim_foreground", 4), _number(result.get("ms_per_frame"), 1),
-            "–" if training is None else f"{training:.0f} s", _number(result.get("gaussians")),
-            _number(result.get("size_mb"), 1)]) + " |")
+        lines.append(
+            " | ".join(
+                [
+                    f"| `{row}`",
+                    result["method_name"],
+                    "volume" if result.get("reference") == "volume" else "own images",
+                    _with_std(result, "novel_psnr", 2),
+                    _with_std(result, "novel_ssim", 4),
+                    str(result["views"]),
+                    _with_std(result, "psnr", 2),
+                    _with_std(result, "ssim", 4),
+                    _with_std(result, "mse", 2, scientific=True),
+                    _with_std(result, "psnr_foreground", 2),
+                    _with_std(result, "ssim_foreground", 4),
+                    _number(result.get("ms_per_frame"), 1),
+                    "–" if training is None else f"{training:.0f} s",
+                    _number(result.get("gaussians")),
+                    _number(result.get("size_mb"), 1),
+                ]
+            )
+            + " |"
+        )
     if paper:
         for method, values in PAPER_TABLE_I["results"].items():
-            lines.append(f"| paper | {method} | KiTS23, their protocol | – | – | – | {values['psnr']:.3f} | {values['ssim']:.4f} | "
-                         f"{values['mse']:.2e} | – | – | – | 30 000 it. | – | – |")
+            lines.append(
+                f"| paper | {method} | KiTS23, their protocol | – | – | – | {values['psnr']:.3f} | {values['ssim']:.4f} | "
+                f"{values['mse']:.2e} | – | – | – | 30 000 it. | – | – |"
+            )
     return lines
 
 
 def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictures: dict[str, list[str]]) -> str:
     lines = [f"# {title}", "", "## Protocol", ""]
     lines += [f"- **{key.replace('_', ' ')}**: {value}" for key, value in protocol.items() if isinstance(value, str)]
-    lines += ["", "## Results (Table I layout, our protocol)", "", "Mean ± standard deviation over views. `novel`: the "
-              "novel views at magnifications 0.75, 1 and 1.33 (the headline); `held-out views`: the scene's own test "
-              "views, on its training orbit and zoom. `fg`: inside the foreground (reference > 0). `training`: the "
-              "stage's training time.", ""]
+    lines += [
+        "",
+        "## Results (Table I layout, our protocol)",
+        "",
+        "Mean ± standard deviation over views. `novel`: the "
+        "novel views at magnifications 0.75, 1 and 1.33 (the headline); `held-out views`: the scene's own test "
+        "views, on its training orbit and zoom. `fg`: inside the foreground (reference > 0). `training`: the "
+        "stage's training time.",
+        "",
+    ]
     lines += table_rows(results, paper=True)
-    lines += ["", f"The `paper` lines are **the paper's own numbers** ({PAPER_TABLE_I['source']}), beside ours for "
-              "orientation. They are not comparable number for number: other scans, other images (sagittal slices), "
-              "and a baseline trained from one camera pose. `against`: what a row is scored against (the volume's "
-              "reference renders, or a foreign scene's own images)."]
+    lines += [
+        "",
+        f"The `paper` lines are **the paper's own numbers** ({PAPER_TABLE_I['source']}), beside ours for "
+        "orientation. They are not comparable number for number: other scans, other images (sagittal slices), "
+        "and a baseline trained from one camera pose. `against`: what a row is scored against (the volume's "
+        "reference renders, or a foreign scene's own images).",
+    ]
     novel_runs = {row: result["novel"] for row, result in results.items() if result.get("novel")}
     if novel_runs:
-        lines += ["", "## Novel views", "", "PSNR (dB) per cell: the angle from the nearest training camera (rows) and "
-                  "the magnification (columns; 1 fits the whole cube), with the number of views in brackets. SSIM per "
-                  "cell is in metrics.json, every view in per_view.csv."]
+        lines += [
+            "",
+            "## Novel views",
+            "",
+            "PSNR (dB) per cell: the angle from the nearest training camera (rows) and "
+            "the magnification (columns; 1 fits the whole cube), with the number of views in brackets. SSIM per "
+            "cell is in metrics.json, every view in per_view.csv.",
+        ]
         for row, novel in novel_runs.items():
             lines += ["", f"`{row}`:", ""] + cell_table(novel)
     if pictures.get("novel"):
         lines += ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["novel"]]
     if pictures.get("views"):
-        lines += ["", "## Held-out views", "", "Each row: the reference, a method's render, and its absolute error "
-                  "(one colour scale per view, shown by the bar).", ""]
+        lines += [
+            "",
+            "## Held-out views",
+            "",
+            "Each row: the reference, a method's render, and its absolute error "
+            "(one colour scale per view, shown by the bar).",
+            "",
+        ]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["views"]]
     if pictures.get("turntables"):
         lines += ["", "## Turntables", ""]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["turntables"]]
     if pictures.get("curves"):
-        lines += ["", "## Training curves", "", "Test PSNR during training, from each run's `log.csv`: against the images it "
-                  "trained on (CuNeRF renders), not the volume's reference renders.", ""]
+        lines += [
+            "",
+            "## Training curves",
+            "",
+            "Test PSNR during training, from each run's `log.csv`: against the images it "
+            "trained on (CuNeRF renders), not the volume's reference renders.",
+            "",
+        ]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["curves"]]
     lines += ["", "Per-view scores: [per_view.csv](per_view.csv). Machine-readable: [metrics.json](metrics.json).", ""]
     return "\n".join(lines)

@@ -13,7 +13,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, require_stage, sha256_of_path, verify_stage_files
+from cubecloud_cli.artifacts import (
+    PARTIAL_SUFFIX,
+    is_complete,
+    read_manifest,
+    require_stage,
+    sha256_of_path,
+    verify_stage_files,
+)
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.novel import NovelTest, load_novel_test
@@ -54,7 +61,7 @@ class SplatRun:
 
     @property
     def retrain(self) -> str:
-        name = self.name[len("splat-"):] if self.name.startswith("splat-") else None
+        name = self.name[len("splat-") :] if self.name.startswith("splat-") else None
         return f"cubecloud splat {self.directory.parent}{f' --name {name}' if name else ''} --force"
 
     def gaussians(self) -> Gaussians:
@@ -82,24 +89,28 @@ def find_splat_runs(work: Path, report: bool = True) -> list[str]:
             continue
         if not is_complete(directory):
             if report:
-                log.warning(f"skipping {directory}: it has no manifest.json (not a finished run); retrain it with `cubecloud "
-                            f"splat {work}{_name_option(directory.name)} --force`")
+                log.warning(
+                    f"skipping {directory}: it has no manifest.json (not a finished run); retrain it with `cubecloud "
+                    f"splat {work}{_name_option(directory.name)} --force`"
+                )
             continue
         names.append(directory.name)
     for partial in sorted(Path(work).glob(f".splat*{PARTIAL_SUFFIX}")):
-        folder = partial.name[1:-len(PARTIAL_SUFFIX)]
+        folder = partial.name[1 : -len(PARTIAL_SUFFIX)]
         if report and not (Path(work) / folder).exists():
-            log.warning(f"not evaluating {folder}: its training was interrupted; finish it with `cubecloud splat {work}"
-                        f"{_name_option(folder)} --resume`")
+            log.warning(
+                f"not evaluating {folder}: its training was interrupted; finish it with `cubecloud splat {work}"
+                f"{_name_option(folder)} --resume`"
+            )
     return sorted(names, key=lambda name: (name != "splat", name))
 
 
 def _name_option(folder: str) -> str:
-    return f" --name {folder[len('splat-'):]}" if folder.startswith("splat-") else ""
+    return f" --name {folder[len('splat-') :]}" if folder.startswith("splat-") else ""
 
 
 def load_run(work: Path, folder: str) -> SplatRun:
-    name = folder[len("splat-"):] if folder.startswith("splat-") else None
+    name = folder[len("splat-") :] if folder.startswith("splat-") else None
     manifest = require_stage(work, "splat", name)
     return SplatRun(folder, Path(work) / folder, manifest)
 
@@ -126,8 +137,12 @@ def _is_the_scene(candidate: Path, recorded: dict, images_hash: str | None) -> b
     except CubecloudError:
         return False
     names = set(model.image_names)
-    return (len(model.image_names) == recorded.get("views") and model.cameras.width == recorded.get("width")
-            and model.cameras.height == recorded.get("height") and set(recorded.get("test", [])) <= names)
+    return (
+        len(model.image_names) == recorded.get("views")
+        and model.cameras.width == recorded.get("width")
+        and model.cameras.height == recorded.get("height")
+        and set(recorded.get("test", [])) <= names
+    )
 
 
 def resolve_scene(work: Path, run: SplatRun) -> Path:
@@ -144,15 +159,19 @@ def resolve_scene(work: Path, run: SplatRun) -> Path:
     if own_export:
         if _is_the_scene(Path(work) / "export", recorded, images_hash):
             return (Path(work) / "export").resolve()
-        raise CubecloudError(f"{Path(work) / 'export'} is gone or has changed since {run.name} was trained on it: "
-                             f"retrain it with `{run.retrain}`")
+        raise CubecloudError(
+            f"{Path(work) / 'export'} is gone or has changed since {run.name} was trained on it: "
+            f"retrain it with `{run.retrain}`"
+        )
     named = [Path(p) for p in (recorded.get("resolved"), recorded.get("directory")) if p]
     for candidate in named:
         if _is_the_scene(candidate, recorded, images_hash):
             return candidate.resolve()
     where = recorded.get("resolved") or recorded.get("directory")
-    raise CubecloudError(f"{run.name} was trained on the scene {where}, which is gone or has changed since: "
-                         f"retrain it with `{run.retrain}`")
+    raise CubecloudError(
+        f"{run.name} was trained on the scene {where}, which is gone or has changed since: "
+        f"retrain it with `{run.retrain}`"
+    )
 
 
 def load_scored_scene(directory: Path, channels: int = 1) -> ScoredScene:
@@ -186,8 +205,14 @@ def load_scored_scene(directory: Path, channels: int = 1) -> ScoredScene:
 
 
 @torch.no_grad()
-def render_views(gaussians: Gaussians, cameras: PinholeCameras, views: list[int], rasterizer: Rasterizer,
-                 on_frame=lambda: None, antialias: bool = False) -> tuple[np.ndarray, float]:
+def render_views(
+    gaussians: Gaussians,
+    cameras: PinholeCameras,
+    views: list[int],
+    rasterizer: Rasterizer,
+    on_frame=lambda: None,
+    antialias: bool = False,
+) -> tuple[np.ndarray, float]:
     """(V, H, W) grey renders in [0, 1] of ``views``, and the median milliseconds per frame (the
     first frame, which may compile kernels, is rendered twice and timed the second time)."""
     frames, times = [], []
@@ -209,8 +234,13 @@ def render_views(gaussians: Gaussians, cameras: PinholeCameras, views: list[int]
 
 def _downscaled(cameras: PinholeCameras, indices: np.ndarray, max_resolution: int) -> PinholeCameras:
     factor = min(1.0, max_resolution / max(cameras.width, cameras.height))
-    return PinholeCameras(cameras.rotations[indices], cameras.translations[indices], max(1, round(cameras.width * factor)),
-                          max(1, round(cameras.height * factor)), cameras.focal * factor)
+    return PinholeCameras(
+        cameras.rotations[indices],
+        cameras.translations[indices],
+        max(1, round(cameras.width * factor)),
+        max(1, round(cameras.height * factor)),
+        cameras.focal * factor,
+    )
 
 
 STACK_TURNTABLE_AXES = {"lr": "si", "ap": "si", "si": "ap"}  # slice normal -> an orbit axis across it
@@ -230,7 +260,16 @@ def turntable_cameras(scored: ScoredScene, frames: int, max_resolution: int) -> 
         # One pose: turn about an axis across the slice normal, so the trained view comes round,
         # with a field of view that fits the cube from every side.
         axis = STACK_TURNTABLE_AXES.get(params.get("axis"), "si")
-        return orbit_cameras(OrbitSpec(views=frames, axis=axis, radius=float(params.get("radius", 4.0)), resolution=resolution))
-    return orbit_cameras(OrbitSpec(views=frames, axis=params.get("axis", "si"), radius=float(params.get("radius", 4.0)),
-                                   resolution=resolution, elevation=float(params.get("elevation", 0.0)),
-                                   fov=float(manifest["cameras"]["fov_deg"])))
+        return orbit_cameras(
+            OrbitSpec(views=frames, axis=axis, radius=float(params.get("radius", 4.0)), resolution=resolution)
+        )
+    return orbit_cameras(
+        OrbitSpec(
+            views=frames,
+            axis=params.get("axis", "si"),
+            radius=float(params.get("radius", 4.0)),
+            resolution=resolution,
+            elevation=float(params.get("elevation", 0.0)),
+            fov=float(manifest["cameras"]["fov_deg"]),
+        )
+    )

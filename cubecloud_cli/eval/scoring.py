@@ -33,8 +33,14 @@ def score_view(reference: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
     foreground = reference > 0
     has_foreground = bool(foreground.any())
     whole, inside = mse(reference, estimate), mse(reference, estimate, foreground) if has_foreground else math.nan
-    scores = {"psnr": psnr_from_mse(whole), "mse": whole, "psnr_foreground": psnr_from_mse(inside),
-              "mse_foreground": inside, "ssim": math.nan, "ssim_foreground": math.nan}
+    scores = {
+        "psnr": psnr_from_mse(whole),
+        "mse": whole,
+        "psnr_foreground": psnr_from_mse(inside),
+        "mse_foreground": inside,
+        "ssim": math.nan,
+        "ssim_foreground": math.nan,
+    }
     if min(reference.shape) >= 2 * SSIM_RADIUS + 1:
         scores["ssim"] = ssim(reference, estimate)
         if has_foreground:
@@ -62,7 +68,9 @@ def summarize(rows: list[dict[str, float]]) -> dict[str, float | int]:
         if values.size == 0:
             summary[metric], summary[f"{metric}_std"] = math.nan, math.nan
         elif np.isinf(values).any():
-            summary[metric] = float(values.mean()) if not (np.isposinf(values).any() and np.isneginf(values).any()) else math.nan
+            summary[metric] = (
+                float(values.mean()) if not (np.isposinf(values).any() and np.isneginf(values).any()) else math.nan
+            )
             summary[f"{metric}_std"] = math.nan
         else:
             summary[metric], summary[f"{metric}_std"] = float(values.mean()), float(values.std())

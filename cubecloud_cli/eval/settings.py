@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.runs import MAX_TURNTABLE_FRAMES
 
+
 @dataclass(frozen=True)
 class EvalSettings:
     turntable_frames: int = 72  # 0: no turntables
@@ -16,7 +17,11 @@ class EvalSettings:
 
     def validate(self) -> None:
         if self.turntable_frames != 0 and not 2 <= self.turntable_frames <= MAX_TURNTABLE_FRAMES:
-            raise CubecloudError(f"--turntable-frames {self.turntable_frames} must be 0 (none) or between 2 and "
-                                 f"{MAX_TURNTABLE_FRAMES}, e.g. 72")
+            raise CubecloudError(
+                f"--turntable-frames {self.turntable_frames} must be 0 (none) or between 2 and "
+                f"{MAX_TURNTABLE_FRAMES}, e.g. 72"
+            )
         if not 16 <= self.turntable_resolution <= 4096:
-            raise CubecloudError(f"--turntable-resolution {self.turntable_resolution} must be between 16 and 4096 pixels")
+            raise CubecloudError(
+                f"--turntable-resolution {self.turntable_resolution} must be between 16 and 4096 pixels"
+            )

@@ -32,7 +32,9 @@ def write_views(images: np.ndarray, folder: Path, names: list[str]) -> None:
         Image.fromarray(np.repeat(grey[..., None], 3, axis=2), mode="RGB").save(folder / name)
 
 
-def write_contact_sheet(images: np.ndarray, path: Path, held_out: set[int], title: str, columns: int | None = None) -> None:
+def write_contact_sheet(
+    images: np.ndarray, path: Path, held_out: set[int], title: str, columns: int | None = None
+) -> None:
     """All views on one PNG, numbered in order; held-out (test) views are marked "test". Without
     ``columns`` the sheet is about square."""
     from PIL import Image, ImageDraw

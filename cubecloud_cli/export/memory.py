@@ -24,7 +24,7 @@ def export_bytes(settings: ExportSettings, volume_size: int) -> int:
     rendering = pixels * largest * largest * BYTES_PER_RENDERED_PIXEL
     bake = settings.bake_resolution(volume_size)
     grids = 3 * 4 * (volume_size**3 + (bake**3 if settings.render_from == "grid" else 0))
-    cubes = -(-volume_size // settings.cube) ** 3
+    cubes = -((-volume_size // settings.cube) ** 3)
     points = cubes * settings.points_per_cube * 4 * 12  # positions, values, masks, gradients
     return stacks + rendering + grids + points
 

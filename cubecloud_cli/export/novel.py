@@ -38,8 +38,9 @@ def subpixel_points(factor: int) -> list[tuple[float, float]]:
     return [((i + 0.5) / factor, (j + 0.5) / factor) for j in range(factor) for i in range(factor)]
 
 
-def pixel_area_render(field, cameras, index: int, model: ImageModel, support, device: torch.device,
-                      factor: int) -> np.ndarray:
+def pixel_area_render(
+    field, cameras, index: int, model: ImageModel, support, device: torch.device, factor: int
+) -> np.ndarray:
     """(H, W) view ``index`` with each pixel the mean of factor × factor sub-pixel samples."""
     total = np.zeros((cameras.height, cameras.width), dtype=np.float64)
     for point in subpixel_points(factor):
@@ -47,8 +48,14 @@ def pixel_area_render(field, cameras, index: int, model: ImageModel, support, de
     return (total / (factor * factor)).astype(np.float32)
 
 
-def render_novel_references(field, novel: NovelViewSet, model: ImageModel, device: torch.device,
-                            progress: ExportProgress, on_progress: Callable[[int, int], None]) -> np.ndarray:
+def render_novel_references(
+    field,
+    novel: NovelViewSet,
+    model: ImageModel,
+    device: torch.device,
+    progress: ExportProgress,
+    on_progress: Callable[[int, int], None],
+) -> np.ndarray:
     """(V, H, W) pixel-area renders of ``field`` at every novel view, saving each as it is done
     and reusing the ones an interrupted run saved."""
     count = len(novel.directions)
@@ -79,6 +86,11 @@ def write_novel(directory: Path, novel: NovelViewSet, reference: np.ndarray) -> 
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / VIEWS_FILE, novel.as_json())
     np.save(folder / REFERENCE_FILE, reference)
-    write_contact_sheet(reference, folder / "contact_sheet.png", set(),
-                        f"novel views (rows of {len(novel.directions)} directions at "
-                        f"{', '.join(f'{m:g}x' for m in novel.magnifications)}), reference renders", columns=len(novel.directions))
+    write_contact_sheet(
+        reference,
+        folder / "contact_sheet.png",
+        set(),
+        f"novel views (rows of {len(novel.directions)} directions at "
+        f"{', '.join(f'{m:g}x' for m in novel.magnifications)}), reference renders",
+        columns=len(novel.directions),
+    )

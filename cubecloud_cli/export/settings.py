@@ -8,8 +8,8 @@ from typing import ClassVar, Literal, get_args
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras, stack_cameras, stack_offsets
 from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, NovelViewSet
 from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.presets import preset_default
 from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
+from cubecloud_cli.presets import preset_default
 from cubecloud_cli.render import IMAGE_MODELS
 
 RenderSource = Literal["grid", "field"]
@@ -99,19 +99,31 @@ class ExportSettings:
         if self.cameras not in CAMERA_PATHS:
             raise CubecloudError(f"--cameras {self.cameras!r} must be one of {', '.join(CAMERA_PATHS)}")
         if self.cameras == "stack" and self.view != "slice":
-            raise CubecloudError(f"--cameras stack shows parallel slices from one pose and needs --view slice (got --view {self.view})")
+            raise CubecloudError(
+                f"--cameras stack shows parallel slices from one pose and needs --view slice (got --view {self.view})"
+            )
         if self.cameras != "orbit" and self.elevation != 0.0:
-            raise CubecloudError(f"--elevation tilts the orbit and has no meaning with --cameras {self.cameras}: leave it out, or use --cameras orbit")
+            raise CubecloudError(
+                f"--elevation tilts the orbit and has no meaning with --cameras {self.cameras}: leave it out, or use --cameras orbit"
+            )
         if not 0 <= self.novel_directions <= MAX_NOVEL_DIRECTIONS:
-            raise CubecloudError(f"--novel-directions {self.novel_directions} must be within 0..{MAX_NOVEL_DIRECTIONS} (0: no novel-view test)")
+            raise CubecloudError(
+                f"--novel-directions {self.novel_directions} must be within 0..{MAX_NOVEL_DIRECTIONS} (0: no novel-view test)"
+            )
         if self.resolution > MAX_RESOLUTION:
-            raise CubecloudError(f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512")
+            raise CubecloudError(
+                f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512"
+            )
         if self.cube < 1:
             raise CubecloudError(f"--cube {self.cube} must be at least 1 voxel (the paper uses 16)")
         if volume_size is not None and self.step >= volume_size:
-            raise CubecloudError(f"--step {self.step:g} spans the whole {volume_size}³ volume: choose a smaller step, e.g. 1")
+            raise CubecloudError(
+                f"--step {self.step:g} spans the whole {volume_size}³ volume: choose a smaller step, e.g. 1"
+            )
         if volume_size is not None and self.cube > volume_size:
-            raise CubecloudError(f"--cube {self.cube} is larger than the {volume_size}³ volume: choose at most {volume_size}")
+            raise CubecloudError(
+                f"--cube {self.cube} is larger than the {volume_size}³ volume: choose at most {volume_size}"
+            )
         if self.points_per_cube < 1:
             raise CubecloudError(f"--points-per-cube {self.points_per_cube} must be at least 1")
         if self.max_points < 0:

@@ -32,7 +32,6 @@ from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, req
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import NovelViewSet, nearest_angles_deg
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
-from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
@@ -42,6 +41,7 @@ from cubecloud_cli.export.progress import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.export.transfer import resolve_transfer
 from cubecloud_cli.metrics import image_metrics
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
@@ -150,7 +150,9 @@ class ExportRenders:
     cloud: PointCloud
 
 
-def _plan_export(work: Path, settings: ExportSettings, runtime: Runtime, cunerf_name: str | None) -> tuple[ExportJob, dict]:
+def _plan_export(
+    work: Path, settings: ExportSettings, runtime: Runtime, cunerf_name: str | None
+) -> tuple[ExportJob, dict]:
     """Check the settings against the volume and the cunerf run, and build the cameras and the image
     model; returns the job and the cunerf manifest."""
     settings.validate()
@@ -167,13 +169,19 @@ def _plan_export(work: Path, settings: ExportSettings, runtime: Runtime, cunerf_
     cameras = settings.camera_set()
     device = runtime.apply()
     check_export_memory(settings, size)
-    transfer = resolve_transfer(settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density)
-    image_model = ImageModel(settings.view, transfer, step=settings.step * 2.0 / size, slice_offsets=settings.slice_offsets())
+    transfer = resolve_transfer(
+        settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density
+    )
+    image_model = ImageModel(
+        settings.view, transfer, step=settings.step * 2.0 / size, slice_offsets=settings.slice_offsets()
+    )
     try:
         image_model.validate()
     except ValueError as exc:
         raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
-    job = ExportJob(work, settings, cameras, settings.novel_view_set(), image_model, preprocess, size, device, cunerf_name)
+    job = ExportJob(
+        work, settings, cameras, settings.novel_view_set(), image_model, preprocess, size, device, cunerf_name
+    )
     return job, cunerf
 
 
@@ -211,7 +219,9 @@ def _load_inputs(job: ExportJob, writer: StageWriter) -> tuple[np.ndarray, Cuner
             raise CubecloudError(f"{path} changed since its stage was written: run `{fix}`")
     volume = np.load(volume_path)
     if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
-        raise CubecloudError(f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`")
+        raise CubecloudError(
+            f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`"
+        )
     field = CunerfField.from_file(model_path, job.device.type)
     if field.volume_size != size:
         raise CubecloudError(
@@ -221,8 +231,14 @@ def _load_inputs(job: ExportJob, writer: StageWriter) -> tuple[np.ndarray, Cuner
     return volume, field
 
 
-def _render(job: ExportJob, volume: np.ndarray, field: CunerfField, writer: StageWriter, progress: ExportProgress,
-            on_progress: ProgressCallback) -> ExportRenders:
+def _render(
+    job: ExportJob,
+    volume: np.ndarray,
+    field: CunerfField,
+    writer: StageWriter,
+    progress: ExportProgress,
+    on_progress: ProgressCallback,
+) -> ExportRenders:
     """CuNeRF's views, the volume's views and novel references, and the point cloud, each phase timed."""
     settings, cameras, device, views = job.settings, job.cameras, job.device, job.total_views
 
@@ -233,26 +249,55 @@ def _render(job: ExportJob, volume: np.ndarray, field: CunerfField, writer: Stag
         on_progress("bake", 0, views, {})
         cunerf_images_field = _cunerf_scalar_field(field, settings, job.size, device, progress, on_progress)
     with writer.phase("render_images"):
-        images = _render_saving_views(cunerf_images_field, cameras, job.image_model, device, progress, "images",
-                                      count_views("images", 0))
+        images = _render_saving_views(
+            cunerf_images_field, cameras, job.image_model, device, progress, "images", count_views("images", 0)
+        )
     with writer.phase("render_reference"):
-        reference = _render_saving_views(GridField(volume, device), cameras, job.image_model, device, progress, "reference",
-                                         count_views("reference", len(cameras)))
+        reference = _render_saving_views(
+            GridField(volume, device),
+            cameras,
+            job.image_model,
+            device,
+            progress,
+            "reference",
+            count_views("reference", len(cameras)),
+        )
     with writer.phase("render_novel"):
         # The novel views face the origin: a stack's per-view slice planes do not apply to them.
-        novel_reference = render_novel_references(GridField(volume, device), job.novel, replace(job.image_model, slice_offsets=()),
-                                                  device, progress, count_views("novel", 2 * len(cameras)))
+        novel_reference = render_novel_references(
+            GridField(volume, device),
+            job.novel,
+            replace(job.image_model, slice_offsets=()),
+            device,
+            progress,
+            count_views("novel", 2 * len(cameras)),
+        )
     with writer.phase("point_cloud"):
         on_progress("points", views, views, {})
         cloud = build_point_cloud(
-            field.cube_values, field.point_density, cunerf_images_field, job.size, settings.cube,
-            settings.points_per_cube, settings.max_points or None, settings.air_threshold, settings.seed, device,
+            field.cube_values,
+            field.point_density,
+            cunerf_images_field,
+            job.size,
+            settings.cube,
+            settings.points_per_cube,
+            settings.max_points or None,
+            settings.air_threshold,
+            settings.seed,
+            device,
         )
     return ExportRenders(images, reference, novel_reference, cloud)
 
 
-def _render_saving_views(field, cameras: PinholeCameras, model: ImageModel, device: torch.device,
-                         progress: ExportProgress, prefix: str, on_progress) -> np.ndarray:
+def _render_saving_views(
+    field,
+    cameras: PinholeCameras,
+    model: ImageModel,
+    device: torch.device,
+    progress: ExportProgress,
+    prefix: str,
+    on_progress,
+) -> np.ndarray:
     """render_views, saving each view as it is done and reusing views an interrupted run saved."""
     images = np.empty((len(cameras), cameras.height, cameras.width), dtype=np.float32)
     support = None
@@ -270,8 +315,9 @@ def _render_saving_views(field, cameras: PinholeCameras, model: ImageModel, devi
     return images
 
 
-def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int, device: torch.device,
-                         progress: ExportProgress, on_progress):
+def _cunerf_scalar_field(
+    field: CunerfField, settings: ExportSettings, size: int, device: torch.device, progress: ExportProgress, on_progress
+):
     """The field the training images are rendered from: CuNeRF baked to a grid (fast), or its
     cube renders queried at every ray sample (``--render-from field``)."""
     if settings.render_from == "grid":
@@ -290,8 +336,14 @@ def _cunerf_scalar_field(field: CunerfField, settings: ExportSettings, size: int
     return FunctionField(field.cube_values, size, support)
 
 
-def _write_scene(directory: Path, cameras: PinholeCameras, names: list[str], images: np.ndarray,
-                 reference: np.ndarray, cloud: PointCloud) -> None:
+def _write_scene(
+    directory: Path,
+    cameras: PinholeCameras,
+    names: list[str],
+    images: np.ndarray,
+    reference: np.ndarray,
+    cloud: PointCloud,
+) -> None:
     held_out = set(held_out_views(len(names)))
     test_names = [names[i] for i in sorted(held_out)]
     train_names = [n for i, n in enumerate(names) if i not in held_out]
@@ -318,16 +370,28 @@ def _write_scene(directory: Path, cameras: PinholeCameras, names: list[str], ima
         shutil.copyfile(directory / "points3D.ply", sparse / "points3D.ply")
 
     paths = [f"images/{n}" for n in names]
-    write_json(directory / "transforms.json", transforms_json(
-        cameras, paths, train_file_paths=[f"images/{n}" for n in train_names],
-        test_file_paths=[f"images/{n}" for n in test_names], ply_file_path="sparse_pc.ply"))
-    write_json(directory / "split.json", {
-        "rule": f"views with index % {HOLDOUT_EVERY} == 0 are held out for testing (reference 3DGS llffhold)",
-        "train": train_names,
-        "test": test_names,
-    })
+    write_json(
+        directory / "transforms.json",
+        transforms_json(
+            cameras,
+            paths,
+            train_file_paths=[f"images/{n}" for n in train_names],
+            test_file_paths=[f"images/{n}" for n in test_names],
+            ply_file_path="sparse_pc.ply",
+        ),
+    )
+    write_json(
+        directory / "split.json",
+        {
+            "rule": f"views with index % {HOLDOUT_EVERY} == 0 are held out for testing (reference 3DGS llffhold)",
+            "train": train_names,
+            "test": test_names,
+        },
+    )
     write_contact_sheet(images, directory / "contact_sheet.png", held_out, "CuNeRF renders (training images)")
-    write_contact_sheet(reference, directory / "contact_sheet_reference.png", held_out, "reference renders (preprocessed volume)")
+    write_contact_sheet(
+        reference, directory / "contact_sheet_reference.png", held_out, "reference renders (preprocessed volume)"
+    )
 
 
 def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: ExportRenders) -> None:
@@ -337,36 +401,42 @@ def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: Expo
     held_out = held_out_views(len(names))
     test_metrics = image_metrics(reference[held_out], images[held_out])
     writer.metrics.update({f"cunerf_vs_reference_{k}": v for k, v in test_metrics.items()})
-    writer.metrics.update({"points": cloud.stats["points"], "views": len(names), "test_views": len(held_out),
-                           **peak_memory_mb(device)})
-    writer.extra.update({
-        "cameras": {
-            "model": "PINHOLE",
-            "width": cameras.width,
-            "height": cameras.height,
-            "fx": float(cameras.focal),
-            "fy": float(cameras.focal),
-            "cx": cameras.cx,
-            "cy": cameras.cy,
-            "fov_deg": float(np.degrees(cameras.fov_x)),
-            "convention": "OpenCV/COLMAP: x right, y down, z forward; world-to-camera poses; pixel centres at +0.5",
-            "centres": cameras.centres().round(9).tolist(),
-        },
-        "image_model": {**job.image_model.as_dict(), "step_voxels": settings.step},
-        "render_source": {
-            "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
-            "bake_size": settings.bake_resolution(job.size) if settings.render_from == "grid" else None,
-            "reference_images": "preprocess/volume.npy, trilinear",
-        },
-        "split": {"train": [n for i, n in enumerate(names) if i not in held_out], "test": [names[i] for i in held_out]},
-        "point_cloud": cloud.stats,
-        "world": {
-            "cube": "[-1, 1]^3, RAS axes (docs/design.md §2)",
-            "mm_per_world_unit": preprocess.get("geometry", {}).get("mm_per_world_unit"),
-            "world_to_scanner": preprocess.get("geometry", {}).get("world_to_scanner"),
-        },
-        "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
-    })
+    writer.metrics.update(
+        {"points": cloud.stats["points"], "views": len(names), "test_views": len(held_out), **peak_memory_mb(device)}
+    )
+    writer.extra.update(
+        {
+            "cameras": {
+                "model": "PINHOLE",
+                "width": cameras.width,
+                "height": cameras.height,
+                "fx": float(cameras.focal),
+                "fy": float(cameras.focal),
+                "cx": cameras.cx,
+                "cy": cameras.cy,
+                "fov_deg": float(np.degrees(cameras.fov_x)),
+                "convention": "OpenCV/COLMAP: x right, y down, z forward; world-to-camera poses; pixel centres at +0.5",
+                "centres": cameras.centres().round(9).tolist(),
+            },
+            "image_model": {**job.image_model.as_dict(), "step_voxels": settings.step},
+            "render_source": {
+                "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
+                "bake_size": settings.bake_resolution(job.size) if settings.render_from == "grid" else None,
+                "reference_images": "preprocess/volume.npy, trilinear",
+            },
+            "split": {
+                "train": [n for i, n in enumerate(names) if i not in held_out],
+                "test": [names[i] for i in held_out],
+            },
+            "point_cloud": cloud.stats,
+            "world": {
+                "cube": "[-1, 1]^3, RAS axes (docs/design.md §2)",
+                "mm_per_world_unit": preprocess.get("geometry", {}).get("mm_per_world_unit"),
+                "world_to_scanner": preprocess.get("geometry", {}).get("world_to_scanner"),
+            },
+            "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__},
+        }
+    )
 
 
 def _record_novel(writer: StageWriter, cameras: PinholeCameras, names: list[str], novel: NovelViewSet) -> None:
@@ -380,6 +450,11 @@ def _record_novel(writer: StageWriter, cameras: PinholeCameras, names: list[str]
         "base_focal": novel.base_focal,
         # > 1: the training views are zoomed in further than the novel views' magnification 1.
         "training_zoom": float(cameras.focal / novel.base_focal),
-        "nearest_training_camera_deg": {"min": float(np.nanmin(angles)), "median": float(np.nanmedian(angles)),
-                                        "max": float(np.nanmax(angles))} if np.isfinite(angles).any() else None,
+        "nearest_training_camera_deg": {
+            "min": float(np.nanmin(angles)),
+            "median": float(np.nanmedian(angles)),
+            "max": float(np.nanmax(angles)),
+        }
+        if np.isfinite(angles).any()
+        else None,
     }

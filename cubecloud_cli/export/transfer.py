@@ -68,5 +68,7 @@ def resolve_transfer(
     try:
         function.validate()
     except ValueError as exc:
-        raise CubecloudError(f"{exc}: pass --tf-low/--tf-high within [0, 1] with low <= high and --tf-density >= 0") from None
+        raise CubecloudError(
+            f"{exc}: pass --tf-low/--tf-high within [0, 1] with low <= high and --tf-density >= 0"
+        ) from None
     return function

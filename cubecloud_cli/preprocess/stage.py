@@ -19,23 +19,24 @@ from typing import Callable
 import numpy as np
 
 from cubecloud_cli.artifacts import StageWriter, check_free_disk, read_manifest
-from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.preprocess.preview import write_preview
 from cubecloud_cli.preprocess.settings import PreprocessSettings
+from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.volume.cube_frame import CubeFrame, plan_cube
 from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
 from cubecloud_cli.volume.nifti import write_nifti
 from cubecloud_cli.volume.orientation import axis_codes, reorient_to_ras
 from cubecloud_cli.volume.readers import read_scan
-from cubecloud_cli.volume.scan import Scan
 from cubecloud_cli.volume.resample import interpolation_matrix, resample_axes
+from cubecloud_cli.volume.scan import Scan
 
 log = logging.getLogger("cubecloud")
 
 VOLUME_NPY = "volume.npy"
 VOLUME_NIFTI = "volume.nii.gz"
 PREVIEW_PNG = "preview.png"
+
 
 def recorded_params(settings: PreprocessSettings) -> dict:
     """What a complete preprocess/ must have been made with to be current (with the same scan)."""
@@ -117,7 +118,9 @@ def preprocess_scan(
 
         on_phase("write", costs, 0.0)
         with writer.phase("write"):
-            _write_volume(writer.directory, volume, frame, intensity, lambda fraction: on_phase("write", costs, fraction))
+            _write_volume(
+                writer.directory, volume, frame, intensity, lambda fraction: on_phase("write", costs, fraction)
+            )
 
         writer.metrics.update(_volume_statistics(volume))
         writer.extra.update(
@@ -191,8 +194,9 @@ def resample_to_cube(scan: Scan, settings: PreprocessSettings) -> tuple[CubeFram
     return frame, resample_axes(scan.data, matrices)
 
 
-def _write_volume(directory: Path, volume: np.ndarray, frame: CubeFrame, intensity: IntensityMap,
-                  on_fraction: Callable[[float], None]) -> None:
+def _write_volume(
+    directory: Path, volume: np.ndarray, frame: CubeFrame, intensity: IntensityMap, on_fraction: Callable[[float], None]
+) -> None:
     np.save(directory / VOLUME_NPY, volume)
     write_nifti(
         volume,

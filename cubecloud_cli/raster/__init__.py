@@ -7,5 +7,14 @@ from cubecloud_cli.raster.backends import Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.raster.pairs import composite, splat_pairs
 from cubecloud_cli.raster.projection import Projected, covariances, project, quaternion_to_rotation
 
-__all__ = ["Projected", "Rasterized", "Rasterizer", "composite", "covariances", "project", "quaternion_to_rotation",
-           "rasterizer_for", "splat_pairs"]
+__all__ = [
+    "Projected",
+    "Rasterized",
+    "Rasterizer",
+    "composite",
+    "covariances",
+    "project",
+    "quaternion_to_rotation",
+    "rasterizer_for",
+    "splat_pairs",
+]

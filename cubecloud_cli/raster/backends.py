@@ -50,9 +50,24 @@ class Rasterizer:
 
 
 def _render_with(projector, compositor):
-    def render(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height,
-               background=None, retain_screen_grad=False, antialias=False) -> Rasterized:
-        projected = projector(means, scales, quaternions, rotation, translation, focal, width, height, antialias=antialias)
+    def render(
+        means,
+        scales,
+        quaternions,
+        opacities,
+        colours,
+        rotation,
+        translation,
+        focal,
+        width,
+        height,
+        background=None,
+        retain_screen_grad=False,
+        antialias=False,
+    ) -> Rasterized:
+        projected = projector(
+            means, scales, quaternions, rotation, translation, focal, width, height, antialias=antialias
+        )
         if retain_screen_grad and projected.means2d.requires_grad:
             projected.means2d.retain_grad()
         image, _ = compositor(projected, colours, projected.effective_opacities(opacities), width, height, background)
@@ -72,22 +87,49 @@ def gsplat_inputs(rotation: torch.Tensor, translation: torch.Tensor, focal: floa
     viewmat = torch.eye(4, dtype=rotation.dtype, device=rotation.device)
     viewmat[:3, :3] = rotation
     viewmat[:3, 3] = translation
-    intrinsics = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]],
-                              dtype=rotation.dtype, device=rotation.device)
+    intrinsics = torch.tensor(
+        [[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]],
+        dtype=rotation.dtype,
+        device=rotation.device,
+    )
     return viewmat[None], intrinsics[None]
 
 
-def _render_gsplat(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height,
-                   background=None, retain_screen_grad=False, antialias=False) -> Rasterized:
+def _render_gsplat(
+    means,
+    scales,
+    quaternions,
+    opacities,
+    colours,
+    rotation,
+    translation,
+    focal,
+    width,
+    height,
+    background=None,
+    retain_screen_grad=False,
+    antialias=False,
+) -> Rasterized:
     import gsplat
 
     viewmats, intrinsics = gsplat_inputs(rotation, translation, focal, width, height)
     # gsplat's antialiased mode is the 2D Mip filter: eps2d added, opacity × √(det Σ / det(Σ + eps2d·I)).
     colours_out, _, meta = gsplat.rasterization(
-        means, quaternions, scales, opacities, colours, viewmats, intrinsics, width, height,
-        near_plane=NEAR_PLANE, eps2d=dilation(antialias), packed=False,
+        means,
+        quaternions,
+        scales,
+        opacities,
+        colours,
+        viewmats,
+        intrinsics,
+        width,
+        height,
+        near_plane=NEAR_PLANE,
+        eps2d=dilation(antialias),
+        packed=False,
         rasterize_mode="antialiased" if antialias else "classic",
-        backgrounds=None if background is None else background[None])
+        backgrounds=None if background is None else background[None],
+    )
     screen_means = meta["means2d"]
     if retain_screen_grad and screen_means.requires_grad:
         screen_means.retain_grad()

@@ -43,8 +43,9 @@ class _Project(torch.autograd.Function):
         inputs, options = ctx.saved
         if grad_compensations is None:
             grad_compensations = torch.zeros(inputs[0].shape[0], dtype=grad_means2d.dtype)
-        grads = cpu_projection.project_backward(*inputs, *options, _numpy(grad_means2d), _numpy(grad_conics),
-                                                _numpy(grad_compensations))
+        grads = cpu_projection.project_backward(
+            *inputs, *options, _numpy(grad_means2d), _numpy(grad_conics), _numpy(grad_compensations)
+        )
         dtype = grad_means2d.dtype
         return (*(torch.from_numpy(g).to(dtype) for g in grads), None, None, None, None, None, None, None)
 
@@ -64,10 +65,25 @@ def project_cpu(
     """:func:`cubecloud_cli.raster.projection.project` computed by the numba kernels (CPU
     tensors; the pose takes no gradient)."""
     means2d, conics, covariances2d, depths, radii, compensations = _Project.apply(
-        means, scales, quaternions, rotation.detach(), translation.detach(), float(focal), int(width), int(height), float(near),
-        bool(antialias))
-    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, covariances2d=covariances2d,
-                     compensations=compensations if antialias else None)
+        means,
+        scales,
+        quaternions,
+        rotation.detach(),
+        translation.detach(),
+        float(focal),
+        int(width),
+        int(height),
+        float(near),
+        bool(antialias),
+    )
+    return Projected(
+        means2d=means2d,
+        conics=conics,
+        depths=depths,
+        radii=radii,
+        covariances2d=covariances2d,
+        compensations=compensations if antialias else None,
+    )
 
 
 class _Composite(torch.autograd.Function):
@@ -75,28 +91,55 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height):
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
         means2d_np, opacities_np = _numpy(means2d), _numpy(opacities)
-        bounds, levels = binning.splat_boxes(means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np,
-                                             width, height)
+        bounds, levels = binning.splat_boxes(
+            means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np, width, height
+        )
         offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
         image, final_transmittance, last, blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
-        ctx.saved = (offsets, entries, slots, owners, arrays, final_transmittance, last, blended, width, height, tiles_x)
+        ctx.saved = (
+            offsets,
+            entries,
+            slots,
+            owners,
+            arrays,
+            final_transmittance,
+            last,
+            blended,
+            width,
+            height,
+            tiles_x,
+        )
         ctx.count = means2d.shape[0]
         dtype, device = colours.dtype, colours.device
         coverage = torch.from_numpy(1.0 - final_transmittance).to(dtype=dtype, device=device)
         ctx.mark_non_differentiable(coverage)
-        return torch.from_numpy(image).to(dtype=dtype, device=device).view(height, width, -1), coverage.view(height, width)
+        return torch.from_numpy(image).to(dtype=dtype, device=device).view(height, width, -1), coverage.view(
+            height, width
+        )
 
     @staticmethod
     def backward(ctx, grad_image, grad_coverage):
         offsets, entries, slots, owners, arrays, final_transmittance, last, blended, width, height, tiles_x = ctx.saved
         grad = _numpy(grad_image.reshape(height * width, -1))
-        slot_grads = kernels.backward(offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad)
+        slot_grads = kernels.backward(
+            offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad
+        )
         per_gaussian = torch.from_numpy(binning.sum_per_gaussian(slot_grads, *owners, ctx.count))
         dtype, device = grad_image.dtype, grad_image.device
         per_gaussian = per_gaussian.to(dtype=dtype, device=device)
-        return (per_gaussian[:, 0:2], per_gaussian[:, 2:5], per_gaussian[:, 6:], per_gaussian[:, 5],
-                None, None, None, None, None, None)
+        return (
+            per_gaussian[:, 0:2],
+            per_gaussian[:, 2:5],
+            per_gaussian[:, 6:],
+            per_gaussian[:, 5],
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
 
 
 def composite_cpu(
@@ -110,5 +153,15 @@ def composite_cpu(
     """:func:`cubecloud_cli.raster.pairs.composite` computed by the numba kernels."""
     if background is None:
         background = torch.zeros(colours.shape[1], dtype=colours.dtype)
-    return _Composite.apply(projected.means2d, projected.conics, colours, opacities, background,
-                            projected.covariances2d.detach(), projected.radii, projected.depths.detach(), width, height)
+    return _Composite.apply(
+        projected.means2d,
+        projected.conics,
+        colours,
+        opacities,
+        background,
+        projected.covariances2d.detach(),
+        projected.radii,
+        projected.depths.detach(),
+        width,
+        height,
+    )

@@ -69,7 +69,9 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
         u, v, radius = means2d[i, 0], means2d[i, 1], np.float64(radii[i])
         half_x = min(radius, math.sqrt(2.0 * level * covariances2d[i, 0]))
         half_y = min(radius, math.sqrt(2.0 * level * covariances2d[i, 2]))
-        finite = np.isfinite(half_x) and np.isfinite(half_y) and np.isfinite(u) and np.isfinite(v) and np.isfinite(level)
+        finite = (
+            np.isfinite(half_x) and np.isfinite(half_y) and np.isfinite(u) and np.isfinite(v) and np.isfinite(level)
+        )
         # numba's min/max drop a NaN rather than propagate it, so a NaN opacity is culled by name
         if radii[i] <= 0 or not finite or not opacities[i] >= 0.0:
             bounds[i, 0], bounds[i, 1], bounds[i, 2], bounds[i, 3] = 0, -1, 0, -1
@@ -114,7 +116,8 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     for rank in range(kept):
         g = order[rank]
         tiles = ((bounds[g, 1] >> TILE_SHIFT) - (bounds[g, 0] >> TILE_SHIFT) + 1) * (
-            (bounds[g, 3] >> TILE_SHIFT) - (bounds[g, 2] >> TILE_SHIFT) + 1)
+            (bounds[g, 3] >> TILE_SHIFT) - (bounds[g, 2] >> TILE_SHIFT) + 1
+        )
         first[rank + 1] = first[rank] + tiles
     total = first[kept]
     tile_of_entry = np.empty(total, dtype=np.int64)

@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
+
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
 LEVEL_MARGIN = 1e-9
 
@@ -136,8 +137,25 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def backward(offsets, entries, slots, bounds, means2d, conics, colours, opacities, levels, background, width,
-             height, tiles_x, final_transmittance, last, blended, grad_image):
+def backward(
+    offsets,
+    entries,
+    slots,
+    bounds,
+    means2d,
+    conics,
+    colours,
+    opacities,
+    levels,
+    background,
+    width,
+    height,
+    tiles_x,
+    final_transmittance,
+    last,
+    blended,
+    grad_image,
+):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
     colour (C), summed per Gaussian afterwards. Entries are walked back to front; each pixel
     starts at its last blended entry.

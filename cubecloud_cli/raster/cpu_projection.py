@@ -27,9 +27,15 @@ from cubecloud_cli.raster.constants import (
 @njit(cache=True)
 def _rotation(qw, qx, qy, qz):
     return (
-        1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
-        2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
-        2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy),
+        1 - 2 * (qy * qy + qz * qz),
+        2 * (qx * qy - qw * qz),
+        2 * (qx * qz + qw * qy),
+        2 * (qx * qy + qw * qz),
+        1 - 2 * (qx * qx + qz * qz),
+        2 * (qy * qz - qw * qx),
+        2 * (qx * qz - qw * qy),
+        2 * (qy * qz + qw * qx),
+        1 - 2 * (qx * qx + qy * qy),
     )
 
 
@@ -37,7 +43,13 @@ def _rotation(qw, qx, qy, qz):
 def _unit_quaternion(quaternions, i):
     norm = math.sqrt(quaternions[i, 0] ** 2 + quaternions[i, 1] ** 2 + quaternions[i, 2] ** 2 + quaternions[i, 3] ** 2)
     scale = max(norm, MIN_QUATERNION_NORM)
-    return quaternions[i, 0] / scale, quaternions[i, 1] / scale, quaternions[i, 2] / scale, quaternions[i, 3] / scale, norm
+    return (
+        quaternions[i, 0] / scale,
+        quaternions[i, 1] / scale,
+        quaternions[i, 2] / scale,
+        quaternions[i, 3] / scale,
+        norm,
+    )
 
 
 @njit(cache=True)
@@ -53,14 +65,26 @@ def _footprint(rotation, s0, s1, s2, r, x_over_z, y_over_z, f_over_z):
     """T's rows t0, t1 (T = J·W, the image Jacobian times the camera rotation) and the footprint
     rows u0, u1 with u_j = (T r_j) s_j, r_j the Gaussian's j-th axis; all as tuples, because
     small arrays would be allocated per Gaussian."""
-    t0 = (f_over_z * (rotation[0, 0] - x_over_z * rotation[2, 0]), f_over_z * (rotation[0, 1] - x_over_z * rotation[2, 1]),
-          f_over_z * (rotation[0, 2] - x_over_z * rotation[2, 2]))
-    t1 = (f_over_z * (rotation[1, 0] - y_over_z * rotation[2, 0]), f_over_z * (rotation[1, 1] - y_over_z * rotation[2, 1]),
-          f_over_z * (rotation[1, 2] - y_over_z * rotation[2, 2]))
-    u0 = ((t0[0] * r[0] + t0[1] * r[3] + t0[2] * r[6]) * s0, (t0[0] * r[1] + t0[1] * r[4] + t0[2] * r[7]) * s1,
-          (t0[0] * r[2] + t0[1] * r[5] + t0[2] * r[8]) * s2)
-    u1 = ((t1[0] * r[0] + t1[1] * r[3] + t1[2] * r[6]) * s0, (t1[0] * r[1] + t1[1] * r[4] + t1[2] * r[7]) * s1,
-          (t1[0] * r[2] + t1[1] * r[5] + t1[2] * r[8]) * s2)
+    t0 = (
+        f_over_z * (rotation[0, 0] - x_over_z * rotation[2, 0]),
+        f_over_z * (rotation[0, 1] - x_over_z * rotation[2, 1]),
+        f_over_z * (rotation[0, 2] - x_over_z * rotation[2, 2]),
+    )
+    t1 = (
+        f_over_z * (rotation[1, 0] - y_over_z * rotation[2, 0]),
+        f_over_z * (rotation[1, 1] - y_over_z * rotation[2, 1]),
+        f_over_z * (rotation[1, 2] - y_over_z * rotation[2, 2]),
+    )
+    u0 = (
+        (t0[0] * r[0] + t0[1] * r[3] + t0[2] * r[6]) * s0,
+        (t0[0] * r[1] + t0[1] * r[4] + t0[2] * r[7]) * s1,
+        (t0[0] * r[2] + t0[1] * r[5] + t0[2] * r[8]) * s2,
+    )
+    u1 = (
+        (t1[0] * r[0] + t1[1] * r[3] + t1[2] * r[6]) * s0,
+        (t1[0] * r[1] + t1[1] * r[4] + t1[2] * r[7]) * s1,
+        (t1[0] * r[2] + t1[1] * r[5] + t1[2] * r[8]) * s2,
+    )
     return t0, t1, u0, u1
 
 
@@ -114,8 +138,15 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         means2d[i, 0], means2d[i, 1] = u, v
         middle = 0.5 * (a + c)
         largest = middle + math.sqrt(max(middle * middle - determinant, EIGENVALUE_FLOOR))
-        finite = (np.isfinite(u) and np.isfinite(v) and np.isfinite(conics[i, 0]) and np.isfinite(conics[i, 1])
-                  and np.isfinite(conics[i, 2]) and np.isfinite(largest) and largest < 1e36)  # ceil(3√λ) stays within int64
+        finite = (
+            np.isfinite(u)
+            and np.isfinite(v)
+            and np.isfinite(conics[i, 0])
+            and np.isfinite(conics[i, 1])
+            and np.isfinite(conics[i, 2])
+            and np.isfinite(largest)
+            and largest < 1e36
+        )  # ceil(3√λ) stays within int64
         if not (in_front and finite):
             continue  # tested before ceil: converting an infinite radius to an integer is undefined
         radius = math.ceil(3.0 * math.sqrt(largest))
@@ -125,8 +156,22 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
 
 
 @njit(parallel=True, cache=True)
-def project_backward(means, scales, quaternions, rotation, translation, focal, width, height, near, variance, antialias,
-                     grad_means2d, grad_conics, grad_compensations):
+def project_backward(
+    means,
+    scales,
+    quaternions,
+    rotation,
+    translation,
+    focal,
+    width,
+    height,
+    near,
+    variance,
+    antialias,
+    grad_means2d,
+    grad_conics,
+    grad_compensations,
+):
     """Gradients with respect to means (N, 3), scales (N, 3) and quaternions (N, 4). Gaussians
     whose incoming gradients are all zero are skipped: in a dense scene, many are.
 
@@ -141,8 +186,14 @@ def project_backward(means, scales, quaternions, rotation, translation, focal, w
     limit_y = FRUSTUM_CLAMP * (height / 2.0) / focal
     for i in prange(count):
         g_compensation = grad_compensations[i] if antialias else 0.0
-        if (grad_means2d[i, 0] == 0.0 and grad_means2d[i, 1] == 0.0 and grad_conics[i, 0] == 0.0
-                and grad_conics[i, 1] == 0.0 and grad_conics[i, 2] == 0.0 and g_compensation == 0.0):
+        if (
+            grad_means2d[i, 0] == 0.0
+            and grad_means2d[i, 1] == 0.0
+            and grad_conics[i, 0] == 0.0
+            and grad_conics[i, 1] == 0.0
+            and grad_conics[i, 2] == 0.0
+            and g_compensation == 0.0
+        ):
             continue  # culled, hidden or off screen: nothing to propagate (and no 0·∞ to make NaN)
         cx, cy, depth = _camera(means, i, rotation, translation)
         in_front = depth > near
@@ -181,24 +232,57 @@ def project_backward(means, scales, quaternions, rotation, translation, focal, w
         g_u0 = (2.0 * g_a * u0[0] + g_b * u1[0], 2.0 * g_a * u0[1] + g_b * u1[1], 2.0 * g_a * u0[2] + g_b * u1[2])
         g_u1 = (g_b * u0[0] + 2.0 * g_c * u1[0], g_b * u0[1] + 2.0 * g_c * u1[1], g_b * u0[2] + 2.0 * g_c * u1[2])
         for j in range(3):
-            grad_scales[i, j] = (g_u0[j] * (t0[0] * r[j] + t0[1] * r[3 + j] + t0[2] * r[6 + j])
-                                 + g_u1[j] * (t1[0] * r[j] + t1[1] * r[3 + j] + t1[2] * r[6 + j]))
+            grad_scales[i, j] = g_u0[j] * (t0[0] * r[j] + t0[1] * r[3 + j] + t0[2] * r[6 + j]) + g_u1[j] * (
+                t1[0] * r[j] + t1[1] * r[3 + j] + t1[2] * r[6 + j]
+            )
         # u_j = (T r_j) s_j: gradients of T's rows and of the rotation matrix R(q) (row-major)
         w0, w1, w2 = g_u0[0] * s[0], g_u0[1] * s[1], g_u0[2] * s[2]
         v0, v1, v2 = g_u1[0] * s[0], g_u1[1] * s[1], g_u1[2] * s[2]
         g_t0 = (w0 * r[0] + w1 * r[1] + w2 * r[2], w0 * r[3] + w1 * r[4] + w2 * r[5], w0 * r[6] + w1 * r[7] + w2 * r[8])
         g_t1 = (v0 * r[0] + v1 * r[1] + v2 * r[2], v0 * r[3] + v1 * r[4] + v2 * r[5], v0 * r[6] + v1 * r[7] + v2 * r[8])
-        g_r = (w0 * t0[0] + v0 * t1[0], w1 * t0[0] + v1 * t1[0], w2 * t0[0] + v2 * t1[0],
-               w0 * t0[1] + v0 * t1[1], w1 * t0[1] + v1 * t1[1], w2 * t0[1] + v2 * t1[1],
-               w0 * t0[2] + v0 * t1[2], w1 * t0[2] + v1 * t1[2], w2 * t0[2] + v2 * t1[2])
+        g_r = (
+            w0 * t0[0] + v0 * t1[0],
+            w1 * t0[0] + v1 * t1[0],
+            w2 * t0[0] + v2 * t1[0],
+            w0 * t0[1] + v0 * t1[1],
+            w1 * t0[1] + v1 * t1[1],
+            w2 * t0[1] + v2 * t1[1],
+            w0 * t0[2] + v0 * t1[2],
+            w1 * t0[2] + v1 * t1[2],
+            w2 * t0[2] + v2 * t1[2],
+        )
         # rotation matrix entries → unit quaternion
         g_w = 2 * (-qz * g_r[1] + qy * g_r[2] + qz * g_r[3] - qx * g_r[5] - qy * g_r[6] + qx * g_r[7])
-        g_x = 2 * (qy * g_r[1] + qz * g_r[2] + qy * g_r[3] - 2 * qx * g_r[4] - qw * g_r[5] + qz * g_r[6]
-                   + qw * g_r[7] - 2 * qx * g_r[8])
-        g_y = 2 * (-2 * qy * g_r[0] + qx * g_r[1] + qw * g_r[2] + qx * g_r[3] + qz * g_r[5] - qw * g_r[6]
-                   + qz * g_r[7] - 2 * qy * g_r[8])
-        g_z = 2 * (-2 * qz * g_r[0] - qw * g_r[1] + qx * g_r[2] + qw * g_r[3] - 2 * qz * g_r[4] + qy * g_r[5]
-                   + qx * g_r[6] + qy * g_r[7])
+        g_x = 2 * (
+            qy * g_r[1]
+            + qz * g_r[2]
+            + qy * g_r[3]
+            - 2 * qx * g_r[4]
+            - qw * g_r[5]
+            + qz * g_r[6]
+            + qw * g_r[7]
+            - 2 * qx * g_r[8]
+        )
+        g_y = 2 * (
+            -2 * qy * g_r[0]
+            + qx * g_r[1]
+            + qw * g_r[2]
+            + qx * g_r[3]
+            + qz * g_r[5]
+            - qw * g_r[6]
+            + qz * g_r[7]
+            - 2 * qy * g_r[8]
+        )
+        g_z = 2 * (
+            -2 * qz * g_r[0]
+            - qw * g_r[1]
+            + qx * g_r[2]
+            + qw * g_r[3]
+            - 2 * qz * g_r[4]
+            + qy * g_r[5]
+            + qx * g_r[6]
+            + qy * g_r[7]
+        )
         if norm >= MIN_QUATERNION_NORM:  # q / |q|: remove the radial part, divide by |q|
             radial = g_w * qw + g_x * qx + g_y * qy + g_z * qz
             g_w, g_x, g_y, g_z = g_w - radial * qw, g_x - radial * qx, g_y - radial * qy, g_z - radial * qz

@@ -49,9 +49,15 @@ def quaternion_to_rotation(quaternions: torch.Tensor) -> torch.Tensor:
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         (
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ),
         dim=-1,
     ).view(-1, 3, 3)
@@ -144,9 +150,13 @@ def project(
         largest = middle + torch.sqrt((middle * middle - determinant).clamp_min(EIGENVALUE_FLOOR))
         radii = torch.ceil(3.0 * torch.sqrt(largest)).long()
         on_screen = (
-            (means2d[:, 0] + radii > 0) & (means2d[:, 0] - radii < width)
-            & (means2d[:, 1] + radii > 0) & (means2d[:, 1] - radii < height)
+            (means2d[:, 0] + radii > 0)
+            & (means2d[:, 0] - radii < width)
+            & (means2d[:, 1] + radii > 0)
+            & (means2d[:, 1] - radii < height)
         )
         finite = torch.isfinite(means2d).all(dim=1) & torch.isfinite(conics).all(dim=1) & torch.isfinite(largest)
-        radii = torch.where(in_front & on_screen & finite, torch.nan_to_num(radii.float()).long(), torch.zeros_like(radii))
+        radii = torch.where(
+            in_front & on_screen & finite, torch.nan_to_num(radii.float()).long(), torch.zeros_like(radii)
+        )
     return Projected(means2d, conics, depth, radii, torch.stack((a, b, c), dim=-1), compensations)

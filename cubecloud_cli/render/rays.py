@@ -11,8 +11,9 @@ from cubecloud_cli.cameras import PinholeCameras
 PARALLEL = 1e-12
 
 
-def camera_rays(cameras: PinholeCameras, index: int, device: torch.device,
-                subpixel: tuple[float, float] = (0.5, 0.5)) -> tuple[torch.Tensor, torch.Tensor]:
+def camera_rays(
+    cameras: PinholeCameras, index: int, device: torch.device, subpixel: tuple[float, float] = (0.5, 0.5)
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The camera centre (3,) shared by all rays of view ``index``, and the rays' unit
     directions (H·W, 3) through the pixel centres (or another ``subpixel`` point), pixels in
     row-major (v, u) order."""

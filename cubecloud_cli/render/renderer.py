@@ -22,8 +22,9 @@ RAYS_PER_CHUNK = 1 << 14
 STEPS_PER_BLOCK = 32
 
 
-def slice_plane_values(field: ScalarField, origin: torch.Tensor, directions: torch.Tensor, normal: torch.Tensor,
-                       offset: float = 0.0) -> torch.Tensor:
+def slice_plane_values(
+    field: ScalarField, origin: torch.Tensor, directions: torch.Tensor, normal: torch.Tensor, offset: float = 0.0
+) -> torch.Tensor:
     """The field where each ray meets the plane {p : p·normal = offset} (unit normal)."""
     facing = directions @ normal
     # Rays inside the field of view have facing = cos(angle to the optical axis) > 0; the guard
@@ -75,10 +76,12 @@ def render_view(
     origin, directions = camera_rays(cameras, index, device, subpixel)
     if model.kind == "slice":
         normal = torch.as_tensor(cameras.rotations[index][2], dtype=torch.float32, device=device)
-        values = torch.cat([
-            slice_plane_values(field, origin, directions[s : s + RAYS_PER_CHUNK], normal, model.slice_offset(index))
-            for s in range(0, directions.shape[0], RAYS_PER_CHUNK)
-        ])
+        values = torch.cat(
+            [
+                slice_plane_values(field, origin, directions[s : s + RAYS_PER_CHUNK], normal, model.slice_offset(index))
+                for s in range(0, directions.shape[0], RAYS_PER_CHUNK)
+            ]
+        )
         return values.view(cameras.height, cameras.width)
 
     cube_low = torch.full((3,), -1.0, device=device)

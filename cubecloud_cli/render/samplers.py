@@ -29,7 +29,9 @@ def _sample_grid(volume_zyx: torch.Tensor, points: torch.Tensor, mode: str) -> t
     if padded != count:
         grid = torch.cat((grid, grid.new_zeros(padded - count, 3)))
     grid = grid.reshape(batches, 1, 1, -1, 3)
-    values = F.grid_sample(volume_zyx.expand(batches, -1, -1, -1, -1), grid, mode=mode, padding_mode="zeros", align_corners=False)
+    values = F.grid_sample(
+        volume_zyx.expand(batches, -1, -1, -1, -1), grid, mode=mode, padding_mode="zeros", align_corners=False
+    )
     return values.reshape(-1)[:count]
 
 

@@ -21,9 +21,7 @@ def _check_rotations(matrices: np.ndarray) -> None:
     bad = ~np.isfinite(off) | (off > ORTHONORMAL_TOLERANCE) | (det < 0)
     if np.any(bad):
         index = int(np.argmax(bad))
-        raise ValueError(
-            f"matrix {index} is not a rotation (|RRᵀ − I| = {off[index]:.3g}, det = {det[index]:.6g})"
-        )
+        raise ValueError(f"matrix {index} is not a rotation (|RRᵀ − I| = {off[index]:.3g}, det = {det[index]:.6g})")
 
 
 def rotation_to_quaternion(rotations: np.ndarray) -> np.ndarray:

@@ -18,7 +18,6 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
 
-
 HOLDOUT_EVERY = 8
 # Cameras within this fraction of their distance from the origin (or 1e-9 world units) of their
 # mean count as one place: poses written once and read back differ by rounding.
@@ -69,9 +68,13 @@ def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarra
     try:
         pixels = np.asarray(iio.imread(path))
     except Exception as exc:  # missing or unreadable
-        raise CubecloudError(f"cannot read {path} ({type(exc).__name__}): the scene's images/ must hold every image images.txt names") from None
+        raise CubecloudError(
+            f"cannot read {path} ({type(exc).__name__}): the scene's images/ must hold every image images.txt names"
+        ) from None
     if pixels.shape[:2] != (height, width):
-        raise CubecloudError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but its camera is {width}x{height}: undistort or resize the scene consistently")
+        raise CubecloudError(
+            f"{path} is {pixels.shape[1]}x{pixels.shape[0]} but its camera is {width}x{height}: undistort or resize the scene consistently"
+        )
     if pixels.dtype == np.bool_:
         pixels = pixels.astype(np.float32)
     elif np.issubdtype(pixels.dtype, np.integer):
@@ -79,11 +82,15 @@ def _read_image(path: Path, channels: int, width: int, height: int) -> np.ndarra
     elif np.issubdtype(pixels.dtype, np.floating):
         pixels = pixels.astype(np.float32)  # float images are taken as [0, 1] already
     else:
-        raise CubecloudError(f"{path} has pixels of type {pixels.dtype}: convert the scene's images to 8- or 16-bit PNG")
+        raise CubecloudError(
+            f"{path} has pixels of type {pixels.dtype}: convert the scene's images to 8- or 16-bit PNG"
+        )
     if pixels.ndim == 2:
         pixels = pixels[..., None]
     if pixels.ndim != 3 or pixels.shape[2] not in (1, 2, 3, 4):
-        raise CubecloudError(f"{path} has an image shape {pixels.shape} that is neither grey nor RGB: convert it to PNG")
+        raise CubecloudError(
+            f"{path} has an image shape {pixels.shape} that is neither grey nor RGB: convert it to PNG"
+        )
     colour = pixels[..., :1] if pixels.shape[2] <= 2 else pixels[..., :3]  # drop alpha (LA, RGBA)
     if channels == 1:
         return colour.mean(axis=2, keepdims=True)
@@ -96,7 +103,9 @@ def _split(directory: Path, names: list[str]) -> list[int]:
         try:
             test = set(json.loads(split_file.read_text()).get("test", []))
         except (ValueError, AttributeError, TypeError):
-            raise CubecloudError(f"{split_file} is not a split ({{\"test\": [image names]}}): re-export the scene, or delete it to hold out every 8th image") from None
+            raise CubecloudError(
+                f'{split_file} is not a split ({{"test": [image names]}}): re-export the scene, or delete it to hold out every 8th image'
+            ) from None
     elif (find_colmap_model(directory) / "test.txt").is_file():
         test = set((find_colmap_model(directory) / "test.txt").read_text().split())
     else:
@@ -113,10 +122,16 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
     if stack.is_file():
         images = np.load(stack, mmap_mode="r")
         if images.shape[:3] != (len(names), height, width):
-            raise CubecloudError(f"{stack} holds {images.shape} but the cameras say {len(names)} views of {width}x{height}: re-export the scene")
+            raise CubecloudError(
+                f"{stack} holds {images.shape} but the cameras say {len(names)} views of {width}x{height}: re-export the scene"
+            )
         images = np.array(images, dtype=np.float32)  # a writable copy of the memory map
         images = images[..., None] if images.ndim == 3 else images
-        images = images if images.shape[3] == channels else (images.mean(axis=3, keepdims=True) if channels == 1 else np.repeat(images, 3, axis=3))
+        images = (
+            images
+            if images.shape[3] == channels
+            else (images.mean(axis=3, keepdims=True) if channels == 1 else np.repeat(images, 3, axis=3))
+        )
     else:
         images = np.stack([_read_image(directory / "images" / name, channels, width, height) for name in names])
     if not np.isfinite(images).all():
@@ -134,8 +149,14 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
     if points is None and len(model.xyz):
         points = (model.xyz, model.rgb.astype(np.float32) / 255.0)
     if points is not None and not np.isfinite(points[0]).all():
-        raise CubecloudError(f"the point cloud of {directory} holds NaN or Inf coordinates: fix it, or use --init random")
-    scene = TrainingScene(directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points)
+        raise CubecloudError(
+            f"the point cloud of {directory} holds NaN or Inf coordinates: fix it, or use --init random"
+        )
+    scene = TrainingScene(
+        directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points
+    )
     if not scene.extent > 1e-9:
-        raise CubecloudError(f"the training cameras of {directory} sit together at the world origin, so the scene has no extent: 3DGS needs views from different places")
+        raise CubecloudError(
+            f"the training cameras of {directory} sit together at the world origin, so the scene has no extent: 3DGS needs views from different places"
+        )
     return scene

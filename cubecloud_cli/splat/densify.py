@@ -50,7 +50,9 @@ class DensifyStrategy:
 
     @classmethod
     def from_settings(cls, settings: SplatSettings) -> "DensifyStrategy":
-        thresholds = DensifySettings(settings.grad_threshold, settings.percent_dense, max_gaussians=settings.max_gaussians)
+        thresholds = DensifySettings(
+            settings.grad_threshold, settings.percent_dense, max_gaussians=settings.max_gaussians
+        )
         return cls(thresholds, settings.schedule(), settings.refine)
 
     def refining(self, iteration: int) -> bool:
@@ -58,8 +60,11 @@ class DensifyStrategy:
         return self.refine and iteration < self.schedule["densify_until"]
 
     def densify_due(self, iteration: int) -> bool:
-        return (self.refining(iteration) and iteration > self.schedule["densify_from"]
-                and iteration % self.schedule["densify_every"] == 0)
+        return (
+            self.refining(iteration)
+            and iteration > self.schedule["densify_from"]
+            and iteration % self.schedule["densify_every"] == 0
+        )
 
     def prunes_large(self, iteration: int) -> bool:
         """The world-size rule applies once the first opacity reset has passed."""
@@ -145,7 +150,9 @@ def plan_densification(
 
         # Children: two samples of N(μ, R diag(s²) Rᵀ), scales ÷ 1.6.
         parent_scales = scales[split].repeat_interleave(2, dim=0)
-        noise = torch.randn(parent_scales.shape, generator=generator, device=means.device if generator is None else "cpu")
+        noise = torch.randn(
+            parent_scales.shape, generator=generator, device=means.device if generator is None else "cpu"
+        )
         noise = noise.to(means.device) * parent_scales
         rotations = quaternion_to_rotation(quaternions[split]).repeat_interleave(2, dim=0)
         child_means = means[split].repeat_interleave(2, dim=0) + (rotations @ noise[:, :, None])[:, :, 0]
@@ -158,7 +165,9 @@ def plan_densification(
         return DensifyPlan(keep, clone, split, child_means[child_keep], child_log_scales[child_keep], child_keep)
 
 
-def apply_plan(plan: DensifyPlan, values: torch.Tensor, children: torch.Tensor | None = None, new_rows_zero: bool = False) -> torch.Tensor:
+def apply_plan(
+    plan: DensifyPlan, values: torch.Tensor, children: torch.Tensor | None = None, new_rows_zero: bool = False
+) -> torch.Tensor:
     """The per-Gaussian tensor after the plan: kept originals, then clones, then split children
     (``children`` when given, else copies of their parents). ``new_rows_zero`` gives new rows
     zeros instead (optimizer moments start afresh for new Gaussians)."""

@@ -79,8 +79,14 @@ class Gaussians:
             opacities = self.opacities().double().clamp(MIN_BAKED_OPACITY, 1.0 - MIN_BAKED_OPACITY)
             logits = torch.log(opacities) - torch.log1p(-opacities)
         dtype = self.log_scales.dtype
-        return Gaussians(self.means.detach(), torch.log(scales).to(dtype), self.quaternions.detach(), logits.to(dtype),
-                         self.sh_dc.detach(), self.sh_rest.detach())
+        return Gaussians(
+            self.means.detach(),
+            torch.log(scales).to(dtype),
+            self.quaternions.detach(),
+            logits.to(dtype),
+            self.sh_dc.detach(),
+            self.sh_rest.detach(),
+        )
 
     def colours(self, camera_centre: torch.Tensor | None = None, degree: int | None = None) -> torch.Tensor:
         """(N, C) colours seen from ``camera_centre`` (needed only above degree 0)."""
@@ -89,8 +95,14 @@ class Gaussians:
         return sh_to_colour(self.sh, directions, degree)
 
     def parameters(self) -> dict[str, torch.Tensor]:
-        return {"means": self.means, "log_scales": self.log_scales, "quaternions": self.quaternions,
-                "opacity_logits": self.opacity_logits, "sh_dc": self.sh_dc, "sh_rest": self.sh_rest}
+        return {
+            "means": self.means,
+            "log_scales": self.log_scales,
+            "quaternions": self.quaternions,
+            "opacity_logits": self.opacity_logits,
+            "sh_dc": self.sh_dc,
+            "sh_rest": self.sh_rest,
+        }
 
 
 def neighbour_log_scales(points: np.ndarray) -> np.ndarray:

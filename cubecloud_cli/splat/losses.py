@@ -20,7 +20,9 @@ def blur_matrix(size: int, dtype: torch.dtype, device: torch.device) -> torch.Te
     offsets = torch.arange(size, device=device)
     distance = offsets[None, :] - offsets[:, None]
     inside = distance.abs() <= SSIM_RADIUS
-    return torch.where(inside, taps[(distance + SSIM_RADIUS).clamp(0, 2 * SSIM_RADIUS)], torch.zeros((), dtype=dtype, device=device))
+    return torch.where(
+        inside, taps[(distance + SSIM_RADIUS).clamp(0, 2 * SSIM_RADIUS)], torch.zeros((), dtype=dtype, device=device)
+    )
 
 
 def training_ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -22,9 +22,11 @@ GREY_COMMENT = "cubecloud channels 1"
 
 def attribute_names(sh_degree: int) -> list[str]:
     rest = 3 * ((sh_degree + 1) ** 2 - 1)
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-            + [f"f_rest_{i}" for i in range(rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 def write_gaussians_ply(path: Path, gaussians: Gaussians) -> None:
@@ -63,8 +65,22 @@ def read_gaussians_ply(path: Path) -> Gaussians:
     rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n.split("_")[-1]))
     coefficients = len(rest) // 3 + 1
     degree = int(round(coefficients**0.5)) - 1
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
-                "rot_0", "rot_1", "rot_2", "rot_3"]
+    required = [
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     missing = [n for n in required if n not in names]
     if missing or len(rest) != 3 * ((degree + 1) ** 2 - 1):
         raise CubecloudError(f"{path} is not a 3DGS Gaussian PLY (missing {', '.join(missing) or 'SH coefficients'})")
@@ -78,6 +94,11 @@ def read_gaussians_ply(path: Path) -> Gaussians:
     sh = torch.cat([dc[:, None, :], sh_rest], dim=1)
     if GREY_COMMENT in data.comments:
         sh = sh[:, :, :1]
-    return Gaussians(column("x", "y", "z"), column("scale_0", "scale_1", "scale_2"),
-                     column("rot_0", "rot_1", "rot_2", "rot_3"), column("opacity")[:, 0],
-                     sh[:, :1].contiguous(), sh[:, 1:].contiguous())
+    return Gaussians(
+        column("x", "y", "z"),
+        column("scale_0", "scale_1", "scale_2"),
+        column("rot_0", "rot_1", "rot_2", "rot_3"),
+        column("opacity")[:, 0],
+        sh[:, :1].contiguous(),
+        sh[:, 1:].contiguous(),
+    )

@@ -41,7 +41,10 @@ def sampling_intervals(means: torch.Tensor, cameras: PinholeCameras, chunk: int 
     nearest = torch.full((means.shape[0],), float("inf"), dtype=dtype, device=device)
     with torch.no_grad():
         for start in range(0, len(cameras), chunk):
-            camera = torch.einsum("cij,nj->cni", rotations[start:start + chunk], means) + translations[start:start + chunk, None]
+            camera = (
+                torch.einsum("cij,nj->cni", rotations[start : start + chunk], means)
+                + translations[start : start + chunk, None]
+            )
             depth = camera[..., 2]
             in_front = depth > NEAR_PLANE
             safe = torch.where(in_front, depth, torch.ones_like(depth))

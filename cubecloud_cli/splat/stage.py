@@ -20,6 +20,8 @@ import numpy as np
 import torch
 
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.interrupts import (
     CubecloudInterrupted,
     NothingToResume,
@@ -29,8 +31,6 @@ from cubecloud_cli.interrupts import (
     save_on_schedule,
 )
 from cubecloud_cli.progress import ProgressCallback, no_progress
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.export.images import to_uint8
 from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.splat.data import TrainingScene, load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
@@ -61,10 +61,14 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
         xyz, grey = random_points(settings.random_points, settings.seed)
         return gaussians_from_points(xyz, grey, settings.channels, settings.sh_degree)
     if scene.points is None:
-        raise CubecloudError(f"{scene.directory} has no point cloud (points3D.ply or sparse/0/points3D): use --init random")
+        raise CubecloudError(
+            f"{scene.directory} has no point cloud (points3D.ply or sparse/0/points3D): use --init random"
+        )
     if len(scene.points[0]) == 0:
-        raise CubecloudError(f"{scene.directory}'s point cloud is empty: the field is air everywhere (an empty or constant "
-                             f"scan, or an --air-threshold too high); check the scan and its --window, or use --init random")
+        raise CubecloudError(
+            f"{scene.directory}'s point cloud is empty: the field is air everywhere (an empty or constant "
+            f"scan, or an --air-threshold too high); check the scan and its --window, or use --init random"
+        )
     xyz, rgb = scene.points
     return gaussians_from_points(xyz, rgb, settings.channels, settings.sh_degree)
 
@@ -73,15 +77,21 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
 REPORTING_OPTIONS = ("eval_every", "checkpoint_every")
 
 
-def _check_resume(checkpoint: Path, settings: SplatSettings, resume: bool, force: bool, scene: TrainingScene) -> dict | None:
+def _check_resume(
+    checkpoint: Path, settings: SplatSettings, resume: bool, force: bool, scene: TrainingScene
+) -> dict | None:
     state = checkpoint_to_resume(checkpoint, resume, force)
     if state is not None:
         # The schedule scales with --iterations, so it must not change part-way either.
-        changed = [k for k, v in settings.as_dict().items() if k not in REPORTING_OPTIONS and state["settings"].get(k) != v]
+        changed = [
+            k for k, v in settings.as_dict().items() if k not in REPORTING_OPTIONS and state["settings"].get(k) != v
+        ]
         if state.get("scene") != _scene_identity(scene):
             changed.append("scene")
         if changed:
-            raise CubecloudError(f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the same options, or --force")
+            raise CubecloudError(
+                f"the interrupted run used other settings ({', '.join(sorted(changed))}): resume with the same options, or --force"
+            )
     return state
 
 
@@ -106,10 +116,19 @@ def train_splat(
     reset_peak_memory(device)
     scene = load_scene(scene_dir, settings.channels)
     if scene.single_centre:  # said here, not in load_scene, so that eval does not repeat it
-        log.warning(f"every training camera of {scene_dir} sits in one place: 3DGS cannot tell their images apart "
-                    f"(the paper's baseline); the scene extent is taken as {scene.extent:.3g}, from the camera's distance to the origin")
-    writer = StageWriter(work, "splat", recorded_params(settings, scene_dir), force=force, name=name,
-                         keep_partial=True, transient=(CHECKPOINT_FILE,))
+        log.warning(
+            f"every training camera of {scene_dir} sits in one place: 3DGS cannot tell their images apart "
+            f"(the paper's baseline); the scene extent is taken as {scene.extent:.3g}, from the camera's distance to the origin"
+        )
+    writer = StageWriter(
+        work,
+        "splat",
+        recorded_params(settings, scene_dir),
+        force=force,
+        name=name,
+        keep_partial=True,
+        transient=(CHECKPOINT_FILE,),
+    )
     writer.check_can_start()
     checkpoint = writer.directory / CHECKPOINT_FILE
     state = _check_resume(checkpoint, settings, resume, force, scene)
@@ -152,7 +171,9 @@ def _record_inputs(writer: StageWriter, scene_dir: Path) -> str | None:
     return images_digest
 
 
-def _build_trainer(scene: TrainingScene, settings: SplatSettings, device: torch.device, state: dict | None) -> SplatTrainer:
+def _build_trainer(
+    scene: TrainingScene, settings: SplatSettings, device: torch.device, state: dict | None
+) -> SplatTrainer:
     """A trainer from the initial Gaussians, restored to a checkpoint's state when resuming."""
     trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
     trainer.identity = _scene_identity(scene)
@@ -169,40 +190,77 @@ def _write_outputs(trainer: SplatTrainer, directory: Path) -> None:
     _write_preview(trainer, directory / "preview.png")
 
 
-def _record_results(writer: StageWriter, trainer: SplatTrainer, scene: TrainingScene, scene_dir: Path, work: Path,
-                    settings: SplatSettings, device: torch.device, initial_count: int, images_digest: str | None) -> None:
+def _record_results(
+    writer: StageWriter,
+    trainer: SplatTrainer,
+    scene: TrainingScene,
+    scene_dir: Path,
+    work: Path,
+    settings: SplatSettings,
+    device: torch.device,
+    initial_count: int,
+    images_digest: str | None,
+) -> None:
     """The final test scores, the schedule, the scene trained on and the runtime, into the manifest."""
     final = trainer.evaluate(scene.test)
-    writer.metrics.update({
-        "test_psnr": final.get("psnr"), "test_l1": final.get("l1"), "test_views": len(scene.test),
-        "gaussians": len(trainer.gaussians), "initial_gaussians": initial_count,
-        "iterations": trainer.iteration, "train_seconds": round(trainer.elapsed_s, 2),
-        "iterations_per_second": round(trainer.iteration / max(trainer.elapsed_s, 1e-9), 3),
-        **peak_memory_mb(device),
-    })
-    writer.extra.update({
-        "schedule": trainer.schedule,
-        # resolved: eval finds the scene from any working directory; images_sha256 tells
-        # it whether the scene there is still the one trained on.
-        "scene": {"directory": str(scene_dir), "resolved": str(Path(scene_dir).resolve()),
-                  "own_export": Path(scene_dir).resolve() == (work / "export").resolve(),
-                  "images_sha256": images_digest, "views": len(scene.names), "train": len(scene.train),
-                  "test": [scene.names[i] for i in scene.test], "width": scene.cameras.width,
-                  "height": scene.cameras.height, "extent": scene.extent},
-        "rasterizer": trainer.rasterizer.description,
-        "antialias": ({"3d_filter": "Mip-Splatting, variance 0.2 × (depth / focal)² of the nearest training camera; "
-                                    "baked into point_cloud.ply", "2d_filter": "Mip-Splatting, 0.1 px², opacity "
-                                    "compensated; a renderer applies it (eval does)"}
-                      if settings.antialias else {"dilation_px2": 0.3}),
-        "runtime": {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
-                    "kernel_threads": _kernel_threads() if device.type == "cpu" else None},
-    })
+    writer.metrics.update(
+        {
+            "test_psnr": final.get("psnr"),
+            "test_l1": final.get("l1"),
+            "test_views": len(scene.test),
+            "gaussians": len(trainer.gaussians),
+            "initial_gaussians": initial_count,
+            "iterations": trainer.iteration,
+            "train_seconds": round(trainer.elapsed_s, 2),
+            "iterations_per_second": round(trainer.iteration / max(trainer.elapsed_s, 1e-9), 3),
+            **peak_memory_mb(device),
+        }
+    )
+    writer.extra.update(
+        {
+            "schedule": trainer.schedule,
+            # resolved: eval finds the scene from any working directory; images_sha256 tells
+            # it whether the scene there is still the one trained on.
+            "scene": {
+                "directory": str(scene_dir),
+                "resolved": str(Path(scene_dir).resolve()),
+                "own_export": Path(scene_dir).resolve() == (work / "export").resolve(),
+                "images_sha256": images_digest,
+                "views": len(scene.names),
+                "train": len(scene.train),
+                "test": [scene.names[i] for i in scene.test],
+                "width": scene.cameras.width,
+                "height": scene.cameras.height,
+                "extent": scene.extent,
+            },
+            "rasterizer": trainer.rasterizer.description,
+            "antialias": (
+                {
+                    "3d_filter": "Mip-Splatting, variance 0.2 × (depth / focal)² of the nearest training camera; "
+                    "baked into point_cloud.ply",
+                    "2d_filter": "Mip-Splatting, 0.1 px², opacity compensated; a renderer applies it (eval does)",
+                }
+                if settings.antialias
+                else {"dilation_px2": 0.3}
+            ),
+            "runtime": {
+                "device": str(device),
+                "threads": torch.get_num_threads(),
+                "torch": torch.__version__,
+                "kernel_threads": _kernel_threads() if device.type == "cpu" else None,
+            },
+        }
+    )
 
 
 def _scene_identity(scene: TrainingScene) -> dict:
     """What a checkpoint must have been trained on to be resumed."""
-    return {"directory": str(Path(scene.directory).resolve()), "views": len(scene.names),
-            "size": [scene.cameras.width, scene.cameras.height], "names": scene.names}
+    return {
+        "directory": str(Path(scene.directory).resolve()),
+        "views": len(scene.names),
+        "size": [scene.cameras.width, scene.cameras.height],
+        "names": scene.names,
+    }
 
 
 def _kernel_threads() -> int:
@@ -221,7 +279,12 @@ def _train(trainer: SplatTrainer, checkpoint: Path, on_progress: ProgressCallbac
             it = trainer.iteration
             if not np.isfinite(loss):
                 raise FloatingPointError(f"the loss is {loss} at iteration {it}")
-            row = {"iteration": it, "seconds": round(trainer.elapsed_s, 3), "loss": loss, "gaussians": len(trainer.gaussians)}
+            row = {
+                "iteration": it,
+                "seconds": round(trainer.elapsed_s, 3),
+                "loss": loss,
+                "gaussians": len(trainer.gaussians),
+            }
             if it % settings.eval_every == 0 or it == total:
                 latest = trainer.evaluate(trainer.scene.test)
                 row["test_psnr"] = latest.get("psnr")

@@ -15,30 +15,55 @@ from cubecloud_cli.metrics import psnr_from_mse
 from cubecloud_cli.raster.backends import Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.splat.data import TrainingScene
 from cubecloud_cli.splat.densify import DensifyStrategy, GradientStats, apply_plan, plan_densification, reset_opacity
-from cubecloud_cli.splat.optimizer import replace_parameters
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.losses import photometric_loss
+from cubecloud_cli.splat.optimizer import replace_parameters
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
 
 PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 
 
-def render_camera(gaussians: Gaussians, cameras: PinholeCameras, view: int, sh_degree: int, rasterizer: Rasterizer,
-                  retain: bool = False, antialias: bool = False) -> Rasterized:
+def render_camera(
+    gaussians: Gaussians,
+    cameras: PinholeCameras,
+    view: int,
+    sh_degree: int,
+    rasterizer: Rasterizer,
+    retain: bool = False,
+    antialias: bool = False,
+) -> Rasterized:
     """Render ``gaussians`` from camera ``view`` of ``cameras`` (any orbit, not only the scene's);
     ``antialias``: through the 2D Mip filter (the 3D filter, if any, is part of ``gaussians``)."""
     device = gaussians.means.device
     rotation = torch.as_tensor(cameras.rotations[view], dtype=torch.float32, device=device)
     translation = torch.as_tensor(cameras.translations[view], dtype=torch.float32, device=device)
     centre = torch.as_tensor(cameras.centres()[view], dtype=torch.float32, device=device)
-    return rasterizer.render(gaussians.means, gaussians.scales(), gaussians.quaternions, gaussians.opacities(),
-                             gaussians.colours(centre, sh_degree), rotation, translation, float(cameras.focal),
-                             cameras.width, cameras.height, retain_screen_grad=retain, antialias=antialias)
+    return rasterizer.render(
+        gaussians.means,
+        gaussians.scales(),
+        gaussians.quaternions,
+        gaussians.opacities(),
+        gaussians.colours(centre, sh_degree),
+        rotation,
+        translation,
+        float(cameras.focal),
+        cameras.width,
+        cameras.height,
+        retain_screen_grad=retain,
+        antialias=antialias,
+    )
 
 
-def render(gaussians: Gaussians, scene: TrainingScene, view: int, sh_degree: int, rasterizer: Rasterizer,
-           retain: bool = False, antialias: bool = False) -> Rasterized:
+def render(
+    gaussians: Gaussians,
+    scene: TrainingScene,
+    view: int,
+    sh_degree: int,
+    rasterizer: Rasterizer,
+    retain: bool = False,
+    antialias: bool = False,
+) -> Rasterized:
     return render_camera(gaussians, scene.cameras, view, sh_degree, rasterizer, retain, antialias)
 
 
@@ -82,8 +107,9 @@ class SplatTrainer:
             self.gaussians.smoothing = filter_variances(self.gaussians.means.detach(), self.training_cameras)
 
     def render(self, view: int, retain: bool = False) -> Rasterized:
-        return render_camera(self.gaussians, self.scene.cameras, view, self.sh_degree, self.rasterizer, retain,
-                             self.settings.antialias)
+        return render_camera(
+            self.gaussians, self.scene.cameras, view, self.sh_degree, self.rasterizer, retain, self.settings.antialias
+        )
 
     # -- one iteration --------------------------------------------------------------------
 
@@ -119,7 +145,9 @@ class SplatTrainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         # One sum per parameter: NaN and ±Inf propagate into it, at a fraction of isfinite's cost.
-        if not bool(torch.isfinite(torch.stack([getattr(self.gaussians, name).detach().sum() for name in PARAMETERS])).all()):
+        if not bool(
+            torch.isfinite(torch.stack([getattr(self.gaussians, name).detach().sum() for name in PARAMETERS])).all()
+        ):
             raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {self.iteration}")
         if self.strategy.densify_due(self.iteration):
             self._densify(prune_large=self.strategy.prunes_large(self.iteration))
@@ -134,11 +162,21 @@ class SplatTrainer:
 
     def _densify(self, prune_large: bool) -> None:
         g = self.gaussians
-        plan = plan_densification(g.means, g.log_scales, g.quaternions, g.opacity_logits, self.stats.mean(),
-                                  self.strategy.thresholds, self.extent, prune_large, self.generator)
+        plan = plan_densification(
+            g.means,
+            g.log_scales,
+            g.quaternions,
+            g.opacity_logits,
+            self.stats.mean(),
+            self.strategy.thresholds,
+            self.extent,
+            prune_large,
+            self.generator,
+        )
         children = {"means": plan.child_means.to(self.device), "log_scales": plan.child_log_scales.to(self.device)}
         replaced = replace_parameters(
-            self.optimizer, PARAMETERS,
+            self.optimizer,
+            PARAMETERS,
             lambda name, old: apply_plan(plan, old, children.get(name)),
             lambda name, moment: apply_plan(plan, moment, new_rows_zero=True),
         )
@@ -148,8 +186,12 @@ class SplatTrainer:
         self._update_smoothing()
 
     def _reset_opacity(self) -> None:
-        replaced = replace_parameters(self.optimizer, ["opacity_logits"], lambda name, old: reset_opacity(old),
-                                      lambda name, moment: torch.zeros_like(moment))
+        replaced = replace_parameters(
+            self.optimizer,
+            ["opacity_logits"],
+            lambda name, old: reset_opacity(old),
+            lambda name, moment: torch.zeros_like(moment),
+        )
         self.gaussians.opacity_logits = replaced["opacity_logits"]
 
     # -- evaluation and checkpoints -------------------------------------------------------

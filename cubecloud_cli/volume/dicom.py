@@ -54,9 +54,7 @@ def read_dicom_series(folder: Path) -> Scan:
     series = max(groups.values(), key=len)
     notes = []
     if len(groups) > 1:
-        notes.append(
-            f"{folder} holds {len(groups)} series; using the largest ({len(series)} slices)"
-        )
+        notes.append(f"{folder} holds {len(groups)} series; using the largest ({len(series)} slices)")
     first = series[0][1]
     if int(first.get("NumberOfFrames", 1) or 1) > 1:
         raise CubecloudError(
@@ -64,9 +62,7 @@ def read_dicom_series(folder: Path) -> Scan:
             f"convert it to NIfTI first (for example with dcm2niix)"
         )
     if len(series) < 2:
-        raise CubecloudError(
-            f"{folder} holds a single DICOM slice; cubecloud needs a 3D series of at least 2 slices"
-        )
+        raise CubecloudError(f"{folder} holds a single DICOM slice; cubecloud needs a 3D series of at least 2 slices")
     for tag in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing"):
         if tag not in first:
             raise CubecloudError(

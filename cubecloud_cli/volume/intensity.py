@@ -102,7 +102,9 @@ def resolve_intensity_map(
         raise CubecloudError("give both --hu-min and --hu-max, or neither")
     if modality == "mr":
         if hu_min is not None:
-            raise CubecloudError("--hu-min/--hu-max are Hounsfield units, which MR scans do not have: use --percentiles")
+            raise CubecloudError(
+                "--hu-min/--hu-max are Hounsfield units, which MR scans do not have: use --percentiles"
+            )
         low_pct, high_pct = percentiles
         if not 0 <= low_pct < high_pct <= 100:
             raise CubecloudError(f"--percentiles {low_pct:g},{high_pct:g} must satisfy 0 <= low < high <= 100")

@@ -90,7 +90,10 @@ def read_nrrd(path: Path, volume_index: int | None) -> Scan:
     directions = header.get("space directions")
     if directions is not None:
         # Non-spatial axes (a list of components, time) have "none" directions.
-        rows = [None if d is None or np.any(np.isnan(np.asarray(d, dtype=float))) else np.asarray(d, float) for d in directions]
+        rows = [
+            None if d is None or np.any(np.isnan(np.asarray(d, dtype=float))) else np.asarray(d, float)
+            for d in directions
+        ]
         spatial_axes = [i for i, row in enumerate(rows) if row is not None]
         extra_axes = [i for i in range(data.ndim) if i not in spatial_axes]
         data = np.moveaxis(data, extra_axes, list(range(len(spatial_axes), data.ndim)))

@@ -88,27 +88,19 @@ def select_3d(data: np.ndarray, volume_index: int | None, source: str) -> np.nda
         count = data.shape[3]
         if volume_index is None:
             raise CubecloudError(
-                f"{source} is 4D ({shape_text}, {count} volumes): pick one with "
-                f"--volume-index 0..{count - 1}"
+                f"{source} is 4D ({shape_text}, {count} volumes): pick one with --volume-index 0..{count - 1}"
             )
         if not 0 <= volume_index < count:
-            raise CubecloudError(
-                f"--volume-index {volume_index} is out of range: {source} has volumes 0..{count - 1}"
-            )
+            raise CubecloudError(f"--volume-index {volume_index} is out of range: {source} has volumes 0..{count - 1}")
         data = data[..., volume_index]
     elif volume_index not in (None, 0):
         raise CubecloudError(f"--volume-index {volume_index} given, but {source} holds one volume")
     if data.ndim == 2:
-        raise CubecloudError(
-            f"{source} is a 2D image ({shape_text}); cubecloud needs a 3D volume (a CT or MR series)"
-        )
+        raise CubecloudError(f"{source} is a 2D image ({shape_text}); cubecloud needs a 3D volume (a CT or MR series)")
     if data.ndim != 3:
-        raise CubecloudError(
-            f"{source} has {data.ndim} dimensions ({shape_text}); cubecloud needs a 3D volume"
-        )
+        raise CubecloudError(f"{source} has {data.ndim} dimensions ({shape_text}); cubecloud needs a 3D volume")
     if min(data.shape) < 2:
         raise CubecloudError(
-            f"{source} is a 2D image ({shape_text}); cubecloud needs a 3D volume with at least "
-            f"2 voxels along each axis"
+            f"{source} is a 2D image ({shape_text}); cubecloud needs a 3D volume with at least 2 voxels along each axis"
         )
     return data
