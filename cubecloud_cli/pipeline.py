@@ -107,7 +107,9 @@ def stage_table(
     runtime: Runtime,
     baseline: bool = True,
 ) -> list[PipelineStage]:
-    """preprocess → cunerf → export → splat runs → eval, each with what makes it current."""
+    """preprocess → cunerf → export → splat runs → eval, each with what makes it current.
+
+    Long on purpose: one row per stage, so the whole pipeline and its dependencies read in one place."""
     work = Path(work)
 
     def current(folder: str, params: dict, inputs: list[Path]) -> Callable[[], bool]:
