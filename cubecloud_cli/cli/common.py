@@ -130,34 +130,13 @@ SpacingOption = Annotated[Optional[str], settings_option(PreprocessSettings, "sp
 VolumeIndexOption = Annotated[Optional[int], settings_option(PreprocessSettings, "volume_index")]
 
 
-def preprocess_settings(
-    preset: str,
-    *,
-    size: int | None,
-    fit: str | None,
-    window: str | None,
-    hu_min: float | None,
-    hu_max: float | None,
-    modality: str | None,
-    percentiles: str | None,
-    interpolation: str | None,
-    spacing: str | None,
-    volume_index: int | None,
-) -> PreprocessSettings:
-    """The settings the scan options ask for, the preset filling what they leave unset."""
-    options = {
-        "size": size,
-        "fit": fit,
-        "window": window,
-        "hu_min": hu_min,
-        "hu_max": hu_max,
-        "modality": modality,
+def preprocess_settings(preset: str, *, percentiles: str | None, spacing: str | None, **options) -> PreprocessSettings:
+    """The settings the scan options ask for (the lists parsed), the preset filling what they leave unset."""
+    parsed = {
         "percentiles": parse_floats(percentiles, 2, "--percentiles"),
-        "interpolation": interpolation,
         "spacing": parse_floats(spacing, 3, "--spacing"),
-        "volume_index": volume_index,
     }
-    return build_settings(PreprocessSettings, preset, options)
+    return build_settings(PreprocessSettings, preset, {**options, **parsed})
 
 
 def scan_or_sample(scan: Optional[Path]) -> Path:
