@@ -1,0 +1,99 @@
+"""Trained Gaussians as a browser viewer draws them: centres, 3×3 covariances, RGB and opacity
+computed exactly as the rasterizer computes them, a scene scale that survives the viewer's
+float16 covariances, and the clipping plane's selection.
+
+The viewer (viser) sends centres as float32 but the six covariance terms as float16, whose
+smallest normal number is 6.1e-5: variances below it (σ under 0.008 world units, two voxels of a
+512³ cube) fall into float16's subnormal range and lose their digits, and the smallest vanish.
+The whole viewer scene is therefore drawn in view units, world × ``scale``, with the scale a
+power of two (exact in binary) that brings the typical σ near 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+
+from cubecloud_cli.raster.projection import covariances as world_covariances
+from cubecloud_cli.splat.gaussians import Gaussians
+
+FLOAT16_MAX = 65504.0
+MAX_VIEW_SCALE = 1024.0
+# RAS world axes (docs/design.md §2): the plane normal of each anatomical cut.
+CLIP_AXES: dict[str, int] = {"sagittal": 0, "coronal": 1, "axial": 2}
+ClipSide = Literal["below", "above"]
+
+
+@dataclass(frozen=True)
+class ViewSplats:
+    """Gaussians in world units, as the rasterizer renders them."""
+
+    centers: np.ndarray  # (N, 3) float32
+    covariances: np.ndarray  # (N, 3, 3) float32, R diag(s²) Rᵀ
+    rgbs: np.ndarray  # (N, 3) in [0, 1]; a grey scene repeats its one channel
+    opacities: np.ndarray  # (N, 1) in [0, 1]
+
+    def __len__(self) -> int:
+        return self.centers.shape[0]
+
+    def subset(self, keep: np.ndarray) -> "ViewSplats":
+        return ViewSplats(self.centers[keep], self.covariances[keep], self.rgbs[keep], self.opacities[keep])
+
+    def scaled(self, scale: float) -> "ViewSplats":
+        """The same Gaussians in view units (world × ``scale``)."""
+        return ViewSplats(self.centers * scale, self.covariances * scale**2, self.rgbs, self.opacities)
+
+
+def view_splats(gaussians: Gaussians) -> ViewSplats:
+    """Centres, covariances, colours (the SH DC term, as a view-independent render colours them)
+    and opacities, with the 3D smoothing filter when the Gaussians carry one."""
+    with torch.no_grad():
+        covariances = world_covariances(gaussians.scales().double(), gaussians.quaternions.double())
+        colours = gaussians.colours(degree=0).double().clamp(0.0, 1.0)
+        opacities = gaussians.opacities().double().clamp(0.0, 1.0)
+    if colours.shape[1] == 1:
+        colours = colours.expand(-1, 3)
+    return ViewSplats(
+        gaussians.means.detach().numpy().astype(np.float32),
+        covariances.numpy().astype(np.float32),
+        colours.numpy().astype(np.float32),
+        opacities.numpy().astype(np.float32)[:, None],
+    )
+
+
+def view_scale(covariances: np.ndarray) -> float:
+    """The power of two that brings the median σ of the Gaussians near 1 in view units, bounded
+    so that the largest variance still fits a float16 (and 1 when there is nothing to draw)."""
+    variances = np.trace(covariances, axis1=1, axis2=2) / 3.0 if len(covariances) else np.zeros(0)
+    variances = variances[np.isfinite(variances) & (variances > 0)]
+    if variances.size == 0:
+        return 1.0
+    median_sigma = math.sqrt(float(np.median(variances)))
+    scale = 2.0 ** round(-math.log2(median_sigma))
+    largest = float(np.abs(covariances).max())
+    while scale > 1.0 / MAX_VIEW_SCALE and largest * scale**2 > FLOAT16_MAX / 2:
+        scale /= 2.0
+    return float(min(max(scale, 1.0 / MAX_VIEW_SCALE), MAX_VIEW_SCALE))
+
+
+def clip_mask(centers: np.ndarray, normal: np.ndarray, offset: float, keep: ClipSide = "below") -> np.ndarray:
+    """The Gaussians on the kept side of the plane normal·x = offset: "below" keeps normal·x ≤
+    offset (those beyond the plane are hidden), "above" the rest. A zero normal keeps every one."""
+    normal = np.asarray(normal, dtype=np.float64)
+    length = float(np.linalg.norm(normal))
+    if not math.isfinite(length) or length == 0.0:
+        return np.ones(len(centers), dtype=bool)
+    distance = centers.astype(np.float64) @ (normal / length)
+    return distance <= offset if keep == "below" else distance >= offset
+
+
+def axis_normal(axis: str) -> np.ndarray:
+    """The RAS unit normal of an anatomical cut (sagittal: left→right, coronal: posterior→anterior,
+    axial: inferior→superior)."""
+    normal = np.zeros(3)
+    normal[CLIP_AXES[axis]] = 1.0
+    return normal
