@@ -22,3 +22,36 @@ def assert_one_line_error(result, pattern: str) -> str:
     assert len(errors) == 1, result.stderr
     assert re.search(pattern, errors[0]), errors[0]
     return errors[0]
+
+
+def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, novel_directions: int,
+              splat: list[str], baseline: bool = False):  # fmt: skip
+    """A finished 32³ work directory made through the CLI: preprocess, cunerf, export, splat (and
+    the random-init baseline), each asserted to succeed."""
+    commands = [
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", cunerf_iterations, "--batch-size", "1024", "--holdout", "2"],
+        [
+            "export",
+            work,
+            "--resolution",
+            "32",
+            "--views",
+            views,
+            "--cube",
+            "8",
+            "--points-per-cube",
+            "64",
+            "--max-points",
+            max_points,
+            "--novel-directions",
+            novel_directions,
+        ],  # fmt: skip
+        ["splat", work, *splat],
+    ]
+    if baseline:
+        commands.append(["splat", work, *splat, "--init", "random", "--random-points", "500", "--name", "random"])
+    for args in commands:
+        result = invoke(*args, "-q")
+        assert result.exit_code == 0, result.output
+    return work

@@ -7,38 +7,15 @@ import shutil
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, invoke
+from cli_helpers import assert_one_line_error, invoke, tiny_work
 
 QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "20", "-q"]
 
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    work = tmp_path_factory.mktemp("eval") / "work"
-    for args in (
-        ["preprocess", "-o", work, "--size", "32"],
-        ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
-        [
-            "export",
-            work,
-            "--resolution",
-            "32",
-            "--views",
-            "12",
-            "--cube",
-            "8",
-            "--points-per-cube",
-            "64",
-            "--max-points",
-            "1500",
-            "--novel-directions",
-            "3",
-        ],
-        ["splat", work, *QUICK],
-        ["splat", work, *QUICK, "--init", "random", "--random-points", "500", "--name", "random"],
-    ):
-        result = invoke(*args, "-q")
-        assert result.exit_code == 0, result.output
+    work = tiny_work(tmp_path_factory.mktemp("eval") / "work", cunerf_iterations=60, views=12, max_points=1500,
+                     novel_directions=3, splat=QUICK, baseline=True)  # fmt: skip
     result = invoke("eval", work, "--turntable-frames", "6", "-q")
     assert result.exit_code == 0, result.output
     return work

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, invoke
+from cli_helpers import assert_one_line_error, invoke, tiny_work
 
 from cubecloud_cli.view.browser import chromium, screenshot
 
@@ -15,31 +15,8 @@ QUICK = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "10
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    work = tmp_path_factory.mktemp("view") / "work"
-    for args in (
-        ["preprocess", "-o", work, "--size", "32"],
-        ["cunerf", work, "--iterations", "200", "--batch-size", "1024", "--holdout", "2"],
-        [
-            "export",
-            work,
-            "--resolution",
-            "32",
-            "--views",
-            "16",
-            "--cube",
-            "8",
-            "--points-per-cube",
-            "64",
-            "--max-points",
-            "3000",
-            "--novel-directions",
-            "0",
-        ],
-        ["splat", work, *QUICK],
-    ):
-        result = invoke(*args, "-q")
-        assert result.exit_code == 0, result.output
-    return work
+    return tiny_work(tmp_path_factory.mktemp("view") / "work", cunerf_iterations=200, views=16, max_points=3000,
+                     novel_directions=0, splat=QUICK)  # fmt: skip
 
 
 def free_port() -> int:
