@@ -65,29 +65,139 @@ def test_the_server_listens_on_localhost_and_the_clipping_plane_hides_half_the_b
     assert viewer.visible_count() == everything
 
 
+def test_the_slices_points_and_cameras_follow_their_controls(viewer, work):
+    context = viewer.context
+    assert context.left_out == [] and context.volume.shape == (32, 32, 32)
+    assert len(context.cameras) == 16 and context.thumbnails.shape == (16, 32, 32)
+    assert not viewer._nodes["slice axial"].visible  # the Gaussians come first; the slices are asked for
+    viewer.show_slice("axial", index=5, visible=True)
+    axial = viewer._nodes["slice axial"]
+    assert axial.visible and viewer._controls["axial index"].value == 5 and viewer._controls["axial shown"].value
+    assert axial.position[2] == pytest.approx((11 / 32 - 1) * viewer.scale)
+    assert np.array_equal(axial.image[..., 0], np.round(np.clip(context.volume[:, :, 5].T, 0, 1) * 255))
+    viewer.set_slice_opacity(0.5)
+    assert np.all(viewer._nodes["slice axial"].image[..., 3] == 128)
+
+    points = len(context.points)
+    viewer.show_points(True)
+    assert viewer._nodes["points"].visible and len(viewer._nodes["points"].points) == points
+    viewer.set_clip("coronal", 0.0)
+    assert 0.2 * points < len(viewer._nodes["points"].points) < 0.8 * points  # the cut takes the points too
+    assert viewer._nodes["points"].visible
+    viewer.show_cameras(True)
+    assert viewer._nodes["cameras"].visible and viewer._controls["cameras"].value
+
+
+class FakeClient:
+    """What SceneViewer needs of a connected browser: its camera, set atomically."""
+
+    def __init__(self):
+        self.camera = type("Camera", (), {})()
+
+    def atomic(self):
+        import contextlib
+
+        return contextlib.nullcontext()
+
+
+def test_reset_view_and_a_click_on_a_camera_move_the_browsers_camera(viewer):
+    from cubecloud_cli.view.layers import camera_view
+
+    client = FakeClient()
+    viewer.look_through(client, 3)
+    expected = camera_view(viewer.context.cameras, 3)
+    assert np.allclose(client.camera.position, expected.position * viewer.scale)
+    assert np.allclose(client.camera.up_direction, expected.up) and client.camera.fov == expected.fov
+    viewer.reset_view(client)
+    assert np.allclose(client.camera.position, viewer.home.position)
+    assert np.allclose(viewer.home.position, viewer.context.cameras.centres()[0] * viewer.scale)
+
+
+def test_a_damaged_volume_leaves_the_slices_out_and_still_shows_the_gaussians(work, tmp_path):
+    from cubecloud_cli.view.server import SceneViewer
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(work, damaged)
+    (damaged / "preprocess" / "volume.npy").write_bytes(b"not an array")
+    viewer = SceneViewer(damaged, port=free_port())
+    try:
+        assert viewer.context.volume is None and viewer.visible_count() > 100
+        assert "slice axial" not in viewer._nodes and "axial index" not in viewer._controls
+        [line] = viewer.context.left_out
+        assert line.startswith("scan slices left out") and "volume.npy" in line and "--force" in line
+    finally:
+        viewer.stop()
+
+
+# ------------------------------------------------------------------------------ in a real browser
+
+
 def scene_pixels(image: np.ndarray) -> np.ndarray:
     """Where the splats are drawn: brighter than the black background, away from the GUI panels."""
     mask = image.mean(axis=-1) > 40
     mask[:160, :330] = False  # the browser's software-rendering notice
-    mask[:260, 560:] = False  # the control panel
+    mask[:300, 560:] = False  # the control panel
     return mask
 
 
+def window_pixels(pose, points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Where a perspective camera at ``pose`` (the browser's: vertical field of view, principal
+    point at the window's centre) puts world ``points``, as (column, row) in pixels."""
+    forward = (pose.look_at - pose.position) / np.linalg.norm(pose.look_at - pose.position)
+    right = np.cross(forward, pose.up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    focal = (height / 2) / np.tan(pose.fov / 2)
+    relative = points - pose.position
+    depth = relative @ forward
+    return np.stack([width / 2 + focal * (relative @ right) / depth, height / 2 + focal * (relative @ down) / depth], 1)
+
+
+def agreement(shot: np.ndarray, pixels: np.ndarray, values: np.ndarray) -> float:
+    """Pearson r between the screenshot's grey at ``pixels`` and the expected ``values`` (pixels
+    under the page's panels are left out)."""
+    grey = shot.mean(axis=-1)
+    column, row = pixels[:, 0].astype(int), pixels[:, 1].astype(int)
+    inside = (column >= 0) & (column < grey.shape[1]) & (row >= 0) & (row < grey.shape[0])
+    clear = inside & ~((column >= 560) & (row < 300)) & ~((column < 330) & (row < 160))
+    return float(np.corrcoef(grey[row[clear], column[clear]], values[clear])[0, 1])
+
+
 @pytest.mark.skipif(chromium() is None, reason="needs chromium (.ci/run installs it)")
-def test_a_real_browser_draws_the_scene_where_the_volume_projects_and_the_cut_removes_half(viewer, tmp_path):
+def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_up(viewer, work, tmp_path):
+    from cubecloud_cli.view.layers import camera_view, slice_pixel_world
+
     time.sleep(1)
-    before = scene_pixels(screenshot(viewer.url, tmp_path / "before.png"))
+    shot = screenshot(viewer.url, tmp_path / "home.png")
+    before = scene_pixels(shot)
     height, width = before.shape
     assert before.sum() > 0.02 * height * width, "no scene drawn"
-    rows, cols = np.nonzero(before)
-    # The volume sits at the origin, which the first view looks at: the scene is centred.
-    assert abs(cols.mean() - width / 2) < 0.15 * width and abs(rows.mean() - height / 2) < 0.15 * height
+    # The page opens on the export's first view: its training image, scaled to the window's height.
+    cameras, image = viewer.context.cameras, np.load(work / "export" / "images.npy")[0]
+    rows, columns = np.mgrid[0 : cameras.height, 0 : cameras.width]
+    magnification = (height / 2) / np.tan(cameras.fov_y / 2) / cameras.focal
+    pixels = np.stack([width / 2 + (columns + 0.5 - cameras.cx) * magnification,
+                       height / 2 + (rows + 0.5 - cameras.cy) * magnification], -1).reshape(-1, 2)  # fmt: skip
+    assert agreement(shot, pixels, image.reshape(-1)) > 0.85, "the first view is not the export's"
 
     viewer.set_clip("sagittal", 0.0)
     time.sleep(1)
-    after = scene_pixels(screenshot(viewer.url, tmp_path / "after.png"))
+    after = scene_pixels(screenshot(viewer.url, tmp_path / "cut.png"))
     assert 0.2 * before.sum() < after.sum() < 0.8 * before.sum()
     removed = before & ~after
     kept_centre = np.array(np.nonzero(after)).mean(axis=1)
     removed_centre = np.array(np.nonzero(removed)).mean(axis=1)
     assert np.linalg.norm(kept_centre - removed_centre) > 0.08 * min(height, width), "the cut took no side away"
+
+    # The axial slice alone: each voxel shows where the volume's voxel is, seen from the first view.
+    viewer.set_clip("off")
+    viewer.show_splats(False)
+    viewer.show_slice("axial", index=16, visible=True)
+    time.sleep(1)
+    shot = screenshot(viewer.url, tmp_path / "slice.png")
+    size = viewer.slices.size
+    cells = [(row, column) for row in range(size) for column in range(size)]
+    world = np.array([slice_pixel_world("axial", 16, size, row, column) for row, column in cells])
+    pixels = window_pixels(camera_view(cameras, 0), world, width, height)
+    values = viewer.context.volume[:, :, 16].T.reshape(-1)
+    assert agreement(shot, pixels, values) > 0.85, "the slice does not lie where its voxels are"

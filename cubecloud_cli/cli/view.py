@@ -41,7 +41,7 @@ def view_command(
 ) -> None:
     """Explore the trained Gaussians in the browser: turn, zoom, and cut into the body.
 
-    Serves the scene with viser (WebGL in the browser, so no GPU is needed here): a selector between the splat runs, a clipping plane (axial, coronal, sagittal or the current view direction) with a position slider, patient-axis labels, and the export's first view, to which "Reset view" returns. Ctrl-C stops the server.
+    Serves the scene with viser (WebGL in the browser, so no GPU is needed here). The page has a selector between the splat runs; a clipping plane (axial, coronal, sagittal or the current view direction) with a position slider; the preprocessed volume's axial, coronal and sagittal slices as planes in the same frame, each with a toggle and a slider, to check that the splat and the scan line up; toggles for the Cube-Cloud points and the export's cameras (click one to look through it); patient-axis labels; and the export's first view, to which "Reset view" returns. Ctrl-C stops the server.
 
     Examples:
 

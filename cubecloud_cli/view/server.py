@@ -1,5 +1,6 @@
 """The browser viewer: one viser server showing a work directory's splat runs, with a run
-selector, a clipping plane into the body, patient-axis labels and the export's first view.
+selector, a clipping plane into the body, the scan's slices, the Cube-Cloud points and the
+export's cameras around them, patient-axis labels and the export's first view.
 
 Everything is drawn in view units (world × the view scale, see splats.py); the controls speak
 world units, in which the volume fills [−1, 1]³.
@@ -7,6 +8,8 @@ world units, in which the volume fills [−1, 1]³.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import socket
 from dataclasses import dataclass, field
@@ -14,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.artifacts import is_complete, read_manifest
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs
 from cubecloud_cli.splat.ply import read_gaussians_ply
+from cubecloud_cli.view.context import load_context
+from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
 from cubecloud_cli.view.splats import CLIP_AXES, ViewSplats, axis_normal, clip_mask, view_scale, view_splats
 
 log = logging.getLogger("cubecloud")
@@ -25,7 +29,9 @@ log = logging.getLogger("cubecloud")
 CLIP_CHOICES = ("off", *CLIP_AXES, "view direction")
 # Where the patient's axes point in the RAS world (docs/design.md §2), for the labels.
 PATIENT_LABELS = {"L": (-1, 0, 0), "R": (1, 0, 0), "P": (0, -1, 0), "A": (0, 1, 0), "I": (0, 0, -1), "S": (0, 0, 1)}
-DEFAULT_EYE = np.array([0.0, -4.0, 0.0])  # in front of the patient, when there is no export to follow
+FRUSTUM_SIZE = 0.08  # of the cameras' distance from the centre: small enough not to hide the body
+FRUSTUM_COLOUR = (70, 150, 255)
+FALLBACK_VOXELS = 128  # the point size, as a voxel of this cube, when there is no volume to measure
 
 
 @dataclass
@@ -64,18 +70,6 @@ def load_runs(work: Path) -> dict[str, Path]:
     return runs
 
 
-def first_view(work: Path) -> tuple[np.ndarray, float | None]:
-    """The export's first camera centre (world units) and its vertical field of view in degrees,
-    so the viewer opens on the picture the scene was trained to show first."""
-    export = Path(work) / "export"
-    if is_complete(export):
-        cameras = read_manifest(export).get("cameras", {})
-        centres = cameras.get("centres")
-        if centres:
-            return np.asarray(centres[0], dtype=np.float64), cameras.get("fov_deg")
-    return DEFAULT_EYE, None
-
-
 def check_port_free(host: str, port: int) -> None:
     """A one-line error now, rather than a server that quietly takes another port."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
@@ -85,12 +79,25 @@ def check_port_free(host: str, port: int) -> None:
             raise CubecloudError(f"cannot listen on {host}:{port} ({exc.strerror}): choose another --port") from None
 
 
+def start_server(host: str, port: int):
+    """A viser server that serves the scene and nothing else. Its share button would relay the
+    scene (the patient's scan) through a public tunnel, so it is hidden and its request refused.
+    viser's own banner is dropped: the command prints the address in its own words."""
+    import viser  # imported here: every other command starts without it
+    from viser import _messages
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        server = viser.ViserServer(host=host, port=port, verbose=False)
+    server.gui.configure_theme(dark_mode=True, show_share_button=False)
+    server._websock_server.unregister_handler(_messages.ShareUrlRequest)
+    return server
+
+
 class SceneViewer:
-    """A running viewer of one work directory."""
+    """A running viewer of one work directory: the Gaussians of a run, and around them the scan's
+    slices, the Cube-Cloud points and the export's cameras, each behind its own toggle."""
 
     def __init__(self, work: Path, host: str = "127.0.0.1", port: int = 8080, run: str | None = None):
-        import viser  # imported here: every other command starts without it
-
         self.runs = load_runs(work)
         if run is not None and run not in self.runs:
             raise CubecloudError(f"{work} has no finished run {run!r}: choose one of {', '.join(self.runs)}")
@@ -98,21 +105,24 @@ class SceneViewer:
         self.splats = view_splats(read_gaussians_ply(self.runs[self.current]))
         self.scale = view_scale(self.splats.covariances)
         self.clip = Clip()
-        self._controls: dict = {}
+        self.context = load_context(work)
+        for line in self.context.left_out:
+            log.warning(line)
+        cameras = self.context.cameras
+        self.home = (ANTERIOR_VIEW if cameras is None else camera_view(cameras, 0)).scaled(self.scale)
+        self.slices = SliceLayer(self.context.volume)
+        self._controls: dict = {}  # the page's controls, by name, so changes from Python show there
+        self._nodes: dict = {}  # the scene nodes that change after they are drawn
         check_port_free(host, port)
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server = start_server(host, port)
         self.server.scene.set_up_direction("+z")  # RAS: superior is up
         # The black the training images were rendered on (PNG: a tiny JPEG does not reach the page).
         self.server.scene.set_background_image(np.zeros((64, 64, 3), dtype=np.uint8), format="png")
-        eye, fov = first_view(work)
-        self.server.initial_camera.position = eye * self.scale
-        self.server.initial_camera.look_at = np.zeros(3)
-        self.server.initial_camera.up = np.array([0.0, 0.0, 1.0])
-        if fov is not None:
-            self.server.initial_camera.fov = float(np.radians(fov))
+        self._set_initial_camera()
+        self._draw()  # the Gaussians first: the page shows them while the rest arrives
         self._add_labels()
+        self._add_context_layers()
         self._add_controls()
-        self._draw()
 
     @property
     def url(self) -> str:
@@ -131,39 +141,153 @@ class SceneViewer:
         if wanted == (self.clip.axis, self.clip.position, self.clip.keep):
             return  # a control echoing a change made from Python
         self.clip.axis, self.clip.position, self.clip.keep = wanted
-        for name, value in (("axis", axis), ("position", self.clip.position), ("flip", self.clip.keep == "above")):
-            control = self._controls.get(name)
-            if control is not None and control.value != value:
-                control.value = value
+        self._sync_controls(axis=axis, position=self.clip.position, flip=self.clip.keep == "above")
         self._draw()
+        if "points" in self._nodes and self._nodes["points"].visible:
+            self._draw_points()
+
+    def show_slice(self, axis: str, index: int | None = None, visible: bool | None = None) -> None:
+        """Move the ``axis`` slice plane to voxel ``index`` and/or show or hide it."""
+        if self.context.volume is None:
+            raise CubecloudError("this work directory has no preprocessed volume to slice")
+        if self.slices.update(axis, index, visible):
+            self._draw_slice(axis)
+        self._sync_controls(**{f"{axis} index": self.slices.index[axis], f"{axis} shown": self.slices.visible[axis]})
+
+    def set_slice_opacity(self, opacity: float) -> None:
+        self.slices.opacity = float(np.clip(np.nan_to_num(opacity, nan=1.0), 0.0, 1.0))
+        if self.context.volume is not None:
+            for axis in SLICE_AXES:
+                self._draw_slice(axis)
+        self._sync_controls(opacity=self.slices.opacity)
+
+    def show_splats(self, visible: bool) -> None:
+        """Show or hide the Gaussians (to see the slices or the points alone)."""
+        self._nodes["splats"].visible = bool(visible)
+        self._sync_controls(splats=bool(visible))
+
+    def show_points(self, visible: bool) -> None:
+        node = self._nodes.get("points")
+        if node is not None and node.visible != bool(visible):
+            node.visible = bool(visible)
+            if visible:
+                self._draw_points()  # the clipping plane may have moved while they were hidden
+        self._sync_controls(points=bool(visible))
+
+    def show_cameras(self, visible: bool) -> None:
+        node = self._nodes.get("cameras")
+        if node is not None and node.visible != bool(visible):
+            node.visible = bool(visible)
+        self._sync_controls(cameras=bool(visible))
+
+    def reset_view(self, client=None) -> None:
+        """Return ``client`` (every connected one when None) to the export's first view."""
+        self._look(client, self.home)
+
+    def look_through(self, client, index: int) -> None:
+        """Put ``client`` (every connected one when None) where export camera ``index`` stands."""
+        self._look(client, camera_view(self.context.cameras, index).scaled(self.scale))
 
     def visible_count(self) -> int:
         return len(visible_splats(self.splats, self.clip))
 
     def stop(self) -> None:
-        self.server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own "Server stopped"
+            self.server.stop()
+
+    # ------------------------------------------------------------------------------- the scene
+
+    def _set_initial_camera(self) -> None:
+        camera, home = self.server.initial_camera, self.home
+        camera.position, camera.look_at, camera.up = home.position, home.look_at, home.up
+        if home.fov is not None:
+            camera.fov = home.fov
+
+    def _look(self, client, pose: ViewPose) -> None:
+        for each in [client] if client is not None else list(self.server.get_clients().values()):
+            with each.atomic():
+                each.camera.position, each.camera.look_at = pose.position, pose.look_at
+                each.camera.up_direction = pose.up
+                if pose.fov is not None:
+                    each.camera.fov = pose.fov
 
     def _draw(self) -> None:
         shown = visible_splats(self.splats, self.clip).scaled(self.scale)
-        self.server.scene.add_gaussian_splats("/splats", shown.centers, shown.covariances, shown.rgbs, shown.opacities)
+        visible = self._nodes["splats"].visible if "splats" in self._nodes else True
+        self._nodes["splats"] = self.server.scene.add_gaussian_splats(
+            "/splats", shown.centers, shown.covariances, shown.rgbs, shown.opacities, visible=visible
+        )
+
+    def _draw_points(self) -> None:
+        """The Cube-Cloud points on the kept side of the clipping plane."""
+        points, colours = self.context.points, self.context.point_colours
+        normal = self.clip.normal()
+        if normal is not None:
+            keep = clip_mask(points, normal, self.clip.position, self.clip.keep)  # type: ignore[arg-type]
+            points, colours = points[keep], colours[keep]
+        half_voxel = 1.0 / (self.slices.size or FALLBACK_VOXELS)  # a whole voxel would fill the body solid
+        self._nodes["points"] = self.server.scene.add_point_cloud(
+            "/cube_cloud", points * self.scale, colours, point_size=half_voxel * self.scale, point_shape="circle",
+            visible=self._nodes["points"].visible if "points" in self._nodes else False,
+        )  # fmt: skip
 
     def _add_labels(self) -> None:
         for text, direction in PATIENT_LABELS.items():
             position = np.asarray(direction, dtype=np.float64) * 1.15 * self.scale
             self.server.scene.add_label(f"/axes/{text}", text, position=position, anchor="center-center")
 
+    def _add_context_layers(self) -> None:
+        context = self.context
+        if context.volume is not None:
+            for axis in SLICE_AXES:
+                self._draw_slice(axis)
+        if context.points is not None:
+            self._draw_points()
+        if context.cameras is not None:
+            self._add_cameras(context.cameras, context.thumbnails)
+
+    def _draw_slice(self, axis: str) -> None:
+        image, wxyz, position = self.slices.plane(axis)
+        self._nodes[f"slice {axis}"] = self.server.scene.add_image(
+            f"/slices/{axis}", image, 2.0 * self.scale, 2.0 * self.scale, format="png", wxyz=wxyz,
+            position=position * self.scale, visible=self.slices.visible[axis], cast_shadow=False, receive_shadow=False,
+        )  # fmt: skip
+
+    def _add_cameras(self, cameras, images: np.ndarray) -> None:
+        self._nodes["cameras"] = self.server.scene.add_frame("/cameras", show_axes=False, visible=False)
+        wxyz, centres = camera_poses(cameras)
+        size = FRUSTUM_SIZE * float(np.median(np.linalg.norm(centres, axis=1))) * self.scale
+        for index in range(len(cameras)):
+            frustum = self.server.scene.add_camera_frustum(
+                f"/cameras/view_{index:03d}", fov=cameras.fov_y, aspect=cameras.width / cameras.height, scale=size,
+                thickness=1.5, thickness_units="screen", color=FRUSTUM_COLOUR, image=np.repeat(images[index][..., None], 3, axis=-1), format="png",
+                wxyz=wxyz[index], position=centres[index] * self.scale,
+            )  # fmt: skip
+            frustum.on_click(lambda event, index=index: self.look_through(event.client, index))
+
+    # ----------------------------------------------------------------------------- the controls
+
+    def _sync_controls(self, **values) -> None:
+        """Set the page's controls to ``values`` (a change made from Python shows on the page)."""
+        for name, value in values.items():
+            control = self._controls.get(name)
+            if control is not None and control.value != value:
+                control.value = value
+
     def _add_controls(self) -> None:
         gui = self.server.gui
         run = gui.add_dropdown("Run", tuple(self.runs), initial_value=self.current)
         run.on_update(lambda _: self.select_run(run.value))
-        with gui.add_folder("Clipping plane"):
-            axis = gui.add_dropdown("Cut", CLIP_CHOICES, initial_value="off")
-            position = gui.add_slider("Position", min=-1.0, max=1.0, step=0.01, initial_value=0.0)
-            flip = gui.add_checkbox("Keep the other side", initial_value=False)
-        self._controls = {"axis": axis, "position": position, "flip": flip}
-        axis.on_update(lambda _: self.set_clip(axis.value))
-        position.on_update(lambda _: self.set_clip(self.clip.axis, position.value))
-        flip.on_update(lambda _: self.set_clip(self.clip.axis, keep="above" if flip.value else "below"))
+        splats = gui.add_checkbox("Gaussians", initial_value=True, hint="Show the trained Gaussians")
+        splats.on_update(lambda _: self.show_splats(splats.value))
+        self._controls["splats"] = splats
+        reset = gui.add_button("Reset view", hint="Back to the export's first view")
+        reset.on_click(lambda event: self.reset_view(event.client))
+        self._add_clip_controls()
+        if self.context.volume is not None:
+            self._add_slice_controls()
+        if self.context.points is not None or self.context.cameras is not None:
+            self._add_export_controls()
 
         @self.server.on_client_connect
         def _follow_camera(client) -> None:
@@ -173,3 +297,40 @@ class SceneViewer:
                 length = float(np.linalg.norm(direction))
                 if length > 0:  # kept for the next cut: redrawing on every camera move would flood the page
                     self.clip.view_direction = direction / length
+
+    def _add_clip_controls(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("Clipping plane"):
+            axis = gui.add_dropdown("Cut", CLIP_CHOICES, initial_value="off")
+            position = gui.add_slider("Position", min=-1.0, max=1.0, step=0.01, initial_value=0.0)
+            flip = gui.add_checkbox("Keep the other side", initial_value=False)
+        self._controls.update(axis=axis, position=position, flip=flip)
+        axis.on_update(lambda _: self.set_clip(axis.value))
+        position.on_update(lambda _: self.set_clip(self.clip.axis, position.value))
+        flip.on_update(lambda _: self.set_clip(self.clip.axis, keep="above" if flip.value else "below"))
+
+    def _add_slice_controls(self) -> None:
+        gui, last = self.server.gui, self.slices.size - 1
+        with gui.add_folder("Scan slices", expand_by_default=False):
+            for axis in SLICE_AXES:
+                shown = gui.add_checkbox(axis.capitalize(), initial_value=False, hint=f"Show the {axis} slice")
+                index = gui.add_slider(f"{axis.capitalize()} slice", min=0, max=last, step=1,
+                                       initial_value=self.slices.index[axis])  # fmt: skip
+                shown.on_update(lambda _, axis=axis, shown=shown: self.show_slice(axis, visible=shown.value))
+                index.on_update(lambda _, axis=axis, index=index: self.show_slice(axis, index=index.value))
+                self._controls.update({f"{axis} shown": shown, f"{axis} index": index})
+            opacity = gui.add_slider("Opacity", min=0.0, max=1.0, step=0.05, initial_value=self.slices.opacity)
+        opacity.on_update(lambda _: self.set_slice_opacity(opacity.value))
+        self._controls["opacity"] = opacity
+
+    def _add_export_controls(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("Export", expand_by_default=False):
+            if self.context.points is not None:
+                points = gui.add_checkbox("Cube-Cloud points", initial_value=False, hint="The points 3DGS started from")
+                points.on_update(lambda _: self.show_points(points.value))
+                self._controls["points"] = points
+            if self.context.cameras is not None:
+                cameras = gui.add_checkbox("Cameras", initial_value=False, hint="Click a camera to look through it")
+                cameras.on_update(lambda _: self.show_cameras(cameras.value))
+                self._controls["cameras"] = cameras

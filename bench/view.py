@@ -1,0 +1,186 @@
+"""How long `cubecloud view` takes to show a scene: from the page being opened in a browser to the
+first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal: a few seconds).
+
+    python bench/view.py                        # a synthetic 100k-Gaussian work directory
+    python bench/view.py --gaussians 300000
+    python bench/view.py --work work            # a finished work directory (its splat run)
+
+Chromium is driven over the DevTools protocol: the clock starts when the page is asked to load and
+stops at the first screenshot whose centre holds the scene. The screenshots are polled, so the
+figure is rounded up by one capture (printed too). The browser renders WebGL with whatever it has:
+on this project's GPU-less machines that is SwiftShader, a CPU rasterizer, so the figure here
+bounds what a desktop browser with a GPU needs from above. The first page load of a fresh browser
+also compiles the viewer's shaders and WebAssembly sorter; the later loads show the warm figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import io
+import json
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.splat.ply import write_gaussians_ply
+from cubecloud_cli.view.browser import chromium
+from cubecloud_cli.view.server import SceneViewer
+
+WINDOW = (900, 700)  # the tests' and the README pictures' page size
+SCENE_THRESHOLD = 40  # grey level above the black background
+
+
+def synthetic_work(directory: Path, count: int, seed: int = 0) -> Path:
+    """A work directory holding one finished splat run of ``count`` Gaussians filling a body-like
+    ellipsoid, each about as large as its neighbours' spacing (as a trained scene's are)."""
+    g = torch.Generator().manual_seed(seed)
+    directions = torch.randn(count, 3, generator=g)
+    directions /= directions.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    radii = torch.rand(count, 1, generator=g) ** (1.0 / 3.0)
+    means = directions * radii * torch.tensor([0.8, 0.55, 0.9])
+    spacing = (4.0 / count) ** (1.0 / 3.0)
+    gaussians = Gaussians(
+        means=means,
+        log_scales=torch.log(spacing * (0.3 + 0.4 * torch.rand(count, 3, generator=g))),
+        quaternions=torch.randn(count, 4, generator=g),
+        opacity_logits=torch.logit(0.2 + 0.7 * torch.rand(count, generator=g)),
+        sh_dc=(torch.rand(count, 1, 1, generator=g) - 0.5) / 0.28209479177387814,
+        sh_rest=torch.zeros(count, 0, 1),
+    )
+    run = directory / "splat"
+    run.mkdir(parents=True)
+    write_gaussians_ply(run / "point_cloud.ply", gaussians)
+    (run / "manifest.json").write_text(json.dumps({"stage": "splat", "params": {"init": "synthetic"}}))
+    return directory
+
+
+class DevTools:
+    """The few DevTools-protocol calls the measurement needs, over one page's websocket."""
+
+    def __init__(self, port: int):
+        from websockets.sync.client import connect
+
+        targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30).read())
+        page = next(t for t in targets if t["type"] == "page")
+        self.socket = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=30)
+        self.next_id = 0
+
+    def call(self, method: str, **params) -> dict:
+        self.next_id += 1
+        self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        while True:
+            message = json.loads(self.socket.recv(timeout=120))
+            if message.get("id") == self.next_id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                return message["result"]
+
+    def screenshot(self) -> np.ndarray | None:
+        """The page as it is now, or None while a navigation has no page to capture yet."""
+        import imageio.v3 as iio
+
+        try:
+            data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+        except RuntimeError as error:
+            if "Not attached" not in str(error):
+                raise
+            time.sleep(0.05)
+            return None
+        return iio.imread(io.BytesIO(data))[..., :3]
+
+
+def start_browser(profile: Path, window: tuple[int, int]) -> tuple[subprocess.Popen, int]:
+    browser = chromium()
+    if browser is None:
+        raise SystemExit("needs chromium (Debian: apt-get install chromium)")
+    command = [browser, "--headless", "--no-sandbox", "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
+               "--hide-scrollbars", f"--window-size={window[0]},{window[1]}", "--remote-debugging-port=0",
+               f"--user-data-dir={profile}", "about:blank"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    port_file = profile / "DevToolsActivePort"
+    for _ in range(600):
+        if port_file.is_file() and port_file.read_text().strip():
+            return process, int(port_file.read_text().split()[0])
+        time.sleep(0.1)
+    process.kill()
+    raise SystemExit("chromium did not open its DevTools port within a minute")
+
+
+def scene_drawn(image: np.ndarray) -> bool:
+    """The viewer's black background is in (the page starts light grey) and Gaussians are drawn in
+    the middle of the window, away from the browser's notice and the controls."""
+    height, width = image.shape[:2]
+    background = image[-10:, width // 3 : 2 * width // 3].mean()
+    middle = image[height // 4 : 3 * height // 4, width // 6 : width // 2 + width // 8].mean(axis=-1)
+    return background < 10 and float((middle > SCENE_THRESHOLD).mean()) > 0.02
+
+
+def time_first_frame(devtools: DevTools, url: str, timeout_s: float = 300.0) -> tuple[float, float, int, np.ndarray]:
+    """Seconds from navigation to the first screenshot with the scene, the last capture's duration,
+    the number of captures, and that first frame."""
+    devtools.call("Page.navigate", url="about:blank")
+    start = time.perf_counter()
+    devtools.call("Page.navigate", url=url)
+    captures = 0
+    while time.perf_counter() - start < timeout_s:
+        before = time.perf_counter()
+        image = devtools.screenshot()
+        captures += 1
+        if image is not None and scene_drawn(image):
+            return time.perf_counter() - start, time.perf_counter() - before, captures, image
+    raise SystemExit(f"no scene drawn within {timeout_s:.0f} s")
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--gaussians", type=int, default=100_000, help="size of the synthetic scene")
+    parser.add_argument("--work", type=Path, help="a finished work directory instead of the synthetic scene")
+    parser.add_argument("--loads", type=int, default=3, help="page loads in one browser (the first is cold)")
+    parser.add_argument("--save", type=Path, help="write the last load's first frame here (a PNG), to look at")
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as scratch:
+        scratch = Path(scratch)
+        work = args.work or synthetic_work(scratch / "work", args.gaussians)
+        start = time.perf_counter()
+        viewer = SceneViewer(work, port=free_port())
+        serve_s = time.perf_counter() - start
+        print(f"scene: {len(viewer.splats)} Gaussians from {work}; server ready in {serve_s:.2f} s")
+        process, port = start_browser(scratch / "profile", WINDOW)
+        try:
+            devtools = DevTools(port)
+            devtools.call("Page.enable")
+            devtools.call("Emulation.setDeviceMetricsOverride", width=WINDOW[0], height=WINDOW[1],
+                          deviceScaleFactor=1, mobile=False)  # fmt: skip
+            for load in range(args.loads):
+                seconds, capture_s, captures, frame = time_first_frame(devtools, viewer.url)
+                state = "cold" if load == 0 else "warm"
+                print(f"load {load + 1} ({state}): first frame after {seconds:.2f} s "
+                      f"({captures} captures, the last took {capture_s:.2f} s)")  # fmt: skip
+            if args.save:
+                import imageio.v3 as iio
+
+                iio.imwrite(args.save, frame)
+        finally:
+            process.kill()
+            viewer.stop()
+            shutil.rmtree(scratch / "profile", ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
