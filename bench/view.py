@@ -4,6 +4,9 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py                        # a synthetic 100k-Gaussian work directory
     python bench/view.py --gaussians 300000
     python bench/view.py --work work            # a finished work directory (its splat run)
+    python bench/view.py --detail 10            # the 10 % of the Gaussians that shape the picture most
+    python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
+
 
 Chromium is driven over the DevTools protocol: the clock starts when the page is asked to load and
 stops at the first screenshot whose centre holds the scene. The screenshots are polled, so the
@@ -140,6 +143,46 @@ def time_first_frame(devtools: DevTools, url: str, timeout_s: float = 300.0) -> 
     raise SystemExit(f"no scene drawn within {timeout_s:.0f} s")
 
 
+def detail_trade(work: Path, percents=(100, 50, 30, 10, 3)) -> None:
+    """Held-out PSNR of the splat run drawn with each share of its Gaussians (importance_order),
+    rendered by our rasterizer as eval renders it, against the export's reference renders."""
+    from cubecloud_cli.artifacts import read_manifest
+    from cubecloud_cli.eval.runs import SplatRun, load_scored_scene, resolve_scene
+    from cubecloud_cli.metrics import psnr
+    from cubecloud_cli.raster.backends import NUMBA
+    from cubecloud_cli.splat.ply import read_gaussians_ply
+    from cubecloud_cli.splat.training import render_camera
+    from cubecloud_cli.view.splats import detail_count, importance_order, view_splats
+
+    run = SplatRun("splat", work / "splat", read_manifest(work / "splat"))
+    scored = load_scored_scene(resolve_scene(work, run))
+    scene = scored.scene
+    gaussians = read_gaussians_ply(work / "splat" / "point_cloud.ply")
+    orders = {
+        "importance": torch.as_tensor(importance_order(view_splats(gaussians))),
+        "random": torch.randperm(len(gaussians), generator=torch.Generator().manual_seed(0)),
+    }
+    print(
+        f"{run.name}: {len(gaussians)} Gaussians, held-out PSNR over {len(scene.test)} views, by the order they are dropped in"
+    )
+    for percent in percents:
+        count = detail_count(len(gaussians), percent)
+        line = [f"detail {percent:>3} % ({count:>6} Gaussians):"]
+        for name, order in orders.items():
+            keep = order[:count]
+            subset = Gaussians(*(None if t is None else t[keep] for t in (
+                gaussians.means, gaussians.log_scales, gaussians.quaternions, gaussians.opacity_logits,
+                gaussians.sh_dc, gaussians.sh_rest, gaussians.smoothing)))  # fmt: skip
+            scores = []
+            with torch.no_grad():
+                for view in scene.test:
+                    image = render_camera(subset, scene.cameras, view, 0, NUMBA, antialias=run.antialias).image
+                    reference = torch.from_numpy(np.array(scored.reference[view]))
+                    scores.append(psnr(reference, image[..., 0].clamp(0, 1)))
+            line.append(f"{name} {np.mean(scores):6.2f} dB")
+        print("  ".join(line))
+
+
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -151,16 +194,22 @@ def main() -> None:
     parser.add_argument("--gaussians", type=int, default=100_000, help="size of the synthetic scene")
     parser.add_argument("--work", type=Path, help="a finished work directory instead of the synthetic scene")
     parser.add_argument("--loads", type=int, default=3, help="page loads in one browser (the first is cold)")
+    parser.add_argument("--detail", type=float, default=100.0, help="percent of the Gaussians drawn (view --detail)")
+    parser.add_argument("--trade", action="store_true", help="with --work: held-out PSNR at each detail, no browser")
     parser.add_argument("--save", type=Path, help="write the last load's first frame here (a PNG), to look at")
     args = parser.parse_args()
+    if args.trade:
+        detail_trade(args.work or parser.error("--trade needs --work"))
+        return
 
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)
         work = args.work or synthetic_work(scratch / "work", args.gaussians)
         start = time.perf_counter()
-        viewer = SceneViewer(work, port=free_port())
+        viewer = SceneViewer(work, port=free_port(), detail=args.detail)
         serve_s = time.perf_counter() - start
-        print(f"scene: {len(viewer.splats)} Gaussians from {work}; server ready in {serve_s:.2f} s")
+        print(f"scene: {len(viewer.splats)} Gaussians from {work}, {viewer.visible_count()} drawn; "
+              f"server ready in {serve_s:.2f} s")  # fmt: skip
         process, port = start_browser(scratch / "profile", WINDOW)
         try:
             devtools = DevTools(port)

@@ -1,5 +1,6 @@
 """`cubecloud view`: the bad-input contract, the server's clipping, and the page in a real browser."""
 
+import math
 import shutil
 import socket
 import time
@@ -30,6 +31,7 @@ def test_bad_input_is_one_line_with_exit_2(work, tmp_path):
     (tmp_path / "empty").mkdir()
     assert_one_line_error(invoke("view", tmp_path / "empty"), r"has no finished splat run: run `cubecloud splat")
     assert_one_line_error(invoke("view", work, "--run", "splat-nothing"), r"no finished run 'splat-nothing'")
+    assert_one_line_error(invoke("view", work, "--detail", "0"), r"--detail 0 must be a percent from 1 to 100")
     broken = tmp_path / "broken"
     shutil.copytree(work, broken)
     (broken / "splat" / "point_cloud.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\ngarbage")
@@ -62,6 +64,18 @@ def test_the_server_listens_on_localhost_and_the_clipping_plane_hides_half_the_b
     viewer.set_clip("axial", float(viewer.splats.centers[:, 2].max()), keep="below")
     assert viewer.visible_count() == everything  # a plane above the highest Gaussian hides nothing
     viewer.set_clip("off")
+    assert viewer.visible_count() == everything
+
+
+def test_a_lower_detail_draws_the_most_important_gaussians(viewer):
+    everything = viewer.visible_count()
+    viewer.set_detail(10)
+    assert viewer.visible_count() == math.ceil(everything / 10) and viewer._controls["detail"].value == 10
+    drawn = viewer.drawn_splats()
+    assert np.array_equal(drawn.centers, viewer.splats.centers[: len(drawn)])  # the run is kept in importance order
+    weight = viewer.splats.opacities[:, 0] * np.trace(viewer.splats.covariances, axis1=1, axis2=2)
+    assert weight[: len(drawn)].min() >= weight[len(drawn) :].max()
+    viewer.set_detail(float("nan"))
     assert viewer.visible_count() == everything
 
 

@@ -11,7 +11,18 @@ from hypothesis import strategies as st
 from cubecloud_cli.raster.projection import dilation, project
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
-from cubecloud_cli.view.splats import FLOAT16_MAX, axis_normal, clip_mask, view_scale, view_splats
+from cubecloud_cli.view.splats import (
+    FLOAT16_MAX,
+    ViewSplats,
+    axis_normal,
+    by_importance,
+    clip_mask,
+    detail_count,
+    detail_percent,
+    importance_order,
+    view_scale,
+    view_splats,
+)
 
 
 def random_gaussians(count: int, seed: int = 0, channels: int = 1, smoothing: bool = False) -> Gaussians:
@@ -109,3 +120,33 @@ def test_a_plane_through_the_middle_hides_about_half_of_an_even_cloud(axis):
     centers = np.random.default_rng(0).uniform(-1, 1, (4000, 3))
     kept = clip_mask(centers, axis_normal(axis), 0.0)
     assert 0.45 < kept.mean() < 0.55
+
+
+def test_the_most_important_gaussians_come_first_and_broken_ones_last():
+    splats = view_splats(random_gaussians(300, seed=3))
+    covariances, opacities = splats.covariances.copy(), splats.opacities.copy()
+    covariances[7] = np.nan
+    opacities[11] = np.inf
+    broken = ViewSplats(splats.centers, covariances, splats.rgbs, opacities)
+    order = importance_order(broken)
+    assert sorted(order.tolist()) == list(range(300))
+    assert set(order[-2:].tolist()) == {7, 11}
+    weight = broken.opacities[order[:-2], 0] * np.trace(broken.covariances[order[:-2]], axis1=1, axis2=2)
+    assert np.all(np.diff(weight) <= 1e-12)
+    assert np.array_equal(by_importance(broken).centers, broken.centers[order])
+    ties = ViewSplats(np.zeros((4, 3)), np.tile(np.eye(3), (4, 1, 1)), np.zeros((4, 3)), np.ones((4, 1)))
+    assert importance_order(ties).tolist() == [0, 1, 2, 3]
+
+
+@settings(max_examples=80, deadline=None)
+@given(total=st.integers(0, 10**7), percent=st.floats(allow_nan=True, allow_infinity=True))
+def test_a_detail_draws_at_least_one_and_at_most_every_gaussian(total, percent):
+    count = detail_count(total, percent)
+    assert (count == 0) if total == 0 else (1 <= count <= total)
+    assert 1.0 <= detail_percent(percent) <= 100.0
+    if total and (math.isnan(percent) or percent >= 100):
+        assert count == total
+
+
+def test_detail_counts_round_up():
+    assert detail_count(88759, 10) == 8876 and detail_count(10, 1) == 1 and detail_count(3, 50) == 2

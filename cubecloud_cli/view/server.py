@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import math
 import socket
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +23,17 @@ from cubecloud_cli.eval.runs import find_splat_runs
 from cubecloud_cli.splat.ply import read_gaussians_ply
 from cubecloud_cli.view.context import load_context
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
-from cubecloud_cli.view.splats import CLIP_AXES, ViewSplats, axis_normal, clip_mask, view_scale, view_splats
+from cubecloud_cli.view.splats import (
+    CLIP_AXES,
+    ViewSplats,
+    axis_normal,
+    by_importance,
+    clip_mask,
+    detail_count,
+    detail_percent,
+    view_scale,
+    view_splats,
+)
 
 log = logging.getLogger("cubecloud")
 
@@ -97,13 +108,20 @@ class SceneViewer:
     """A running viewer of one work directory: the Gaussians of a run, and around them the scan's
     slices, the Cube-Cloud points and the export's cameras, each behind its own toggle."""
 
-    def __init__(self, work: Path, host: str = "127.0.0.1", port: int = 8080, run: str | None = None):
+    def __init__(
+        self, work: Path, host: str = "127.0.0.1", port: int = 8080, run: str | None = None, detail: float = 100.0
+    ):
+        if not (math.isfinite(detail) and 1.0 <= detail <= 100.0):
+            raise CubecloudError(
+                f"--detail {detail:g} must be a percent from 1 to 100 (e.g. 10 for a browser without a GPU)"
+            )
         self.runs = load_runs(work)
         if run is not None and run not in self.runs:
             raise CubecloudError(f"{work} has no finished run {run!r}: choose one of {', '.join(self.runs)}")
         self.current = run or next(iter(self.runs))
-        self.splats = view_splats(read_gaussians_ply(self.runs[self.current]))
+        self.splats = by_importance(view_splats(read_gaussians_ply(self.runs[self.current])))
         self.scale = view_scale(self.splats.covariances)
+        self.detail = detail_percent(detail)
         self.clip = Clip()
         self.context = load_context(work)
         for line in self.context.left_out:
@@ -130,8 +148,16 @@ class SceneViewer:
 
     def select_run(self, name: str) -> None:
         self.current = name
-        self.splats = view_splats(read_gaussians_ply(self.runs[name]))
+        self.splats = by_importance(view_splats(read_gaussians_ply(self.runs[name])))
         self._draw()
+
+    def set_detail(self, percent: float) -> None:
+        """Draw the ``percent`` of the Gaussians that shape the picture most (see by_importance)."""
+        percent = detail_percent(percent)
+        if percent != self.detail:
+            self.detail = percent
+            self._draw()
+        self._sync_controls(detail=percent)
 
     def set_clip(self, axis: str, position: float | None = None, keep: str | None = None) -> None:
         """Move the clipping plane (from the page or from Python); the page's controls follow."""
@@ -188,8 +214,12 @@ class SceneViewer:
         """Put ``client`` (every connected one when None) where export camera ``index`` stands."""
         self._look(client, camera_view(self.context.cameras, index).scaled(self.scale))
 
+    def drawn_splats(self) -> ViewSplats:
+        """The Gaussians on the page: the detail's share, less those beyond the clipping plane."""
+        return visible_splats(self.splats.subset(slice(0, detail_count(len(self.splats), self.detail))), self.clip)
+
     def visible_count(self) -> int:
-        return len(visible_splats(self.splats, self.clip))
+        return len(self.drawn_splats())
 
     def stop(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):  # viser's own "Server stopped"
@@ -212,7 +242,7 @@ class SceneViewer:
                     each.camera.fov = pose.fov
 
     def _draw(self) -> None:
-        shown = visible_splats(self.splats, self.clip).scaled(self.scale)
+        shown = self.drawn_splats().scaled(self.scale)
         visible = self._nodes["splats"].visible if "splats" in self._nodes else True
         self._nodes["splats"] = self.server.scene.add_gaussian_splats(
             "/splats", shown.centers, shown.covariances, shown.rgbs, shown.opacities, visible=visible
@@ -280,7 +310,11 @@ class SceneViewer:
         run.on_update(lambda _: self.select_run(run.value))
         splats = gui.add_checkbox("Gaussians", initial_value=True, hint="Show the trained Gaussians")
         splats.on_update(lambda _: self.show_splats(splats.value))
-        self._controls["splats"] = splats
+        detail = gui.add_slider("Detail (%)", min=1, max=100, step=1, initial_value=self.detail,
+                                hint="Share of the Gaussians drawn, those that shape the picture most first: "
+                                     "lower it where the browser has no GPU")  # fmt: skip
+        detail.on_update(lambda _: self.set_detail(detail.value))
+        self._controls.update(splats=splats, detail=detail)
         reset = gui.add_button("Reset view", hint="Back to the export's first view")
         reset.on_click(lambda event: self.reset_view(event.client))
         self._add_clip_controls()

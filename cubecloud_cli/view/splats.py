@@ -97,3 +97,32 @@ def axis_normal(axis: str) -> np.ndarray:
     normal = np.zeros(3)
     normal[CLIP_AXES[axis]] = 1.0
     return normal
+
+
+def importance_order(splats: ViewSplats) -> np.ndarray:
+    """Indices of the Gaussians, the one that shapes a picture most first: opacity × mean variance
+    (how much of the image a Gaussian covers, times how much it hides there), so that drawing the
+    first k gives the best picture k Gaussians can. Non-finite weights go last; ties keep their order."""
+    variance = np.trace(splats.covariances.astype(np.float64), axis1=1, axis2=2) / 3.0
+    weight = splats.opacities[:, 0].astype(np.float64) * variance
+    weight = np.where(np.isfinite(weight), weight, -np.inf)
+    return np.argsort(-weight, kind="stable")
+
+
+def by_importance(splats: ViewSplats) -> ViewSplats:
+    """The same Gaussians in ``importance_order``."""
+    return splats.subset(importance_order(splats))
+
+
+def detail_percent(percent: float) -> float:
+    """A detail setting as the viewer uses it: 1 to 100 %, NaN as 100."""
+    return 100.0 if math.isnan(percent) else min(max(float(percent), 1.0), 100.0)
+
+
+def detail_count(total: int, percent: float) -> int:
+    """How many Gaussians ``percent`` of ``total`` draws: at least one of a non-empty scene, at
+    most all of them (NaN draws all)."""
+    if total <= 0:
+        return 0
+    share = 1.0 if math.isnan(percent) else min(max(float(percent), 0.0), 100.0) / 100.0
+    return min(total, max(1, math.ceil(total * share)))
