@@ -194,12 +194,12 @@ def test_folder_without_dicom(tmp_path):
         read_scan(tmp_path / "empty")
 
 
-def test_duplicate_slice_positions_are_refused(tmp_path):
+def test_many_slices_at_taken_positions_are_two_series_mixed_and_refused(tmp_path):
     folder = _write_dicom_series(tmp_path / "series", body_phantom((8, 8, 3)).astype(np.float32))
     import shutil
 
     shutil.copy(folder / "IMG0000", folder / "COPY")
-    with pytest.raises(CubecloudError, match="same position"):
+    with pytest.raises(CubecloudError, match="1 slices at positions already taken: it mixes series or repeats files"):
         read_scan(folder)
 
 

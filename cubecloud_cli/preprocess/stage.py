@@ -161,6 +161,7 @@ def describe_source(scan: Scan, scan_path: Path, replaced: int) -> dict:
         "affine": scan.affine,
         "value_range": source_range,
         "nonfinite_replaced": replaced,
+        **({"acquisition": scan.acquisition} if scan.acquisition else {}),
     }
 
 
@@ -180,7 +181,9 @@ def normalize_in_ras(scan: Scan, intensity: IntensityMap) -> Scan:
     """The scan with its axes flipped and permuted to RAS (the affine follows, so every voxel keeps
     its scanner position) and its values mapped to [0, 1] in place."""
     data, affine = reorient_to_ras(scan.data, scan.affine)
-    return Scan(intensity.apply(data, inplace=True), affine, scan.source_format, scan.modality, scan.notes)
+    return Scan(
+        intensity.apply(data, inplace=True), affine, scan.source_format, scan.modality, scan.notes, scan.acquisition
+    )
 
 
 def resample_to_cube(scan: Scan, settings: PreprocessSettings) -> tuple[CubeFrame, np.ndarray]:

@@ -27,6 +27,7 @@ class Scan:
     source_format: str
     modality: str | None = None  # "ct" or "mr" when the file says so, else None
     notes: list[str] = field(default_factory=list)
+    acquisition: dict = field(default_factory=dict)  # what the reader found of the slice geometry (DICOM)
 
     @property
     def spacing_mm(self) -> np.ndarray:

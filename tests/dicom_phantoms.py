@@ -1,0 +1,113 @@
+"""DICOM series written with pydicom from a phantom defined in scanner space, so that every pixel
+holds the phantom's value at its own position, whatever the series' geometry.
+
+The phantom (LPS millimetres): air (−1000 HU) around an ellipsoidal body of soft tissue (40 HU)
+with a dense ball (1500 HU) at MARK, and a bony bar along the table for the correlation tests.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+MARK = np.array([12.0, -8.0, 30.0])
+MARK_RADIUS = 9.0
+MARK_HU, BODY_HU, AIR_HU, BONE_HU = 1500.0, 40.0, -1000.0, 700.0
+BODY_GRADIENT = 4.0  # HU per mm along the table
+CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
+ENHANCED_CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2.1"
+
+
+def phantom_hu(points: np.ndarray) -> np.ndarray:
+    """HU at LPS points (..., 3)."""
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    values = np.full(points.shape[:-1], AIR_HU)
+    body = (x / 70.0) ** 2 + (y / 50.0) ** 2 + ((z - 30.0) / 60.0) ** 2 <= 1.0
+    values[body] = BODY_HU + BODY_GRADIENT * z[body]  # along the table: a slice placed wrongly shows
+    bar = body & ((x + 30.0) ** 2 + (y - 20.0) ** 2 <= 8.0**2)
+    values[bar] = BONE_HU
+    values[np.linalg.norm(points - MARK, axis=-1) <= MARK_RADIUS] = MARK_HU
+    return values
+
+
+def slice_geometry(z: float, tilt_deg: float, rows: int, columns: int, spacing: tuple[float, float]):
+    """Position and orientation of an axial slice acquired at table position ``z`` with the gantry
+    tilted by ``tilt_deg`` about the patient's left–right axis: the rows lean, the origin stays on
+    the table's path (as scanners write it)."""
+    angle = math.radians(tilt_deg)
+    row_direction = np.array([1.0, 0.0, 0.0])
+    column_direction = np.array([0.0, math.cos(angle), math.sin(angle)])
+    centre_offset = (columns - 1) / 2 * spacing[1] * row_direction + (rows - 1) / 2 * spacing[0] * column_direction
+    position = np.array([0.0, 0.0, z]) - centre_offset
+    return position, row_direction, column_direction
+
+
+def slice_pixels_hu(position, row_direction, column_direction, rows, columns, spacing) -> np.ndarray:
+    """The phantom sampled at each pixel centre: (rows, columns) HU."""
+    row, column = np.meshgrid(np.arange(rows), np.arange(columns), indexing="ij")
+    points = (position + column[..., None] * spacing[1] * row_direction
+              + row[..., None] * spacing[0] * column_direction)  # fmt: skip
+    return phantom_hu(points)
+
+
+def _base_dataset(sop_class: str, series_uid: str, study_uid: str):
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    meta.MediaStorageSOPClassUID = sop_class
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID = sop_class, meta.MediaStorageSOPInstanceUID
+    ds.StudyInstanceUID, ds.SeriesInstanceUID = study_uid, series_uid
+    ds.PatientName, ds.PatientID, ds.StudyDate, ds.SeriesNumber = "PHANTOM", "0", "20260101", 2
+    ds.Modality = "CT"
+    ds.FrameOfReferenceUID = generate_uid()
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
+    ds.PixelRepresentation = 1
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    return ds
+
+
+def write_series(
+    folder: Path,
+    table_positions,
+    *,
+    tilt_deg: float = 0.0,
+    rows: int = 48,
+    columns: int = 56,
+    spacing: tuple[float, float] = (3.0, 3.0),
+    thickness: float | None = None,
+    series_uid: str | None = None,
+    description: str = "phantom",
+    image_type: tuple[str, ...] = ("ORIGINAL", "PRIMARY", "AXIAL"),
+) -> Path:
+    """A classic CT series, one file per slice (in shuffled order), int16 with intercept −1024."""
+    from pydicom.uid import generate_uid
+
+    folder.mkdir(parents=True, exist_ok=True)
+    series_uid = series_uid or generate_uid()
+    study_uid = generate_uid()
+    order = np.random.default_rng(len(table_positions)).permutation(len(table_positions))
+    for number, k in enumerate(order):
+        position, row_direction, column_direction = slice_geometry(table_positions[k], tilt_deg, rows, columns, spacing)
+        ds = _base_dataset(CT_IMAGE_STORAGE, series_uid, study_uid)
+        ds.SeriesDescription = description
+        ds.ImageType = list(image_type)
+        ds.InstanceNumber, ds.AcquisitionNumber = int(number) + 1, 1
+        ds.ImagePositionPatient = [round(float(v), 6) for v in position]
+        ds.ImageOrientationPatient = [round(float(v), 8) for v in (*row_direction, *column_direction)]
+        ds.PixelSpacing = list(spacing)
+        ds.SliceThickness = thickness if thickness is not None else 2.5
+        ds.GantryDetectorTilt = tilt_deg
+        ds.Rows, ds.Columns = rows, columns
+        ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
+        hu = slice_pixels_hu(position, row_direction, column_direction, rows, columns, spacing)
+        ds.PixelData = np.round(hu + 1024).astype(np.int16).tobytes()
+        ds.save_as(folder / f"IM{number:05d}", enforce_file_format=True)
+    return folder

@@ -1,0 +1,66 @@
+"""DICOM series as scanners write them: every output voxel holds the phantom's value at its own
+scanner position, whatever the slice steps, gaps, overlaps or gantry tilt."""
+
+import numpy as np
+import pytest
+from dicom_phantoms import AIR_HU, MARK, MARK_HU, phantom_hu, write_series
+
+from cubecloud_cli.volume.dicom import LPS_TO_RAS
+from cubecloud_cli.volume.readers import read_scan
+
+
+def voxel_near(scan, lps_point) -> tuple[float, np.ndarray]:
+    """The value of the scan's voxel nearest a scanner (LPS) position, and that voxel's centre (LPS)."""
+    ras = LPS_TO_RAS @ np.append(lps_point, 1.0)
+    index = np.round(np.linalg.solve(scan.affine, ras)[:3]).astype(int)
+    assert np.all(index >= 0) and np.all(index < scan.data.shape), "the position lies outside the volume"
+    centre = (LPS_TO_RAS @ scan.affine @ np.append(index, 1.0))[:3]
+    return float(scan.data[tuple(index)]), centre
+
+
+def agreement_with_phantom(scan) -> float:
+    """Pearson r between the volume and the phantom at every voxel centre."""
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in scan.data.shape], indexing="ij"), -1).reshape(-1, 3)
+    ras = scan.affine @ np.c_[index, np.ones(len(index))].T
+    lps = (LPS_TO_RAS @ ras)[:3].T
+    return float(np.corrcoef(scan.data.reshape(-1), phantom_hu(lps))[0, 1])
+
+
+EVEN = list(np.arange(0.0, 62.6, 2.5))
+CASES = {
+    "even": dict(table_positions=EVEN),
+    "thin and thick slabs": dict(table_positions=[*np.arange(0.0, 24.0, 1.0), *np.arange(24.0, 63.0, 7.0)]),
+    "a missing slice": dict(table_positions=[z for z in EVEN if z != 30.0]),
+    "overlapping slabs": dict(table_positions=[*np.arange(0.0, 40.0, 2.5), *np.arange(33.75, 62.0, 2.5)]),
+    "gantry tilt +20°": dict(table_positions=EVEN, tilt_deg=20.0),
+    "gantry tilt −20°": dict(table_positions=EVEN, tilt_deg=-20.0),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_the_voxel_at_a_marked_scanner_position_holds_the_marked_value(case, tmp_path):
+    scan = read_scan(write_series(tmp_path / "series", **CASES[case]))
+    assert voxel_near(scan, MARK)[0] == pytest.approx(MARK_HU, abs=1.0)
+    assert voxel_near(scan, [66.0, 45.0, 30.0])[0] == pytest.approx(AIR_HU, abs=1.0)
+    # In the body the phantom is linear along the table, which interpolation reproduces: a voxel
+    # holds the value at its own centre to the HU's rounding, wherever the slices were.
+    for point in ([-20.0, 10.0, 5.0], [-40.0, -20.0, 30.0], [25.0, -15.0, 55.0]):
+        value, centre = voxel_near(scan, point)
+        assert value == pytest.approx(float(phantom_hu(centre)), abs=1.0)
+    assert agreement_with_phantom(scan) > 0.97
+
+
+def test_what_was_found_is_recorded_and_said_in_one_line(tmp_path):
+    scan = read_scan(write_series(tmp_path / "series", [z for z in EVEN if z != 30.0], tilt_deg=20.0))
+    found = scan.acquisition
+    assert found["tilt_deg"] == pytest.approx(20.0, abs=0.01) and found["gantry_detector_tilt_deg"] == 20.0
+    assert found["gaps_mm"] and found["resampled"] and found["slices"] == len(EVEN) - 1
+    [notice] = [note for note in scan.notes if "resampled" in note]
+    assert "gantry tilt 20.0°" in notice and "gap" in notice and "\n" not in notice
+
+
+def test_an_even_series_is_read_as_it_is(tmp_path):
+    scan = read_scan(write_series(tmp_path / "series", EVEN))
+    assert scan.data.shape == (56, 48, len(EVEN)) and not scan.acquisition["resampled"]
+    assert not [note for note in scan.notes if "resampled" in note]
+    assert np.allclose(scan.spacing_mm, [3.0, 3.0, 2.5])
