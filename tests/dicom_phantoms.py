@@ -109,5 +109,61 @@ def write_series(
         ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
         hu = slice_pixels_hu(position, row_direction, column_direction, rows, columns, spacing)
         ds.PixelData = np.round(hu + 1024).astype(np.int16).tobytes()
-        ds.save_as(folder / f"IM{number:05d}", enforce_file_format=True)
+        ds.save_as(folder / f"IM{series_uid[-4:]}{number:05d}", enforce_file_format=True)  # series may share a folder
     return folder
+
+
+def _item(**tags):
+    from pydicom.dataset import Dataset
+
+    item = Dataset()
+    for name, value in tags.items():
+        setattr(item, name, value)
+    return item
+
+
+def write_enhanced(
+    path: Path,
+    table_positions,
+    *,
+    tilt_deg: float = 0.0,
+    rows: int = 48,
+    columns: int = 56,
+    spacing: tuple[float, float] = (3.0, 3.0),
+    extra_stack: str | None = None,
+) -> Path:
+    """An enhanced CT file: one frame per table position, each frame's position, orientation,
+    pixel spacing and rescale in its own functional groups (odd frames stored at half scale with
+    slope 2, so a reader that ignores the per-frame rescale is caught). ``extra_stack="coronal"``
+    appends frames of a second orientation, as some scanners put several reconstructions in one file."""
+    from pydicom.sequence import Sequence
+    from pydicom.uid import generate_uid
+
+    ds = _base_dataset(ENHANCED_CT_IMAGE_STORAGE, generate_uid(), generate_uid())
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "VOLUME", "NONE"]
+    ds.Rows, ds.Columns = rows, columns
+    ds.SharedFunctionalGroupsSequence = Sequence([_item(CTExposureSequence=Sequence([_item(CTDIvol=10.0)]))])
+    frames, pixels = [], []
+    geometries = [slice_geometry(z, tilt_deg, rows, columns, spacing) for z in table_positions]
+    if extra_stack == "coronal":
+        for y in (-10.0, 0.0, 10.0):
+            geometries.append((np.array([-80.0, y, -20.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])))
+    for number, (position, row_direction, column_direction) in enumerate(geometries):
+        slope, intercept = (2.0, -1024.0) if number % 2 else (1.0, -1024.0)
+        hu = slice_pixels_hu(position, row_direction, column_direction, rows, columns, spacing)
+        pixels.append(np.round((hu - intercept) / slope).astype(np.int16))
+        frames.append(_item(
+            PlanePositionSequence=Sequence([_item(ImagePositionPatient=[round(float(v), 6) for v in position])]),
+            PlaneOrientationSequence=Sequence([_item(ImageOrientationPatient=[
+                round(float(v), 8) for v in (*row_direction, *column_direction)])]),
+            PixelMeasuresSequence=Sequence([_item(PixelSpacing=list(spacing), SliceThickness=2.5)]),
+            PixelValueTransformationSequence=Sequence([_item(RescaleSlope=slope, RescaleIntercept=intercept,
+                                                             RescaleType="HU")]),
+            FrameContentSequence=Sequence([_item(InStackPositionNumber=number + 1)]),
+        ))  # fmt: skip
+    ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
+    ds.NumberOfFrames = len(frames)
+    ds.PixelData = np.stack(pixels).tobytes()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ds.save_as(path, enforce_file_format=True)
+    return path

@@ -3,8 +3,10 @@ scanner position, whatever the slice steps, gaps, overlaps or gantry tilt."""
 
 import numpy as np
 import pytest
-from dicom_phantoms import AIR_HU, MARK, MARK_HU, phantom_hu, write_series
+from dicom_phantoms import AIR_HU, MARK, MARK_HU, phantom_hu, write_enhanced, write_series
+from pydicom.uid import generate_uid
 
+from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.volume.dicom import LPS_TO_RAS
 from cubecloud_cli.volume.readers import read_scan
 
@@ -64,3 +66,64 @@ def test_an_even_series_is_read_as_it_is(tmp_path):
     assert scan.data.shape == (56, 48, len(EVEN)) and not scan.acquisition["resampled"]
     assert not [note for note in scan.notes if "resampled" in note]
     assert np.allclose(scan.spacing_mm, [3.0, 3.0, 2.5])
+
+
+def assert_holds_the_phantom(scan):
+    assert voxel_near(scan, MARK)[0] == pytest.approx(MARK_HU, abs=1.0)
+    assert voxel_near(scan, [66.0, 45.0, 30.0])[0] == pytest.approx(AIR_HU, abs=1.0)
+    for point in ([-20.0, 10.0, 5.0], [-40.0, -20.0, 30.0], [25.0, -15.0, 55.0]):
+        value, centre = voxel_near(scan, point)
+        assert value == pytest.approx(float(phantom_hu(centre)), abs=1.0)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 20.0])
+def test_an_enhanced_multiframe_file_is_read_with_its_per_frame_geometry_and_rescale(tilt, tmp_path):
+    path = write_enhanced(tmp_path / "enhanced.dcm", [z for z in EVEN if z != 30.0], tilt_deg=tilt)
+    for source in (path, path.parent):  # the file itself, or its folder
+        scan = read_scan(source)
+        assert_holds_the_phantom(scan)
+        assert scan.acquisition["enhanced_multiframe"] and scan.source_format.startswith("DICOM enhanced")
+        assert scan.acquisition["tilt_deg"] == pytest.approx(tilt, abs=0.01)
+
+
+def test_an_enhanced_file_with_several_stacks_is_refused_naming_them(tmp_path):
+    path = write_enhanced(tmp_path / "enhanced.dcm", EVEN, extra_stack="coronal")
+    with pytest.raises(CubecloudError, match=r"holds 2 stacks .*: axial \(26 frames\), coronal \(3 frames\)"):
+        read_scan(path)
+
+
+def test_a_folder_with_a_localizer_and_two_series_reads_the_largest_axial_one_and_says_so(tmp_path):
+    folder = tmp_path / "study"
+    main_uid, short_uid = generate_uid(), generate_uid()
+    write_series(folder, EVEN, series_uid=main_uid, description="abdomen")
+    write_series(folder, [20.0, 25.0, 30.0], series_uid=short_uid, description="short", rows=40, columns=40)
+    write_localizer(folder)
+    scan = read_scan(folder)
+    assert scan.data.shape[2] == len(EVEN) and scan.acquisition["series_uid"] == main_uid
+    [note] = [note for note in scan.notes if "stacks" in note]
+    assert f"reading {main_uid} (26 images, axial, 'abdomen')" in note and "localizer" in note and "--series" in note
+
+    short = read_scan(folder, series_uid=short_uid)
+    assert short.data.shape[2] == 3 and short.acquisition["series_uid"] == short_uid
+    with pytest.raises(CubecloudError, match=r"--series 1\.2\.3 is not in .* which holds .*abdomen"):
+        read_scan(folder, series_uid="1.2.3")
+    (tmp_path / "scan.nii.gz").touch()
+    with pytest.raises(CubecloudError, match="--series picks a DICOM series"):
+        read_scan(tmp_path / "scan.nii.gz", series_uid=main_uid)
+
+
+def write_localizer(folder):
+    """Two coronal scout images, marked LOCALIZER as scanners mark them."""
+    from dicom_phantoms import CT_IMAGE_STORAGE, _base_dataset
+
+    uid = generate_uid()
+    for number, y in enumerate((0.0, 5.0)):
+        ds = _base_dataset(CT_IMAGE_STORAGE, uid, generate_uid())
+        ds.ImageType = ["ORIGINAL", "PRIMARY", "LOCALIZER"]
+        ds.ImagePositionPatient = [-100.0, y, 100.0]
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 0, -1]
+        ds.PixelSpacing = [2.0, 2.0]
+        ds.Rows = ds.Columns = 64
+        ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
+        ds.PixelData = np.zeros((64, 64), np.int16).tobytes()
+        ds.save_as(folder / f"SCOUT{number}", enforce_file_format=True)

@@ -128,6 +128,7 @@ PercentilesOption = Annotated[Optional[str], settings_option(PreprocessSettings,
 InterpolationOption = Annotated[Optional[Interpolation], settings_option(PreprocessSettings, "interpolation")]
 SpacingOption = Annotated[Optional[str], settings_option(PreprocessSettings, "spacing")]
 VolumeIndexOption = Annotated[Optional[int], settings_option(PreprocessSettings, "volume_index")]
+SeriesOption = Annotated[Optional[str], settings_option(PreprocessSettings, "series")]
 
 
 def preprocess_settings(preset: str, *, percentiles: str | None, spacing: str | None, **options) -> PreprocessSettings:

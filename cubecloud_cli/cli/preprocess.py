@@ -16,6 +16,7 @@ from cubecloud_cli.cli.common import (
     PresetOption,
     QuietOption,
     ScanArgument,
+    SeriesOption,
     SizeOption,
     SpacingOption,
     VolumeIndexOption,
@@ -48,6 +49,7 @@ def preprocess_command(
     interpolation: InterpolationOption = None,
     spacing: SpacingOption = None,
     volume_index: VolumeIndexOption = None,
+    series: SeriesOption = None,
     force: ForceOption = False,
     quiet: QuietOption = False,
 ) -> None:
@@ -78,6 +80,7 @@ def preprocess_command(
         interpolation=interpolation,
         spacing=spacing,
         volume_index=volume_index,
+        series=series,
     )
     with stage_bar("preprocess") as on_progress:
         manifest = preprocess_scan(scan_or_sample(scan), output, settings, force=force, on_progress=on_progress)

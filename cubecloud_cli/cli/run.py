@@ -21,6 +21,7 @@ from cubecloud_cli.cli.common import (
     QuietOption,
     ResolutionOption,
     ScanArgument,
+    SeriesOption,
     SizeOption,
     SpacingOption,
     ThreadsOption,
@@ -66,6 +67,7 @@ def run_command(
     interpolation: InterpolationOption = None,
     spacing: SpacingOption = None,
     volume_index: VolumeIndexOption = None,
+    series: SeriesOption = None,
     cunerf_iterations: Annotated[
         Optional[int], settings_option(CunerfSettings, "iterations", "--cunerf-iterations")
     ] = None,
@@ -103,6 +105,7 @@ def run_command(
         interpolation=interpolation,
         spacing=spacing,
         volume_index=volume_index,
+        series=series,
     )
     cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})

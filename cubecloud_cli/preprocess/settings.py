@@ -45,6 +45,8 @@ class PreprocessSettings:
     """Voxel size X,Y,Z in mm: required for .npy (axes in RAS order), overrides a wrong header otherwise."""
     volume_index: int | None = None
     """Which volume of a 4D file to use (0-based)."""
+    series: str | None = None
+    """DICOM: the SeriesInstanceUID to read from a folder holding several (default: the largest axial one)."""
 
     def validate(self) -> None:
         if not MIN_SIZE <= self.size <= MAX_SIZE:

@@ -96,7 +96,9 @@ def preprocess_scan(
         costs = phase_costs(0, settings.size)
         on_phase("read", costs, 0.0)
         with writer.phase("read"):
-            scan = read_scan(scan_path, spacing_mm=settings.spacing, volume_index=settings.volume_index)
+            scan = read_scan(
+                scan_path, spacing_mm=settings.spacing, volume_index=settings.volume_index, series_uid=settings.series
+            )
             writer.add_input(Path(scan_path), label=str(scan_path))
         costs = phase_costs(scan.data.size, settings.size)
         for note in scan.notes:

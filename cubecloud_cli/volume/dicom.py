@@ -10,102 +10,34 @@ other is resampled onto a regular grid and the notice says what was found.
 
 from __future__ import annotations
 
-from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.volume.dicom_images import DicomImage, PixelReader, read_images
+from cubecloud_cli.volume.dicom_series import choose_stack, group_stacks
 from cubecloud_cli.volume.scan import Scan
-from cubecloud_cli.volume.slice_stack import PlacedSlice, StackPlan, plan_stack, resample_stack
+from cubecloud_cli.volume.slice_stack import StackPlan, plan_stack, resample_stack
 
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
-GEOMETRY_TAGS = ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing")
-
-
-@dataclass
-class DicomImage:
-    """One 2D image of a series: its file, where it lies, and how its stored values map to physical ones."""
-
-    path: Path
-    header: object  # the pydicom Dataset without pixels
-    placed: PlacedSlice
-    slope: float
-    intercept: float
-
-
-def _read_headers(folder: Path) -> list[tuple[Path, object]]:
-    import pydicom
-    from pydicom.errors import InvalidDicomError
-
-    headers = []
-    for path in sorted(p for p in folder.iterdir() if p.is_file()):
-        try:
-            header = pydicom.dcmread(path, stop_before_pixels=True)
-        except (InvalidDicomError, OSError, ValueError, EOFError):
-            continue
-        if "PixelSpacing" in header or "ImagePositionPatient" in header or "Rows" in header:
-            headers.append((path, header))
-    return headers
-
-
-def _series_key(header) -> tuple:
-    # The UIDs may be empty (as in anonymised exports), so geometry also separates series.
-    orientation = tuple(np.round(np.asarray(header.get("ImageOrientationPatient", [0] * 6), float), 4))
-    return (str(header.get("SeriesInstanceUID", "")), orientation, header.get("Rows"), header.get("Columns"))
-
-
-def _classic_image(path: Path, header) -> DicomImage:
-    for tag in GEOMETRY_TAGS:
-        if tag not in header:
-            raise CubecloudError(
-                f"{path} lacks {tag}, so the slices cannot be placed in space: "
-                f"convert the series with a tool that knows its geometry"
-            )
-    orientation = np.asarray(header.ImageOrientationPatient, dtype=float)
-    row_spacing, column_spacing = (float(v) for v in header.PixelSpacing)
-    placed = PlacedSlice(
-        np.asarray(header.ImagePositionPatient, dtype=float), orientation[:3], orientation[3:],
-        row_spacing, column_spacing, int(header.Rows), int(header.Columns),
-    )  # fmt: skip
-    slope = float(header.get("RescaleSlope", 1) or 1)
-    intercept = float(header.get("RescaleIntercept", 0) or 0)
-    return DicomImage(path, header, placed, slope, intercept)
 
 
 def _check_geometry(images: list[DicomImage]) -> None:
     for image in images:
+        if image.placed is None:
+            raise CubecloudError(
+                f"{image.where} lacks {image.missing}, so the slices cannot be placed in space: "
+                f"convert the series with a tool that knows its geometry"
+            )
         s = image.placed
         values = np.concatenate([s.position, s.row_direction, s.column_direction, [s.row_spacing, s.column_spacing]])
         directions_ok = all(abs(np.linalg.norm(d) - 1.0) < 0.01 for d in (s.row_direction, s.column_direction))
         if not np.all(np.isfinite(values)) or not directions_ok or min(s.row_spacing, s.column_spacing) <= 0:
             raise CubecloudError(
-                f"{image.path} has a broken position, orientation or pixel spacing: the header is corrupt; "
+                f"{image.where} has a broken position, orientation or pixel spacing: the header is corrupt; "
                 f"export the series again"
             )
-
-
-def _pixels(image: DicomImage) -> np.ndarray:
-    """The image's physical values as (columns, rows) float32, rescaled in float: uint16 pixels
-    with intercept −1024 (or int16 with a large slope) overflow their own dtype."""
-    import pydicom
-
-    try:
-        dataset = pydicom.dcmread(image.path)
-    except Exception as exc:
-        raise CubecloudError(f"cannot read {image.path} ({exc}): the file is corrupt or truncated") from None
-    try:
-        pixels = dataset.pixel_array
-    except Exception as exc:  # decoder plugins raise many types; all mean "cannot decode"
-        syntax = dataset.file_meta.get("TransferSyntaxUID", "unknown")
-        raise CubecloudError(
-            f"cannot decode the pixels of {image.path} (transfer syntax {syntax}: {exc}); "
-            f"install a decoder, e.g. `pip install python-gdcm`"
-        ) from None
-    if pixels.shape != (image.placed.rows, image.placed.columns):
-        raise CubecloudError(f"{image.path} has a different image size from the rest of its series")
-    return (pixels.astype(np.float32) * image.slope + image.intercept).T
 
 
 def _notice(plan: StackPlan) -> str:
@@ -125,65 +57,79 @@ def _notice(plan: StackPlan) -> str:
     return f"{', '.join(found)}: resampled from each slice's own position onto a {grid} mm grid"
 
 
-def read_dicom_series(folder: Path) -> Scan:
-    """Read the largest series in ``folder`` as a Scan in RAS+ scanner millimetres."""
-    headers = _read_headers(folder)
-    if not headers:
+def read_dicom_series(source: Path, series_uid: str | None = None) -> Scan:
+    """Read a series as a Scan in RAS+ scanner millimetres: from a folder (the largest axial-like
+    stack, or the series ``series_uid``), or from one enhanced multi-frame file."""
+    source = Path(source)
+    paths = sorted(p for p in source.iterdir() if p.is_file()) if source.is_dir() else [source]
+    images = read_images(paths)
+    if not images:
         raise CubecloudError(
-            f"{folder} holds no DICOM image files: point SCAN at a DICOM series folder, "
+            f"{source} holds no DICOM image files: point SCAN at a DICOM series folder, "
             f"a NIfTI (.nii/.nii.gz), NRRD (.nrrd) or .npy file"
         )
-    groups: dict[tuple, list] = defaultdict(list)
-    for path, header in headers:
-        groups[_series_key(header)].append((path, header))
-    series = max(groups.values(), key=len)
-    notes = []
-    if len(groups) > 1:
-        notes.append(f"{folder} holds {len(groups)} series; using the largest ({len(series)} slices)")
-    first = series[0][1]
-    if int(first.get("NumberOfFrames", 1) or 1) > 1:
-        raise CubecloudError(
-            f"{series[0][0]} is a multi-frame (enhanced) DICOM, which cubecloud does not read yet: "
-            f"convert it to NIfTI first (for example with dcm2niix)"
-        )
-    if len(series) < 2:
-        raise CubecloudError(f"{folder} holds a single DICOM slice; cubecloud needs a 3D series of at least 2 slices")
-    images = [_classic_image(path, header) for path, header in series]
-    _check_geometry(images)
-    return _stack_scan(images, first, notes)
+    stack, note = choose_stack(group_stacks(images), series_uid, source)
+    if len(stack.images) < 2:
+        raise CubecloudError(f"{source} holds a single DICOM image; cubecloud needs a 3D series of at least 2 slices")
+    _check_geometry(stack.images)
+    return _stack_scan(stack.images, source, [note] if note else [])
 
 
-def _stack_scan(images: list[DicomImage], first, notes: list[str]) -> Scan:
+def read_dicom_file(path: Path, series_uid: str | None = None) -> Scan:
+    """One DICOM file named as the scan: an enhanced file is the series; a classic one is read
+    with the rest of its series from its folder."""
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    try:
+        header = pydicom.dcmread(path, stop_before_pixels=True)
+    except (InvalidDicomError, OSError, ValueError, EOFError) as exc:
+        raise CubecloudError(f"cannot read {path} as DICOM ({exc}): the file is corrupt or not DICOM") from None
+    if int(header.get("NumberOfFrames", 1) or 1) > 1:
+        return read_dicom_series(path, series_uid)
+    scan = read_dicom_series(path.parent, series_uid or str(header.get("SeriesInstanceUID", "")) or None)
+    scan.notes.append(f"{path} is one file: read its series from the folder {path.parent}")
+    return scan
+
+
+def _stack_scan(images: list[DicomImage], source: Path, notes: list[str]) -> Scan:
     slices = [image.placed for image in images]
     try:
         plan = plan_stack(slices)
     except ValueError:
         raise CubecloudError(
-            f"every slice of {images[0].path.parent} lies at the same position: it holds one slice repeated, "
-            f"not a 3D series"
+            f"every slice of {source} lies at the same position: it holds one slice repeated, not a 3D series"
         ) from None
     shared = plan.describe()["shared_positions"]
     if shared > len(plan.positions) // 4:
         raise CubecloudError(
-            f"{images[0].path.parent} has {shared} slices at positions already taken: it mixes series "
+            f"{source} has {shared} slices at positions already taken: it mixes series "
             f"or repeats files; keep one series per folder"
         )
+    pixels = PixelReader()
     if plan.regular:
         volume = np.empty(plan.shape, dtype=np.float32)
         for k, group in enumerate(plan.positions):
-            volume[:, :, k] = _pixels(images[group[0]])
+            volume[:, :, k] = pixels(images[group[0]])
     else:
         notes.append(_notice(plan))
-        volume = resample_stack(lambda i: _pixels(images[i]), slices, plan, fill=np.nan)
+        volume = resample_stack(lambda i: pixels(images[i]), slices, plan, fill=np.nan)
         outside = np.isnan(volume)
         if outside.any():  # beyond a slice's footprint (a tilted or shifted slab): air
             volume[outside] = np.nanmin(volume) if not outside.all() else 0.0
-    acquisition = {**plan.describe(), "gantry_detector_tilt_deg": _float_or_none(first.get("GantryDetectorTilt"))}
+    first = images[0].header
+    enhanced = images[0].frame is not None
+    acquisition = {
+        **plan.describe(),
+        "series_uid": images[0].series_uid,
+        "enhanced_multiframe": enhanced,
+        "gantry_detector_tilt_deg": _float_or_none(first.get("GantryDetectorTilt")),
+    }
     modality = str(first.get("Modality", "")).lower()
     return Scan(
         data=volume,
         affine=LPS_TO_RAS @ plan.affine(),
-        source_format=f"DICOM series ({len(images)} slices)",
+        source_format=f"DICOM {'enhanced multi-frame ' if enhanced else ''}series ({len(images)} slices)",
         modality=modality if modality in ("ct", "mr") else None,
         notes=notes,
         acquisition=acquisition,

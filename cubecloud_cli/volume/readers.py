@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.volume.dicom import read_dicom_series
+from cubecloud_cli.volume.dicom import read_dicom_file, read_dicom_series
 from cubecloud_cli.volume.scan import (
     Scan,
     check_affine,
@@ -36,6 +36,7 @@ _NRRD_SPACE_TO_RAS = {
     "3d-right-handed": (1, 1, 1),
 }
 
+DICOM_SUFFIXES = ("", ".dcm", ".ima")
 SUPPORTED = "NIfTI (.nii, .nii.gz), a DICOM series folder, NRRD (.nrrd) or .npy with --spacing"
 
 
@@ -45,6 +46,16 @@ def _suffix(path: Path) -> str:
         if name.endswith(suffix):
             return suffix
     return path.suffix.lower()
+
+
+def is_dicom_file(path: Path) -> bool:
+    """Whether the file has DICOM's "DICM" marker after its 128-byte preamble (files named by their
+    UID, 1.2.840.….dcm-less, have a numeric "suffix")."""
+    try:
+        with open(path, "rb") as file:
+            return file.read(132)[128:] == b"DICM"
+    except OSError:
+        return False
 
 
 def read_nifti(path: Path, volume_index: int | None) -> Scan:
@@ -135,17 +146,20 @@ def read_scan(
     *,
     spacing_mm: tuple[float, float, float] | None = None,
     volume_index: int | None = None,
+    series_uid: str | None = None,
 ) -> Scan:
     """Read a scan from a file or DICOM folder, validate its geometry, return it in RAS mm.
 
     ``spacing_mm`` replaces the header's voxel size (and is required for .npy); the axis
-    directions and origin of the header are kept.
+    directions and origin of the header are kept. ``series_uid`` picks a DICOM series.
     """
     path = Path(path)
     if not path.exists():
         raise CubecloudError(f"{path} does not exist: check the path (expected {SUPPORTED})")
+    if series_uid is not None and not (path.is_dir() or _suffix(path) in DICOM_SUFFIXES or is_dicom_file(path)):
+        raise CubecloudError(f"--series picks a DICOM series, but {path} is not DICOM: leave it out")
     if path.is_dir():
-        scan = read_dicom_series(path)
+        scan = read_dicom_series(path, series_uid)
         if volume_index not in (None, 0):
             raise CubecloudError(f"--volume-index {volume_index} given, but a DICOM series holds one volume")
     else:
@@ -156,9 +170,8 @@ def read_scan(
             scan = read_nrrd(path, volume_index)
         elif suffix == ".npy":
             scan = read_npy(path, volume_index, spacing_mm)
-        elif suffix in ("", ".dcm", ".ima"):
-            scan = read_dicom_series(path.parent)
-            scan.notes.append(f"{path} is one file: read the series in its folder {path.parent}")
+        elif suffix in DICOM_SUFFIXES or is_dicom_file(path):
+            scan = read_dicom_file(path, series_uid)
         else:
             raise CubecloudError(f"{path} has an unknown file type {suffix!r}: cubecloud reads {SUPPORTED}")
     if not scan.data.flags.writeable:
