@@ -127,3 +127,15 @@ def write_localizer(folder):
         ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
         ds.PixelData = np.zeros((64, 64), np.int16).tobytes()
         ds.save_as(folder / f"SCOUT{number}", enforce_file_format=True)
+
+
+def test_the_command_line_takes_series_and_names_a_wrong_one_in_one_line(tmp_path):
+    from cli_helpers import assert_one_line_error, invoke
+
+    uid = generate_uid()
+    folder = write_series(tmp_path / "series", EVEN, series_uid=uid)
+    result = invoke("preprocess", folder, "-o", tmp_path / "work", "--size", "32", "--series", uid, "-q")
+    assert result.exit_code == 0, result.output
+    error = assert_one_line_error(invoke("preprocess", folder, "-o", tmp_path / "other", "--series", "9.9"),
+                                  r"--series 9\.9 is not in .*, which holds")  # fmt: skip
+    assert uid in error and not (tmp_path / "other").exists()

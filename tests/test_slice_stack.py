@@ -57,7 +57,7 @@ def assert_holds_the_field(plan, volume):
     points, index = voxel_positions(plan)
     values = volume[index[:, 0], index[:, 1], index[:, 2]]
     inside = np.isfinite(values)  # outside a slice's footprint the fill (NaN) shows
-    assert inside.mean() > 0.3
+    assert inside.sum() >= 60  # at least a slice's worth of voxels lies inside the footprints
     assert np.allclose(values[inside], field(points[inside]), atol=1e-3)
 
 
@@ -120,3 +120,11 @@ def test_any_acquisition_holds_the_value_of_each_voxels_position(steps, tilt, sh
 def test_fewer_than_two_positions_is_refused():
     with pytest.raises(ValueError, match="fewer than two distinct positions"):
         plan_stack(tilted_stack([3.0, 3.0]))
+
+
+def test_slabs_of_different_pixel_spacing_and_size_share_one_grid():
+    fine = tilted_stack([0.0, 1.5, 3.0], rows=16, columns=14, spacing=(0.6, 0.5))
+    coarse = tilted_stack([6.0, 9.0], rows=10, columns=9, spacing=(0.9, 0.8), shift=(0.3, -0.2))
+    plan, volume = resampled(fine + coarse)
+    assert np.allclose(plan.spacing[:2], [0.5, 0.6])  # the median column and row spacing
+    assert_holds_the_field(plan, volume)
