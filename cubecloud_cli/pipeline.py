@@ -198,7 +198,8 @@ def run_stages(
     outcomes: dict[str, StageOutcome] = {}
     for stage in stages:
         start = time.perf_counter()
-        upstream_ran = force or any(outcomes[name].status != "skipped" for name in stage.upstream)
+        # An upstream stage not in this run (a single --stage) was checked to be current.
+        upstream_ran = force or any(name in outcomes and outcomes[name].status != "skipped" for name in stage.upstream)
         if not upstream_ran and stage.is_current():
             outcomes[stage.folder] = StageOutcome(stage.folder, "skipped", 0.0)
         else:
@@ -209,6 +210,21 @@ def run_stages(
             outcomes[stage.folder] = StageOutcome(stage.folder, status, time.perf_counter() - start)
         on_stage(outcomes[stage.folder])
     return list(outcomes.values())
+
+
+def only_stage(stages: list[PipelineStage], folder: str) -> list[PipelineStage]:
+    """The one stage ``folder`` of the table, once every stage it reads from is complete and
+    current: what a workflow engine runs as one job."""
+    by_folder = {stage.folder: stage for stage in stages}
+    if folder not in by_folder:
+        raise CubecloudError(f"--stage {folder!r} must be one of {', '.join(by_folder)}")
+    for upstream in by_folder[folder].upstream:
+        if not by_folder[upstream].is_current():
+            raise CubecloudError(
+                f"stage {folder} reads {upstream}, which is missing, unfinished or made with other settings: "
+                f"run `--stage {upstream}` first"
+            )
+    return [by_folder[folder]]
 
 
 def run_pipeline(

@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 import typer
 
 from cubecloud_cli import __version__
+from cubecloud_cli.cli.cohort import cohort_command
 from cubecloud_cli.cli.cunerf import cunerf_command
 from cubecloud_cli.cli.eval import eval_command
 from cubecloud_cli.cli.export import export_command
@@ -53,6 +54,7 @@ app.command("splat")(splat_command)
 app.command("eval")(eval_command)
 app.command("run")(run_command)
 app.command("view")(view_command)
+app.command("cohort")(cohort_command)
 
 
 def main() -> None:

@@ -7,6 +7,8 @@ import logging
 from pathlib import Path
 from typing import Annotated, Optional
 
+import typer
+
 from cubecloud_cli.artifacts import read_manifest
 from cubecloud_cli.cli.common import (
     DeviceOption,
@@ -45,7 +47,7 @@ from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.eval.report import table_rows
 from cubecloud_cli.export import ExportSettings
-from cubecloud_cli.pipeline import run_stages, stage_table
+from cubecloud_cli.pipeline import only_stage, run_stages, stage_table
 from cubecloud_cli.presets import DEFAULT_PRESET
 from cubecloud_cli.splat.settings import SplatSettings
 
@@ -79,6 +81,15 @@ def run_command(
     view: ViewOption = None,
     device: DeviceOption = None,
     threads: ThreadsOption = None,
+    stage: Annotated[
+        Optional[str],
+        typer.Option(
+            "--stage",
+            help="Run only this stage (preprocess, cunerf, export, splat, splat-random or eval), once the stages "
+            "it reads are complete and current: one job of `cubecloud cohort`.",
+            show_default=False,
+        ),
+    ] = None,
     force: ForceOption = False,
     quiet: QuietOption = False,
 ) -> None:
@@ -120,7 +131,9 @@ def run_command(
         EvalSettings(),
         runtime_from_options(device, threads),
     )
-    with PipelineProgress(len(stages), "run " + " → ".join(stage.folder for stage in stages)) as display:
+    if stage is not None:
+        stages = only_stage(stages, stage)
+    with PipelineProgress(len(stages), "run " + " → ".join(s.folder for s in stages)) as display:
         outcomes = run_stages(
             stages,
             output,
@@ -128,15 +141,17 @@ def run_command(
             progress=stage_bar,
             on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
         )
-    _report(outcomes, output)
+    _report(outcomes, output, whole=stage is None)
 
 
-def _report(outcomes: list, output: Path) -> None:
+def _report(outcomes: list, output: Path, whole: bool = True) -> None:
     for outcome in outcomes:
         when = f"{outcome.seconds:7.1f} s" if outcome.status != "skipped" else "skipped (already complete)"
         note = "  (resumed from its saved work)" if outcome.status == "resumed" else ""
         log.info(f"  {outcome.stage:<12} {when}{note}")
     log.info(f"  {'total':<12} {sum(o.seconds for o in outcomes):7.1f} s   results in {output}")
+    if not whole:
+        return
     log.info(f"cunerf: {describe_metrics(read_manifest(Path(output) / 'cunerf'))}")
     log.info(f"export: {describe_export(read_manifest(Path(output) / 'export'))}")
     log.info(f"splat: {describe_splat(read_manifest(Path(output) / 'splat'))}")

@@ -1,0 +1,66 @@
+"""A cohort from its scans to its report: the scan list, the Snakemake run, the report."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from cubecloud_cli.cohort.engine import (
+    EngineOptions,
+    cohort_lock,
+    failure,
+    require_snakemake,
+    run_snakemake,
+    write_config,
+)
+from cubecloud_cli.cohort.report import scan_record, write_cohort_report
+from cubecloud_cli.cohort.scans import CohortScan, scans_from_arguments, scans_from_csv
+from cubecloud_cli.errors import CubecloudError
+
+log = logging.getLogger("cubecloud")
+
+
+def scan_list(arguments: list[Path], csv_path: Path | None) -> list[CohortScan]:
+    if arguments and csv_path is not None:
+        raise CubecloudError("give the scans either as arguments or as --scans CSV, not both")
+    return scans_from_csv(csv_path) if csv_path is not None else scans_from_arguments(arguments)
+
+
+def run_cohort(
+    scans: list[CohortScan],
+    out: Path,
+    run_options: list[str],
+    cores: int = 2,
+    executor: str | None = None,
+    profile: Path | None = None,
+    jobs: int | None = None,
+) -> Path:
+    """Run every scan's pipeline, then write OUT/cohort/. A failed scan is reported, and the
+    command ends with a one-line error naming the failures once the report is written."""
+    require_snakemake()
+    out = Path(out).resolve()
+    if profile is not None and not Path(profile).is_dir():
+        raise CubecloudError(f"--profile {profile} is not a folder: give a Snakemake profile folder (config.yaml)")
+    with cohort_lock(out):
+        config = write_config(out, scans, run_options)
+        log.info(f"cohort of {len(scans)} scans in {out}: {len(scans) * 6} jobs on Snakemake")
+        code = run_snakemake(out, config, EngineOptions(cores, executor, Path(profile) if profile else None, jobs))
+        records = []
+        for scan in scans:
+            finished = (out / scan.id / "eval" / "manifest.json").is_file()
+            records.append(
+                scan_record(scan.id, str(scan.scan), out / scan.id, None if finished else failure(out, scan.id))
+            )
+        setup = "Options for every scan: `" + " ".join(run_options) + "`."
+        report = write_cohort_report(out, records, setup)
+    failed = [r for r in records if r["status"] != "done"]
+    log.info(f"cohort report: {report}")
+    if failed:
+        first = failed[0]
+        raise CubecloudError(
+            f"{len(failed)} of {len(scans)} scans failed ({first['id']}: {first['error']}); "
+            f"the report lists them: {report}"
+        )
+    if code != 0:
+        raise CubecloudError(f"Snakemake stopped with exit code {code}: see its output above and {out / 'cohort'}")
+    return report

@@ -1,0 +1,105 @@
+"""`cubecloud cohort` on Snakemake: tiny scans locally, through the generic cluster executor, with a
+corrupt scan among them, and resumed after being killed mid-way."""
+
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from cli_helpers import assert_one_line_error, invoke
+
+from cubecloud_cli.sample_data import sample_ct_path
+
+pytest.importorskip("snakemake", reason="needs the cohort extra: pip install 'cubecloud[cohort]'")
+
+TINY = ["--size", "32", "--cunerf-iterations", "60", "--splat-iterations", "60", "--views", "8", "--resolution", "32"]
+
+
+def scans_folder(folder, good: int = 3, corrupt: bool = False):
+    folder.mkdir(parents=True)
+    for number in range(good):
+        shutil.copy(sample_ct_path(), folder / f"case{number}.nii.gz")
+    if corrupt:
+        (folder / "broken.nii.gz").write_bytes(b"not a scan")
+    return folder
+
+
+def rows(out):
+    return {row["id"]: row for row in csv.DictReader(open(out / "cohort" / "per_scan.csv"))}
+
+
+def test_three_scans_and_a_corrupt_one_run_locally_and_the_report_lists_the_failure(tmp_path):
+    scans = scans_folder(tmp_path / "scans", good=3, corrupt=True)
+    out = tmp_path / "out"
+    error = assert_one_line_error(invoke("cohort", scans, "-o", out, "--cores", "2", *TINY, "-q"),
+                                  r"1 of 4 scans failed \(broken: preprocess: cannot read .*broken\.nii\.gz")  # fmt: skip
+    assert "report.md" in error
+    table = rows(out)
+    assert [table[f"case{n}"]["status"] for n in range(3)] == ["done"] * 3 and table["broken"]["status"] == "failed"
+    for number in range(3):  # each scan is a normal work directory
+        assert (out / f"case{number}" / "eval" / "metrics.json").is_file()
+        assert float(table[f"case{number}"]["splat_novel_psnr"]) > 10.0
+    report = (out / "cohort" / "report.md").read_text()
+    assert "4 scans, 3 finished." in report and "| Cube-Cloud 3DGS |" in report and "| broken |" in report
+    assert not (out / "broken" / "eval").exists()
+    assert not (out / "cohort" / "lock").exists()
+
+
+def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(tmp_path):
+    scans = scans_folder(tmp_path / "scans", good=1)
+    profile = tmp_path / "profile"
+    profile.mkdir()
+    # The submit command gets the job script last: start it in the background, print an id.
+    (profile / "config.yaml").write_text(
+        "executor: cluster-generic\n"
+        'cluster-generic-submit-cmd: "sh -c \'nohup bash \\"$0\\" >/dev/null 2>&1 & echo $!\'"\n'
+        "jobs: 2\n"
+        "latency-wait: 5\n"
+        "seconds-between-status-checks: 1\n"
+    )
+    out = tmp_path / "out"
+    result = invoke("cohort", scans, "-o", out, "--profile", profile, *TINY, "-q")
+    assert result.exit_code == 0, result.output
+    assert rows(out)["case0"]["status"] == "done"
+    assert "--profile" in (out / "cohort" / "snakemake_command.txt").read_text()
+
+
+def test_a_cohort_killed_mid_way_resumes_where_it_stopped(tmp_path):
+    scans = scans_folder(tmp_path / "scans", good=1)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "cubecloud_cli", "cohort", str(scans), "-o", str(out), "--cores", "2", *TINY, "-q"]
+    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    preprocess = out / "case0" / "preprocess" / "manifest.json"
+    training = out / "case0" / ".cunerf.partial"  # the second stage under way: the first one is done
+    deadline = time.monotonic() + 300
+    while not training.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert training.exists(), "the cohort never started its second stage"
+    os.killpg(process.pid, signal.SIGKILL)  # the cohort, Snakemake and the running job, as a cluster would
+    process.wait()
+    assert not (out / "case0" / "eval" / "manifest.json").exists()
+    written = preprocess.stat().st_mtime_ns
+
+    result = invoke("cohort", scans, "-o", out, "--cores", "2", *TINY, "-q")
+    assert result.exit_code == 0, result.output
+    assert rows(out)["case0"]["status"] == "done"
+    assert preprocess.stat().st_mtime_ns == written  # the finished stage was not redone
+
+
+def test_bad_cohort_input_is_one_line(tmp_path):
+    assert_one_line_error(invoke("cohort", tmp_path / "nowhere", "-o", tmp_path / "out"), r"nowhere does not exist")
+    (tmp_path / "empty").mkdir()
+    assert_one_line_error(invoke("cohort", tmp_path / "empty", "-o", tmp_path / "out"), r"holds no NIfTI file")
+    (tmp_path / "cohort.csv").write_text("id,scan\na,missing.nii.gz\n")
+    assert_one_line_error(invoke("cohort", "--scans", tmp_path / "cohort.csv", "-o", tmp_path / "out"),
+                          r"cohort.csv line 2: scan 'missing.nii.gz' does not exist")  # fmt: skip
+    shutil.copy(sample_ct_path(), tmp_path / "x.nii.gz")
+    (tmp_path / "dup.csv").write_text("id,scan\na,x.nii.gz\na,x.nii.gz\n")
+    assert_one_line_error(invoke("cohort", "--scans", tmp_path / "dup.csv", "-o", tmp_path / "out"),
+                          r"two scans have the id 'a'")  # fmt: skip
+    assert_one_line_error(invoke("cohort", tmp_path / "x.nii.gz", "-o", tmp_path / "out", "--profile", tmp_path / "no"),
+                          r"--profile .* is not a folder")  # fmt: skip
