@@ -103,3 +103,13 @@ def test_bad_cohort_input_is_one_line(tmp_path):
                           r"two scans have the id 'a'")  # fmt: skip
     assert_one_line_error(invoke("cohort", tmp_path / "x.nii.gz", "-o", tmp_path / "out", "--profile", tmp_path / "no"),
                           r"--profile .* is not a folder")  # fmt: skip
+
+
+def test_run_stage_runs_one_stage_only_once_the_stages_it_reads_are_current(tmp_path):
+    work = tmp_path / "work"
+    assert_one_line_error(invoke("run", "-o", work, "--stage", "cunerf"),
+                          r"stage cunerf reads preprocess, which is missing.*run `--stage preprocess` first")  # fmt: skip
+    assert_one_line_error(invoke("run", "-o", work, "--stage", "everything"), r"--stage 'everything' must be one of")
+    result = invoke("run", "-o", work, "--size", "32", "--stage", "preprocess", "-q")
+    assert result.exit_code == 0, result.output
+    assert (work / "preprocess" / "manifest.json").is_file() and not (work / "cunerf").exists()

@@ -27,7 +27,7 @@ METHODS = (("splat", "Cube-Cloud 3DGS"), ("splat-random", "3DGS, random init"), 
 # The scores compared scan by scan: eval's headline (novel views) first, then its held-out views.
 PAIRED_SCORES = (("novel_psnr", "novel-view PSNR (dB), eval's headline"), ("psnr", "held-out-view PSNR (dB)"))
 CSV_COLUMNS = [
-    "id", "scan", "status", "error",
+    "id", "scan", "modality", "status", "error",
     "splat_novel_psnr", "splat_random_novel_psnr", "splat_psnr", "splat_random_psnr",
     "splat_novel_ssim", "splat_random_novel_ssim", "splat_ssim", "splat_random_ssim", "cunerf_psnr",
     "splat_gaussians", "splat_random_gaussians",
@@ -45,7 +45,7 @@ def scan_record(scan_id: str, scan: str, work: Path, error: str | None = None) -
             record["error"] = str(exc)
             return record
         rows = described["rows"]
-        record.update(status="done", error=None)
+        record.update(status="done", error=None, modality=_modality(work))
         for row, prefix in (("splat", "splat"), ("splat-random", "splat_random"), ("cunerf", "cunerf")):
             values = rows.get(row, {})
             for metric in ("novel_psnr", "psnr", "novel_ssim", "ssim", "gaussians"):
@@ -56,6 +56,14 @@ def scan_record(scan_id: str, scan: str, work: Path, error: str | None = None) -
             record[f"{stage}_seconds"] = seconds
         record["eval_seconds"] = _eval_seconds(work)
     return record
+
+
+def _modality(work: Path) -> str | None:
+    """CT or MR, as preprocess decided (the header, the values, or --modality)."""
+    try:
+        return json.loads((Path(work) / "preprocess" / "manifest.json").read_text())["intensity"]["modality"].upper()
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
 
 
 def _eval_seconds(work: Path) -> float | None:
@@ -139,6 +147,31 @@ def differences_plot(records: list[dict]) -> str:
                          point_labels={"Cube-Cloud − random": [name for _, name in pairs]})  # fmt: skip
 
 
+def _cell(value, digits: int = 2) -> str:
+    number = _number(value)
+    return "–" if not math.isfinite(number) else f"{number:.{digits}f}"
+
+
+def per_scan_lines(records: list[dict]) -> list[str]:
+    """One line per finished scan: its scores, the paired difference, its size and time."""
+    lines = [
+        "| id | modality | novel PSNR, Cube-Cloud | random init | difference | held-out PSNR, Cube-Cloud | random init "
+        "| Gaussians, Cube-Cloud / random | pipeline min |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in (r for r in records if r["status"] == "done"):
+        difference = _number(r.get("splat_novel_psnr")) - _number(r.get("splat_random_novel_psnr"))
+        seconds = [_number(r.get(f"{stage.replace('-', '_')}_seconds")) for stage in STAGES]
+        minutes = sum(seconds) / 60.0 if all(math.isfinite(v) for v in seconds) else math.nan
+        lines.append(
+            f"| {r['id']} | {r.get('modality') or '–'} | {_cell(r.get('splat_novel_psnr'))} | "
+            f"{_cell(r.get('splat_random_novel_psnr'))} | {'–' if math.isnan(difference) else f'{difference:+.2f}'} | "
+            f"{_cell(r.get('splat_psnr'))} | {_cell(r.get('splat_random_psnr'))} | "
+            f"{_cell(r.get('splat_gaussians'), 0)} / {_cell(r.get('splat_random_gaussians'), 0)} | {_cell(minutes, 1)} |"
+        )
+    return lines
+
+
 def report_markdown(records: list[dict], summaries: dict[str, PairedSummary], setup: str) -> str:
     failed = [r for r in records if r["status"] != "done"]
     lines = [
@@ -158,6 +191,10 @@ def report_markdown(records: list[dict], summaries: dict[str, PairedSummary], se
         *paired_lines(summaries),
         "",
         "![paired differences](differences.svg)",
+        "",
+        "## Per scan",
+        "",
+        *per_scan_lines(records),
         "",
     ]
     if failed:
