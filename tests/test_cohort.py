@@ -113,3 +113,20 @@ def test_run_stage_runs_one_stage_only_once_the_stages_it_reads_are_current(tmp_
     result = invoke("run", "-o", work, "--size", "32", "--stage", "preprocess", "-q")
     assert result.exit_code == 0, result.output
     assert (work / "preprocess" / "manifest.json").is_file() and not (work / "cunerf").exists()
+
+
+def test_without_snakemake_the_error_names_the_extra(tmp_path, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_snakemake(name, *args, **kwargs):
+        if name == "snakemake" or name.startswith("snakemake."):
+            raise ImportError("No module named 'snakemake'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_snakemake)
+    shutil.copy(sample_ct_path(), tmp_path / "x.nii.gz")
+    assert_one_line_error(invoke("cohort", tmp_path / "x.nii.gz", "-o", tmp_path / "out"),
+                          r"runs on Snakemake, which is not installed: pip install 'cubecloud\[cohort\]'")  # fmt: skip
+    assert not (tmp_path / "out").exists()

@@ -19,10 +19,12 @@ from cubecloud_cli.cli.common import (
     PresetOption,
     QuietOption,
     ResolutionOption,
+    SeriesOption,
     SizeOption,
     SpacingOption,
     ViewOption,
     ViewsOption,
+    VolumeIndexOption,
     WindowOption,
     configure_logging,
     reports_errors,
@@ -82,6 +84,8 @@ def cohort_command(
     percentiles: PercentilesOption = None,
     interpolation: InterpolationOption = None,
     spacing: SpacingOption = None,
+    volume_index: VolumeIndexOption = None,
+    series: SeriesOption = None,
     cunerf_iterations: Annotated[
         Optional[int], settings_option(CunerfSettings, "iterations", "--cunerf-iterations")
     ] = None,
@@ -115,6 +119,7 @@ def cohort_command(
     configure_logging(quiet)
     given = {"size": size, "fit": fit, "window": window, "hu_min": hu_min, "hu_max": hu_max, "modality": modality,
              "percentiles": percentiles, "interpolation": interpolation, "spacing": spacing,
+             "volume_index": volume_index, "series": series,
              "cunerf_iterations": cunerf_iterations, "splat_iterations": splat_iterations, "views": views,
              "resolution": resolution, "view": view, "device": device}  # fmt: skip
     run_options = ["--preset", preset]
