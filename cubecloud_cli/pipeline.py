@@ -40,13 +40,16 @@ class StageOutcome:
 # Parameters added after stages were first written, with the value that older manifests implied,
 # so that `run` does not refuse a work directory made before they existed.
 ADDED_PARAMETERS = {"cameras": "orbit", "novel_directions": 0, "antialias": False}
+# Parameters recorded for provenance only: the scene a splat run read is identified by its files'
+# hashes, so `-o work` and `-o /abs/work` (or a moved work directory) are the same stage.
+PROVENANCE_PARAMETERS = {"scene"}
 
 
 def _differences(recorded: dict, requested: dict) -> list[str]:
     # A JSON round trip makes tuples lists, as they are in the manifest.
     requested = json.loads(json.dumps(requested))
     recorded = {**{k: v for k, v in ADDED_PARAMETERS.items() if k in requested}, **recorded}
-    keys = sorted(set(recorded) | set(requested))
+    keys = sorted((set(recorded) | set(requested)) - PROVENANCE_PARAMETERS)
     return [f"{k}: {recorded.get(k)!r} -> {requested.get(k)!r}" for k in keys if recorded.get(k) != requested.get(k)]
 
 

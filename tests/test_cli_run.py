@@ -21,6 +21,18 @@ def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, phanto
     assert invoke("run", phantom_nifti, "-o", work, "--size", 24, *QUICK, "--force").exit_code == 0
 
 
+def test_a_work_directory_named_another_way_or_moved_is_still_current(tmp_path, phantom_nifti, monkeypatch):
+    import shutil
+
+    assert invoke("run", phantom_nifti, "-o", tmp_path / "w", "--size", 16, *QUICK).exit_code == 0
+    monkeypatch.chdir(tmp_path)
+    relative = invoke("run", phantom_nifti, "-o", "w", "--size", 16, *QUICK)
+    assert relative.exit_code == 0 and relative.stderr.count("skipped") == 6, relative.output
+    shutil.move(tmp_path / "w", tmp_path / "moved")
+    moved = invoke("run", phantom_nifti, "-o", tmp_path / "moved", "--size", 16, *QUICK)
+    assert moved.exit_code == 0 and moved.stderr.count("skipped") == 6, moved.output
+
+
 def test_run_notices_a_different_scan(tmp_path, phantom_nifti):
     work = tmp_path / "w"
     assert invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK).exit_code == 0
