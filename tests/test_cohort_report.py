@@ -52,6 +52,7 @@ def test_the_report_lists_failures_with_their_error_and_writes_every_file(tmp_pa
     assert cohort["paired"]["novel_psnr"]["scans"] == 2 and cohort["paired"]["novel_psnr"]["wins"] == 2
     svg = (folder / "differences.svg").read_text()
     assert svg.startswith("<svg") and ">a<" in svg and ">b<" in svg
+    assert ">0</text>" in svg  # both differences are positive, and the axis still shows no difference
 
 
 def test_a_cohort_with_no_finished_scan_still_reports(tmp_path):

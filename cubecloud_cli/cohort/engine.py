@@ -18,15 +18,16 @@ from cubecloud_cli.errors import CubecloudError
 
 SNAKEFILE = Path(__file__).with_name("Snakefile")
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
-# What a scheduler reserves for each stage's job: cunerf and splat train on every thread they
-# get; memory is the fast preset's peak (under 1 GB) with room for the balanced one.
+# What a scheduler reserves for each stage's job: cunerf and splat train, and eval renders, on every
+# thread they get (a one-thread eval left a core idle); preprocess is one thread of reading. Memory
+# is the fast preset's peak (under 1 GB) with room for the balanced one.
 STAGE_RESOURCES = {
     "preprocess": {"threads": 1, "mem_mb": 2000},
     "cunerf": {"threads": 2, "mem_mb": 4000},
     "export": {"threads": 2, "mem_mb": 4000},
     "splat": {"threads": 2, "mem_mb": 4000},
     "splat-random": {"threads": 2, "mem_mb": 4000},
-    "eval": {"threads": 1, "mem_mb": 3000},
+    "eval": {"threads": 2, "mem_mb": 3000},
 }
 COHORT_DIR = "cohort"
 

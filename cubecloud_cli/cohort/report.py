@@ -143,7 +143,7 @@ def differences_plot(records: list[dict]) -> str:
     ranks = [float(i + 1) for i in range(len(pairs))]
     series = [("Cube-Cloud − random", ranks, [d for d, _ in pairs])]
     return line_plot_svg(series, "Paired difference per scan (novel-view PSNR)", "scan, sorted by the difference",
-                         "Cube-Cloud − random init (dB)", markers_only=True,
+                         "Cube-Cloud − random init (dB)", markers_only=True, y_include=(0.0,),
                          point_labels={"Cube-Cloud − random": [name for _, name in pairs]})  # fmt: skip
 
 

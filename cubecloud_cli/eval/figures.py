@@ -166,14 +166,16 @@ def line_plot_svg(
     markers_only: bool = False,
     point_labels: dict[str, list[str]] | None = None,
     size: tuple[int, int] = (640, 400),
+    y_include: tuple[float, ...] = (),
 ) -> str:
     """An SVG plot of ``(label, xs, ys)`` series: lines (or points), axes with ticks, a legend.
     Non-finite points are left out. ``point_labels`` names points of a series; a name is drawn
     where it overlaps no other name or point, further out with a leader line when it must, and
-    left out when the plot has no free spot for it."""
+    left out when the plot has no free spot for it. The y range always spans ``y_include`` (a
+    reference such as 0)."""
     (width, height), left, right, top, bottom = size, 70, 170, 40, 50
     points = [(x, y) for _, xs, ys in series for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
-    xs_all, ys_all = [p[0] for p in points] or [0.0, 1.0], [p[1] for p in points] or [0.0, 1.0]
+    xs_all, ys_all = [p[0] for p in points] or [0.0, 1.0], ([p[1] for p in points] or [0.0, 1.0]) + list(y_include)
     (x_low, x_high), (y_low, y_high) = _padded_range(xs_all), _padded_range(ys_all)
     x_ticks, y_ticks = _nice_ticks(x_low, x_high), _nice_ticks(y_low, y_high)
     x0, x1 = min(x_ticks[0], x_low), max(x_ticks[-1], x_high)
