@@ -29,23 +29,28 @@ from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices, voxel_cent
 from cubecloud_cli.cunerf.model import CubeModel, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
+from cubecloud_cli.cunerf.grid_init import initialise_from_volume
 from cubecloud_cli.cunerf.api import CunerfField
 from cubecloud_cli.runtime import resolve_device
 from cubecloud_cli.metrics import psnr, volume_metrics
 from cubecloud_cli.presets import resolve_cunerf
 
-volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale, preset = sys.argv[1:10]
+volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale, preset, grid_init = sys.argv[1:11]
 train_scale = int(train_scale)
 device = resolve_device(device_name)
 volume = np.load(volume_path)
 size = volume.shape[0]
 overrides = {"iterations": int(iterations)} if int(iterations) > 0 else {}
 overrides["train_scale"] = train_scale
+if model_name == "fast":
+    overrides["grid_init"] = grid_init
 settings = CunerfSettings(**resolve_cunerf(preset, model_name, overrides))
 torch.manual_seed(0)
 model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
 held = holdout_slices(volume, settings.holdout, train_scale)
 voxels = TrainingVoxels(torch.from_numpy(volume).to(device), train_scale, held, settings.body_fraction)
+if settings.grid_init == "volume":
+    initialise_from_volume(model.coarse, voxels)
 trainer = Trainer(model, voxels, settings, torch.Generator(device=device).manual_seed(0))
 rng = np.random.default_rng(0)
 sample = rng.integers(0, size, (int(points), 3))
@@ -57,6 +62,8 @@ def score():
     return psnr(truth, predicted), psnr(truth, predicted, truth > 0)
 
 budget, every = float(seconds), float(eval_every)
+p, pb = score()
+print(json.dumps({"event": "point", "iteration": 0, "train_s": 0.0, "loss": float("nan"), "psnr_est": p, "psnr_body_est": pb}), flush=True)
 next_eval = every
 print(json.dumps({"event": "start", "model": model_name, "settings": settings.as_dict(), "device": str(device)}), flush=True)
 while trainer.iteration < settings.iterations and trainer.elapsed_s < budget:
@@ -121,6 +128,7 @@ def main() -> None:
         help="zero-shot super-resolution: train on every s-th voxel, score on all, "
         "beside trilinear interpolation of the same voxels",
     )
+    parser.add_argument("--grid-init", default="random", choices=["random", "volume"], help="the fast model's start")
     parser.add_argument("--work", type=Path, default=None, help="reuse this work directory's preprocess/")
     args = parser.parse_args()
 
@@ -141,6 +149,7 @@ def main() -> None:
                 str(args.iterations),
                 str(args.train_scale),
                 args.preset,
+                args.grid_init,
             ]
             process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
             assert process.stdout is not None

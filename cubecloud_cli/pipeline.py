@@ -39,7 +39,7 @@ class StageOutcome:
 
 # Parameters added after stages were first written, with the value that older manifests implied,
 # so that `run` does not refuse a work directory made before they existed.
-ADDED_PARAMETERS = {"cameras": "orbit", "novel_directions": 0, "antialias": False}
+ADDED_PARAMETERS = {"cameras": "orbit", "novel_directions": 0, "antialias": False, "grid_init": "random"}
 # Parameters recorded for provenance only: the scene a splat run read is identified by its files'
 # hashes, so `-o work` and `-o /abs/work` (or a moved work directory) are the same stage.
 PROVENANCE_PARAMETERS = {"scene"}

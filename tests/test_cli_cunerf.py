@@ -126,6 +126,16 @@ def test_super_resolution_mode_exports_at_a_finer_scale(preprocessed, tmp_path):
     assert nib.load(work / "cunerf-sr" / "recon.nii.gz").shape == (64, 64, 64)
 
 
+def test_a_volume_start_records_itself_and_beats_random_features_at_equal_iterations(trained, tmp_path):
+    work = _copy_preprocess(trained, tmp_path)
+    result = invoke(*["cunerf", str(work), *FAST, "--grid-init", "volume", "--name", "volume", "-q"])
+    assert result.exit_code == 0, result.output
+    started = json.loads((work / "cunerf-volume" / "manifest.json").read_text())
+    random = json.loads((trained / "cunerf" / "manifest.json").read_text())
+    assert started["params"]["grid_init"] == "volume" and random["params"]["grid_init"] == "random"
+    assert started["metrics"]["psnr_3d"] > random["metrics"]["psnr_3d"] + 3.0
+
+
 def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monkeypatch):
     straight = _copy_preprocess(preprocessed, tmp_path / "a")
     assert invoke(*["cunerf", str(straight), *FAST, "--checkpoint-every", "10", "-q"]).exit_code == 0
@@ -168,6 +178,7 @@ def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monke
         (["--lr", "-1"], "--lr"),
         (["--threads", "0"], "--threads"),
         (["--grid-hidden", "-3"], "--grid-hidden"),
+        (["--model", "cunerf", "--grid-init", "volume"], "--grid-init volume needs --model fast"),
         (["--batch-size", "1000000", "--importance", "512"], "GiB.*--batch-size"),
         (["--resume"], "no interrupted run"),
     ],

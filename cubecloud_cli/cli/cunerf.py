@@ -24,7 +24,7 @@ from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.cunerf import CunerfSettings, train_cunerf
 from cubecloud_cli.cunerf.fields import DENSITY_ACTIVATIONS
-from cubecloud_cli.cunerf.settings import Model, TrainLayout
+from cubecloud_cli.cunerf.settings import GridInit, Model, TrainLayout
 from cubecloud_cli.presets import DEFAULT_PRESET
 
 log = logging.getLogger("cubecloud")
@@ -64,6 +64,7 @@ def cunerf_command(
     grid_base: Annotated[Optional[int], _option("grid_base")] = None,
     grid_features: Annotated[Optional[int], _option("grid_features")] = None,
     grid_hidden: Annotated[Optional[int], _option("grid_hidden")] = None,
+    grid_init: Annotated[Optional[GridInit], _option("grid_init")] = None,
     train_scale: Annotated[Optional[int], _option("train_scale")] = None,
     holdout: Annotated[Optional[int], _option("holdout")] = None,
     val_every: Annotated[Optional[int], _option("val_every")] = None,
@@ -111,6 +112,7 @@ def cunerf_command(
         "grid_base": grid_base,
         "grid_features": grid_features,
         "grid_hidden": grid_hidden,
+        "grid_init": grid_init,
         "train_scale": train_scale,
         "holdout": holdout,
         "val_every": val_every,

@@ -14,6 +14,7 @@ from cubecloud_cli.presets import preset_default
 Model = Literal["fast", "cunerf"]
 MODELS = get_args(Model)
 TrainLayout = Literal["stratified", "uniform"]
+GridInit = Literal["random", "volume"]
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,9 @@ class CunerfSettings:
     """fast model: features per grid vertex."""
     grid_hidden: int = 32
     """fast model: width of the MLP's hidden layer."""
+    grid_init: GridInit = "random"
+    """fast model: random (tiny random features), or volume (the finest level starts at the training voxels'
+    intensities, so training refines rather than learns them)."""
     train_scale: int = 1
     """Zero-shot super-resolution: train on every s-th voxel per axis, score against all of them."""
     holdout: int = 8  # axial slices kept for validation
@@ -101,6 +105,10 @@ class CunerfSettings:
             raise bad(f"--density {self.density!r} must be softplus or relu")
         if not 1 <= self.grid_levels <= 8 or self.grid_base < 2 or not 1 <= self.grid_features <= 16:
             raise bad("--grid-levels must be 1..8, --grid-base at least 2, --grid-features 1..16")
+        if self.grid_init not in get_args(GridInit):
+            raise bad(f"--grid-init {self.grid_init!r} must be random or volume")
+        if self.grid_init == "volume" and self.model != "fast":
+            raise bad("--grid-init volume needs --model fast (a feature grid to start from)")
         if not 1 <= self.grid_hidden <= 1024:
             raise bad(f"--grid-hidden {self.grid_hidden} must be within 1..1024")
         if not 1 <= self.train_scale <= 16:

@@ -25,6 +25,7 @@ import torch
 from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
+from cubecloud_cli.cunerf.grid_init import initialise_from_volume
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
@@ -238,6 +239,8 @@ def _prepare(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(settings.seed)
         model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
+    if settings.grid_init == "volume" and state is None:
+        initialise_from_volume(model.coarse, voxels)
     generator = torch.Generator(device=device).manual_seed(settings.seed)
     trainer = Trainer(model, voxels, settings, generator, context=context)
     if state is not None:
