@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.cunerf.data import TrainingVoxels, voxel_centres
-from cubecloud_cli.cunerf.grid_init import initialise_from_volume, linear_resample, logit
+from cubecloud_cli.cunerf.grid_init import initialise_from_volume, linear_interpolation_matrix, logit
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
 
@@ -13,29 +13,20 @@ coordinates = st.lists(st.floats(-50, 50, allow_nan=False), min_size=2, max_size
 
 
 @settings(max_examples=60, deadline=None)
-@given(coordinates, coordinates, st.floats(-3, 3), st.floats(-3, 3), st.floats(-3, 3))
-def test_linear_resample_reproduces_a_linear_function_inside_and_holds_the_border_outside(xs, ys, a, b, c):
-    xs, ys = np.array(xs), np.array(ys)
-    values = a * xs[:, None] + b * ys[None, :] + c
-    inside_x = np.linspace(xs[0], xs[-1], 7)
-    outside_y = np.array([ys[0] - 100.0, ys[-1] + 100.0])
-    inside = linear_resample(values, [xs, ys], [inside_x, ys])
-    np.testing.assert_allclose(inside, a * inside_x[:, None] + b * ys[None, :] + c, atol=1e-9 * (1 + abs(a) * 50))
-    held = linear_resample(values, [xs, ys], [xs, outside_y])
-    np.testing.assert_allclose(held, values[:, [0, -1]], atol=1e-12)
+@given(coordinates, st.floats(-3, 3), st.floats(-3, 3))
+def test_interpolation_reproduces_a_linear_function_inside_and_holds_the_border_outside(xs, slope, offset):
+    known = np.array(xs)
+    values = slope * known + offset
+    inside = np.linspace(known[0], known[-1], 7)
+    matrix = linear_interpolation_matrix(known, inside)
+    assert (matrix >= 0).all() and np.allclose(matrix.sum(axis=1), 1.0)
+    np.testing.assert_allclose(matrix @ values, slope * inside + offset, atol=1e-4 * (1 + abs(slope) * 50))
+    outside = linear_interpolation_matrix(known, np.array([known[0] - 100.0, known[-1] + 100.0]))
+    np.testing.assert_allclose(outside @ values, values[[0, -1]], atol=1e-5)
 
 
-def test_linear_resample_of_one_coordinate_holds_it_and_refuses_a_mismatch():
-    values = np.array([[2.0, 4.0]])
-    assert linear_resample(
-        values, [np.array([3.0]), np.array([0.0, 1.0])], [np.arange(3), np.array([0.5])]
-    ).tolist() == [
-        [3.0],
-        [3.0],
-        [3.0],
-    ]
-    with pytest.raises(ValueError, match="coordinates"):
-        linear_resample(values, [np.array([0.0, 1.0]), np.array([0.0, 1.0])], [np.zeros(1), np.zeros(1)])
+def test_one_known_coordinate_is_held_everywhere():
+    assert linear_interpolation_matrix(np.array([3.0]), np.arange(3.0)).tolist() == [[1.0], [1.0], [1.0]]
 
 
 def test_logit_is_finite_at_the_extremes_and_inverts_the_sigmoid_inside():

@@ -17,6 +17,7 @@ import torch
 
 from cubecloud_cli.cunerf.data import TrainingVoxels
 from cubecloud_cli.cunerf.fields import GridField
+from cubecloud_cli.volume.resample import resample_axes
 
 # Intensities are clipped to [ε, 1 − ε] before the logit, which is then finite (±6.9) and within
 # reach of Adam's steps; sigmoid(±6.9) differs from 0 and 1 by 1e-3, below one grey level.
@@ -32,31 +33,24 @@ def logit(values: np.ndarray, epsilon: float = LOGIT_EPSILON) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
-def linear_resample(values: np.ndarray, known: list[np.ndarray], targets: list[np.ndarray]) -> np.ndarray:
-    """Separable linear interpolation from a rectilinear grid to another.
-
-    ``values`` has one axis per entry of ``known``, whose sorted coordinates it is sampled at;
-    the result is sampled at ``targets`` (coordinates per axis), held at the border value
-    beyond the outermost known coordinate. One known coordinate on an axis is held everywhere.
-    """
-    result = np.asarray(values, dtype=np.float64)
-    for axis, (coordinates, wanted) in enumerate(zip(known, targets)):
-        coordinates = np.asarray(coordinates, dtype=np.float64)
-        wanted = np.asarray(wanted, dtype=np.float64)
-        if coordinates.size != result.shape[axis]:
-            raise ValueError(f"axis {axis} has {result.shape[axis]} values but {coordinates.size} coordinates")
-        if coordinates.size == 1:
-            result = np.repeat(result, wanted.size, axis=axis)
-            continue
-        upper = np.clip(np.searchsorted(coordinates, wanted), 1, coordinates.size - 1)
-        lower = upper - 1
-        span = coordinates[upper] - coordinates[lower]
-        fraction = np.clip((wanted - coordinates[lower]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
-        shape = [1] * result.ndim
-        shape[axis] = wanted.size
-        fraction = fraction.reshape(shape)
-        result = np.take(result, lower, axis=axis) * (1 - fraction) + np.take(result, upper, axis=axis) * fraction
-    return result
+def linear_interpolation_matrix(known: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """The (len(wanted), len(known)) matrix of linear interpolation from values at the sorted
+    coordinates ``known`` (spaced at will: a held-out slice is a wider gap) to ``wanted``, held
+    at the border value beyond the outermost known coordinate. Rows are convex weights, so
+    ``volume.resample_axes`` applies one matrix per axis."""
+    known, wanted = np.asarray(known, dtype=np.float64), np.asarray(wanted, dtype=np.float64)
+    matrix = np.zeros((wanted.size, known.size), dtype=np.float32)
+    if known.size == 1:
+        matrix[:, 0] = 1.0
+        return matrix
+    upper = np.clip(np.searchsorted(known, wanted), 1, known.size - 1)
+    lower = upper - 1
+    span = known[upper] - known[lower]
+    fraction = np.clip((wanted - known[lower]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+    rows = np.arange(wanted.size)
+    matrix[rows, lower] = 1.0 - fraction
+    matrix[rows, upper] += fraction
+    return matrix
 
 
 def training_volume_at(voxels: TrainingVoxels, resolution: int) -> np.ndarray:
@@ -68,7 +62,8 @@ def training_volume_at(voxels: TrainingVoxels, resolution: int) -> np.ndarray:
     known = volume[np.ix_(lattice, lattice, slices)]
     # Vertex v of the level lies at voxel index (v + ½)·S/r − ½ of the S³ volume.
     vertices = (np.arange(resolution) + 0.5) * (voxels.size / resolution) - 0.5
-    return linear_resample(known, [lattice, lattice, slices], [vertices] * 3)
+    matrices = [linear_interpolation_matrix(axis, vertices) for axis in (lattice, lattice, slices)]
+    return resample_axes(known, matrices)
 
 
 @torch.no_grad()
