@@ -62,10 +62,10 @@ def score():
     return psnr(truth, predicted), psnr(truth, predicted, truth > 0)
 
 budget, every = float(seconds), float(eval_every)
-p, pb = score()
-print(json.dumps({"event": "point", "iteration": 0, "train_s": 0.0, "loss": float("nan"), "psnr_est": p, "psnr_body_est": pb}), flush=True)
 next_eval = every
 print(json.dumps({"event": "start", "model": model_name, "settings": settings.as_dict(), "device": str(device)}), flush=True)
+p, pb = score()
+print(json.dumps({"event": "point", "iteration": 0, "train_s": 0.0, "loss": float("nan"), "psnr_est": p, "psnr_body_est": pb}), flush=True)
 while trainer.iteration < settings.iterations and trainer.elapsed_s < budget:
     loss = trainer.step()
     if trainer.elapsed_s >= next_eval or trainer.iteration == settings.iterations:

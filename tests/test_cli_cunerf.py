@@ -179,6 +179,7 @@ def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monke
         (["--threads", "0"], "--threads"),
         (["--grid-hidden", "-3"], "--grid-hidden"),
         (["--model", "cunerf", "--grid-init", "volume"], "--grid-init volume needs --model fast"),
+        (["--grid-init", "volume", "--grid-hidden", "1"], "--grid-hidden of at least 2"),
         (["--batch-size", "1000000", "--importance", "512"], "GiB.*--batch-size"),
         (["--resume"], "no interrupted run"),
     ],

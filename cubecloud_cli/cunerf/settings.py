@@ -109,6 +109,10 @@ class CunerfSettings:
             raise bad(f"--grid-init {self.grid_init!r} must be random or volume")
         if self.grid_init == "volume" and self.model != "fast":
             raise bad("--grid-init volume needs --model fast (a feature grid to start from)")
+        if self.grid_init == "volume" and self.grid_hidden < 2:
+            raise bad(
+                f"--grid-init volume needs --grid-hidden of at least 2 (a feature passes through two units), not {self.grid_hidden}"
+            )
         if not 1 <= self.grid_hidden <= 1024:
             raise bad(f"--grid-hidden {self.grid_hidden} must be within 1..1024")
         if not 1 <= self.train_scale <= 16:
