@@ -154,6 +154,11 @@ def scene_pixels(image: np.ndarray) -> np.ndarray:
     return mask
 
 
+def drawn(image: np.ndarray) -> bool:
+    """Something of the scene is on the page (not only the background, the labels and the GUI)."""
+    return scene_pixels(image).sum() > 0.01 * image.shape[0] * image.shape[1]
+
+
 def window_pixels(pose, points: np.ndarray, width: int, height: int) -> np.ndarray:
     """Where a perspective camera at ``pose`` (the browser's: vertical field of view, principal
     point at the window's centre) puts world ``points``, as (column, row) in pixels."""
@@ -182,7 +187,7 @@ def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_
     from cubecloud_cli.view.layers import camera_view, slice_pixel_world
 
     time.sleep(1)
-    shot = screenshot(viewer.url, tmp_path / "home.png")
+    shot = screenshot(viewer.url, tmp_path / "home.png", ready=drawn)
     before = scene_pixels(shot)
     height, width = before.shape
     assert before.sum() > 0.02 * height * width, "no scene drawn"
@@ -196,7 +201,7 @@ def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_
 
     viewer.set_clip("sagittal", 0.0)
     time.sleep(1)
-    after = scene_pixels(screenshot(viewer.url, tmp_path / "cut.png"))
+    after = scene_pixels(screenshot(viewer.url, tmp_path / "cut.png", ready=drawn))
     assert 0.2 * before.sum() < after.sum() < 0.8 * before.sum()
     removed = before & ~after
     kept_centre = np.array(np.nonzero(after)).mean(axis=1)
@@ -208,7 +213,7 @@ def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_
     viewer.show_splats(False)
     viewer.show_slice("axial", index=16, visible=True)
     time.sleep(1)
-    shot = screenshot(viewer.url, tmp_path / "slice.png")
+    shot = screenshot(viewer.url, tmp_path / "slice.png", ready=drawn)
     size = viewer.slices.size
     cells = [(row, column) for row in range(size) for column in range(size)]
     world = np.array([slice_pixel_world("axial", 16, size, row, column) for row, column in cells])
