@@ -20,9 +20,13 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import numba
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from cubecloud_cli.cunerf import grid_kernels
 
 DENSITY_ACTIVATIONS = ("softplus", "relu")
 POINT_LIMIT = 16.0
@@ -133,6 +137,8 @@ class GridField(NeuralField):
 
     def encode(self, points: torch.Tensor) -> torch.Tensor:
         """(P, 3) -> (P, levels · features): each level's features, trilinearly interpolated."""
+        if points.device.type == "cpu" and self.table.dtype == torch.float32:
+            return FusedGridLookup.apply(self.table, points, self.config.resolutions, self.offsets)
         indices, weights = [], []
         for level, resolution in enumerate(self.config.resolutions):
             index, weight = trilinear_corners(points, resolution)
@@ -191,6 +197,34 @@ class TrilinearLookup(torch.autograd.Function):
         grad_table = torch.zeros(ctx.rows, grad_output.shape[1], dtype=grad_output.dtype, device=grad_output.device)
         grad_table.index_add_(0, index.reshape(-1), contributions)
         return grad_table, None, None
+
+
+class FusedGridLookup(torch.autograd.Function):
+    """:meth:`GridField.encode` on the CPU in two numba kernels (``grid_kernels``): the same
+    corners and weights as :func:`trilinear_corners`, without its (P, 8) tensors per level. Points
+    get no gradient."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, points: torch.Tensor, resolutions: tuple[int, ...], offsets: torch.Tensor):
+        points_np = points.detach().contiguous().float().numpy()
+        levels = np.asarray(resolutions, dtype=np.int64)
+        starts = offsets.numpy().astype(np.int64)
+        ctx.saved = (points_np, levels, starts, table.shape)
+        return torch.from_numpy(grid_kernels.encode_forward(points_np, table.detach().numpy(), levels, starts))
+
+    @staticmethod
+    def backward(ctx, grad_output: torch.Tensor):
+        points_np, levels, starts, (rows, features) = ctx.saved
+        grad = grid_kernels.encode_backward(
+            points_np,
+            grad_output.detach().contiguous().float().numpy(),
+            levels,
+            starts,
+            rows,
+            features,
+            numba.get_num_threads(),
+        )
+        return torch.from_numpy(grad), None, None, None
 
 
 def build_field(config: FieldConfig) -> NeuralField:
