@@ -8,7 +8,7 @@ Both fields share one interface, so the cube sampler, the renderer and everythin
   with the encoded input concatenated before the 5th (the official code builds an 8th layer
   that it never applies; we do not build it).
 * :class:`GridField`, for CPUs: a multiresolution dense feature grid, trilinearly interpolated
-  by ``grid_sample``, and a small MLP. The finest level has one vertex per voxel, so the field
+  (on the CPU by the fused kernels of ``grid_kernels.py``), and a small MLP. The finest level has one vertex per voxel, so the field
   can hold every voxel's value, and the coarser levels fill in between.
 
 Intensity goes through a sigmoid, so it lies in [0, 1]; density through softplus (default) or
@@ -180,9 +180,10 @@ def trilinear_corners(points: torch.Tensor, resolution: int) -> tuple[torch.Tens
 
 
 class TrilinearLookup(torch.autograd.Function):
-    """Σ_corners weight · table[row]. ``embedding_bag`` does the forward in one pass; the
-    backward scatters into a dense gradient with ``index_add_``, several times faster on a CPU
-    than either ``grid_sample``'s or ``embedding_bag``'s own backward. Points get no gradient."""
+    """Σ_corners weight · table[row], the lookup off the CPU (and in float64). ``embedding_bag``
+    does the forward in one pass; the backward scatters into a dense gradient with
+    ``index_add_``, faster than either ``grid_sample``'s or ``embedding_bag``'s own backward.
+    Points get no gradient."""
 
     @staticmethod
     def forward(ctx, table: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
