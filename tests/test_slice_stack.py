@@ -9,10 +9,10 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from cubecloud_cli.volume.slice_stack import PlacedSlice, plan_stack, resample_stack
+from cubecloud_cli.volume.slice_stack import SAME_POSITION_MM, PlacedSlice, plan_stack, resample_stack
 
 GRADIENT = np.array([0.7, -1.3, 2.1])
 
@@ -58,7 +58,10 @@ def assert_holds_the_field(plan, volume):
     values = volume[index[:, 0], index[:, 1], index[:, 2]]
     inside = np.isfinite(values)  # outside a slice's footprint the fill (NaN) shows
     assert inside.sum() >= 60  # at least a slice's worth of voxels lies inside the footprints
-    assert np.allclose(values[inside], field(points[inside]), atol=1e-3)
+    # An output plane within SAME_POSITION_MM of a slice is that slice, by design: the field moves
+    # by up to |gradient| · SAME_POSITION_MM there.
+    snap = SAME_POSITION_MM * float(np.linalg.norm(GRADIENT))
+    assert np.allclose(values[inside], field(points[inside]), atol=1e-3 + snap)
 
 
 def test_an_even_series_is_its_own_grid_copied_exactly():
@@ -109,6 +112,8 @@ def test_gantry_tilt_is_measured_and_unsheared(tilt):
     tilt=st.floats(-30.0, 30.0),
     shared=st.integers(0, 2),
 )
+# A last plane 0.6 µm short of its slice, which the resampler rightly takes as the slice.
+@example(steps=[3.0, 1.0205598043276058, 1.5524902285251787, 2.1900196272534247, 1.0], tilt=0.0, shared=0)
 def test_any_acquisition_holds_the_value_of_each_voxels_position(steps, tilt, shared):
     depths = list(np.concatenate([[0.0], np.cumsum(steps)]))
     depths += depths[1 : 1 + shared]  # repeated positions, as from overlapping slabs
