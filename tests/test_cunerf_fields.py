@@ -152,8 +152,11 @@ def test_fused_cpu_lookup_gradient_is_the_same_bits_on_any_thread_count():
     points = _edge_points(3000).numpy()
     upstream = np.random.default_rng(0).standard_normal((points.shape[0], 6)).astype(np.float32)
     levels, starts = np.array([3, 8, 32]), field.offsets.numpy()
+    cells = np.empty((points.shape[0], 3, 2), dtype=np.int64)
+    fractions = np.empty((points.shape[0], 3, 3), dtype=np.float32)
+    grid_kernels.encode_forward(points, field.table.detach().numpy(), levels, starts, cells, fractions)
     grads = [
-        grid_kernels.encode_backward(points, upstream, levels, starts, field.table.shape[0], 2, bands)
+        grid_kernels.encode_backward(cells, fractions, upstream, levels, starts, field.table.shape[0], 2, bands)
         for bands in (1, 2, 3, 7)
     ]
     for grad in grads[1:]:

@@ -210,14 +210,20 @@ class FusedGridLookup(torch.autograd.Function):
         points_np = points.detach().contiguous().float().numpy()
         levels = np.asarray(resolutions, dtype=np.int64)
         starts = offsets.numpy().astype(np.int64)
-        ctx.saved = (points_np, levels, starts, table.shape)
-        return torch.from_numpy(grid_kernels.encode_forward(points_np, table.detach().numpy(), levels, starts))
+        # Each point's corners and fractions, kept for the backward when the table wants a gradient.
+        kept = points_np.shape[0] if ctx.needs_input_grad[0] else 0
+        cells = np.empty((kept, levels.size, 2), dtype=np.int64)
+        fractions = np.empty((kept, levels.size, 3), dtype=np.float32)
+        ctx.saved = (cells, fractions, levels, starts, table.shape)
+        features = grid_kernels.encode_forward(points_np, table.detach().numpy(), levels, starts, cells, fractions)
+        return torch.from_numpy(features)
 
     @staticmethod
     def backward(ctx, grad_output: torch.Tensor):
-        points_np, levels, starts, (rows, features) = ctx.saved
+        cells, fractions, levels, starts, (rows, features) = ctx.saved
         grad = grid_kernels.encode_backward(
-            points_np,
+            cells,
+            fractions,
             grad_output.detach().contiguous().float().numpy(),
             levels,
             starts,

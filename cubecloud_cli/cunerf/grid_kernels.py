@@ -40,15 +40,23 @@ def _corner_base(x, y, z, r):
 
 
 @njit(parallel=True, cache=True)
-def encode_forward(points, table, resolutions, offsets):
-    """(P, 3) float32 points → (P, L·F) float32: each level's features, trilinearly interpolated."""
+def encode_forward(points, table, resolutions, offsets, cells, fractions):
+    """(P, 3) float32 points → (P, L·F) float32: each level's features, trilinearly interpolated.
+
+    When ``cells`` (P, L, 2) and ``fractions`` (P, L, 3) have a row per point, each point's low
+    corner per level (its table row and its x vertex) and its fractions are written there for
+    :func:`encode_backward`; pass empty arrays when no gradient is wanted."""
     count, features, levels = points.shape[0], table.shape[1], resolutions.size
+    keep = cells.shape[0] == count and fractions.shape[0] == count
     out = np.empty((count, levels * features), dtype=np.float32)
     one = np.float32(1.0)
     for p in prange(count):
         for level in range(levels):
             r = resolutions[level]
             base, fx, fy, fz = _corner_base(points[p, 0], points[p, 1], points[p, 2], r)
+            if keep:
+                cells[p, level, 0], cells[p, level, 1] = base + offsets[level], base // (r * r)
+                fractions[p, level, 0], fractions[p, level, 1], fractions[p, level, 2] = fx, fy, fz
             base += offsets[level]
             for f in range(features):
                 out[p, level * features + f] = 0.0
@@ -62,25 +70,33 @@ def encode_forward(points, table, resolutions, offsets):
 
 
 @njit(parallel=True, cache=True)
-def encode_backward(points, grad_features, resolutions, offsets, rows, features, bands):
+def encode_backward(cells, fractions, grad_features, resolutions, offsets, rows, features, bands):
     """The dense (rows, F) float32 gradient of Σ grad_features · encode_forward(points) with
-    respect to the table. Each of ``bands`` threads owns a slab of every level's vertices along
-    x and walks every point, adding only into its slab: every row is summed in the points' order,
-    so the gradient is the same bit for bit on any number of threads."""
-    grad = np.zeros((rows, features), dtype=np.float32)
+    respect to the table, from the ``cells`` and ``fractions`` the forward kept. Each of
+    ``bands`` threads owns a slab of every level's vertices along x and walks every point,
+    adding only into its slab: every row is summed in the points' order, so the gradient is the
+    same bit for bit on any number of threads."""
+    # Each band zeroes its own slabs (together they are every row): in parallel, and in cache.
+    grad = np.empty((rows, features), dtype=np.float32)
     one = np.float32(1.0)
+    levels = resolutions.size
     for band in prange(bands):
-        for p in range(points.shape[0]):
-            for level in range(resolutions.size):
-                r = resolutions[level]
-                first, stop = r * band // bands, r * (band + 1) // bands  # this band's x vertices
-                base, fx, fy, fz = _corner_base(points[p, 0], points[p, 1], points[p, 2], r)
-                low_x = base // (r * r)
-                if low_x + 1 < first or low_x >= stop:
+        first = np.empty(levels, dtype=np.int64)  # this band's x vertices per level: first..stop−1
+        stop = np.empty(levels, dtype=np.int64)
+        for level in range(levels):
+            r = resolutions[level]
+            first[level], stop[level] = r * band // bands, r * (band + 1) // bands
+            grad[offsets[level] + first[level] * r * r : offsets[level] + stop[level] * r * r] = 0.0
+        for p in range(cells.shape[0]):
+            for level in range(levels):
+                low_x = cells[p, level, 1]
+                if low_x + 1 < first[level] or low_x >= stop[level]:
                     continue
-                base += offsets[level]
+                r = resolutions[level]
+                base = cells[p, level, 0]
+                fx, fy, fz = fractions[p, level, 0], fractions[p, level, 1], fractions[p, level, 2]
                 for a in range(2):
-                    if low_x + a < first or low_x + a >= stop:
+                    if low_x + a < first[level] or low_x + a >= stop[level]:
                         continue
                     wx = fx if a else one - fx
                     for b in range(2):
