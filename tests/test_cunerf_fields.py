@@ -16,6 +16,7 @@ from cubecloud_cli.cunerf.fields import (
     CuNeRFField,
     FieldConfig,
     FusedGridLookup,
+    FusedMLP,
     GridField,
     PositionalEncoding,
     TrilinearLookup,
@@ -180,3 +181,45 @@ def test_fused_cpu_lookup_stays_finite_at_any_point(coordinates):
     assert torch.isfinite(out).all() and torch.isfinite(table.grad).all()
     # Trilinear weights are convex: the gradient of the sum puts weight 1 on each level.
     assert table.grad.sum().item() == pytest.approx(2 * 2, abs=1e-4)
+
+
+def test_fused_cpu_mlp_matches_torch_forward_and_backward():
+    torch.manual_seed(4)
+    mlp = torch.nn.Sequential(torch.nn.Linear(6, 32), torch.nn.ReLU(), torch.nn.Linear(32, 2))
+    features = torch.randn(3000, 6) * 3.0
+    features[:5] = 0.0  # every hidden unit at its bias: some exactly at ReLU's kink when biased to 0
+    with torch.no_grad():
+        mlp[0].bias[:4] = 0.0
+    reference_input = features.clone().requires_grad_(True)
+    fused_input = features.clone().requires_grad_(True)
+    reference = mlp(reference_input)
+    upstream = torch.randn_like(reference)
+    reference.backward(upstream)
+    expected = [reference_input.grad] + [p.grad.clone() for p in mlp.parameters()]
+    mlp.zero_grad()
+    fused = FusedMLP.apply(fused_input, mlp[0].weight, mlp[0].bias, mlp[2].weight, mlp[2].bias)
+    fused.backward(upstream)
+    torch.testing.assert_close(fused, reference, rtol=1e-5, atol=1e-5)
+    for ours, theirs in zip([fused_input.grad] + [p.grad for p in mlp.parameters()], expected):
+        torch.testing.assert_close(ours, theirs, rtol=1e-4, atol=1e-4)
+
+
+def test_fused_cpu_mlp_gradients_are_the_same_bits_on_any_thread_count():
+    import numba
+
+    torch.manual_seed(5)
+    mlp = torch.nn.Sequential(torch.nn.Linear(6, 32), torch.nn.ReLU(), torch.nn.Linear(32, 2))
+    features = torch.randn(5000, 6)
+    upstream = torch.randn(5000, 2)
+    results = []
+    threads = numba.get_num_threads()
+    try:
+        for count in sorted({1, threads}):
+            numba.set_num_threads(count)
+            weights = [p.detach().clone().requires_grad_(True) for p in mlp.parameters()]
+            FusedMLP.apply(features, *weights).backward(upstream)
+            results.append([w.grad for w in weights])
+    finally:
+        numba.set_num_threads(threads)
+    for grads in results[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(grads, results[0]))

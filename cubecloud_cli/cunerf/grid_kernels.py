@@ -1,4 +1,6 @@
-"""The grid field's multiresolution lookup as two numba kernels, for CPU tensors.
+"""The grid field on CPU tensors as numba kernels: the multiresolution lookup, and the small MLP
+after it (``mlp_forward``/``mlp_backward``, where torch's matrix products for 32 768 × 6 → 32 → 2
+cost more than their arithmetic).
 
 The same arithmetic as :func:`cubecloud_cli.cunerf.fields.trilinear_corners` followed by a
 weighted sum of the 8 corner rows, but fused: the torch path builds (P, 8) index and weight
@@ -107,3 +109,70 @@ def encode_backward(cells, fractions, grad_features, resolutions, offsets, rows,
                             for f in range(features):
                                 grad[row, f] += weight * grad_features[p, level * features + f]
     return grad
+
+
+# Points per block of the MLP's backward: each block sums its points' weight gradients in order,
+# and the blocks are added in order, so the sums do not depend on the number of threads.
+MLP_BLOCK = 2048
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def mlp_forward(features, w1t, b1, w2, b2):
+    """(P, I) features → (P, O) raw outputs of Linear(I, H) → ReLU → Linear(H, O); ``w1t`` is the
+    first layer's (out, in) weight transposed to (I, H), so the inner loops run over the H
+    hidden units in contiguous memory and become vector code. float32 in, float32 out."""
+    count, inputs, hidden, outputs = features.shape[0], features.shape[1], w1t.shape[1], w2.shape[0]
+    out = np.empty((count, outputs), dtype=np.float32)
+    for p in prange(count):
+        h = b1.copy()
+        for i in range(inputs):
+            x = features[p, i]
+            for j in range(hidden):
+                h[j] += w1t[i, j] * x
+        for o in range(outputs):
+            total = b2[o]
+            for j in range(hidden):
+                total += w2[o, j] * max(h[j], np.float32(0.0))
+            out[p, o] = total
+    return out
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def mlp_backward(features, grad_out, w1t, b1, w2):
+    """Gradients of Σ grad_out · mlp_forward(features): with respect to the features (P, I), and
+    per block of MLP_BLOCK points the partial sums for w1 (transposed, as ``w1t``), b1, w2 and
+    b2 (blocks, ...), which the caller adds in block order."""
+    count, inputs, hidden, outputs = features.shape[0], features.shape[1], w1t.shape[1], w2.shape[0]
+    blocks = (count + MLP_BLOCK - 1) // MLP_BLOCK
+    grad_features = np.empty((count, inputs), dtype=np.float32)
+    grad_w1t = np.zeros((blocks, inputs, hidden), dtype=np.float32)
+    grad_b1 = np.zeros((blocks, hidden), dtype=np.float32)
+    grad_w2 = np.zeros((blocks, outputs, hidden), dtype=np.float32)
+    grad_b2 = np.zeros((blocks, outputs), dtype=np.float32)
+    for block in prange(blocks):
+        h = np.empty(hidden, dtype=np.float32)
+        grad_h = np.empty(hidden, dtype=np.float32)
+        for p in range(block * MLP_BLOCK, min(count, (block + 1) * MLP_BLOCK)):
+            h[:] = b1
+            for i in range(inputs):
+                x = features[p, i]
+                for j in range(hidden):
+                    h[j] += w1t[i, j] * x
+            grad_h[:] = 0.0
+            for o in range(outputs):
+                g = grad_out[p, o]
+                grad_b2[block, o] += g
+                for j in range(hidden):
+                    grad_w2[block, o, j] += g * max(h[j], np.float32(0.0))
+                    grad_h[j] += g * w2[o, j]
+            for j in range(hidden):  # ReLU's gradient is 0 at and below 0, as torch's
+                grad_h[j] = grad_h[j] if h[j] > 0.0 else np.float32(0.0)
+                grad_b1[block, j] += grad_h[j]
+            for i in range(inputs):
+                x = features[p, i]
+                total = np.float32(0.0)
+                for j in range(hidden):
+                    grad_w1t[block, i, j] += grad_h[j] * x
+                    total += grad_h[j] * w1t[i, j]
+                grad_features[p, i] = total
+    return grad_features, grad_w1t, grad_b1, grad_w2, grad_b2
