@@ -150,8 +150,8 @@ def test_default_knob_values_follow_the_preset():
         "points_per_cube=2048",
         "iterations=1000",
         "iterations=4000",
-        "budget=25000",
-        "budget=50000",
+        "budget=9375",  # an eighth and a quarter of the preset's 75k budget
+        "budget=18750",
         "antialias=off",
     ]
     balanced = names("balanced")
