@@ -19,6 +19,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cubecloud_cli.jit import PRANGE_ONLY
+
 
 @njit(cache=True, inline="always")
 def _corner_base(x, y, z, r):
@@ -41,7 +43,7 @@ def _corner_base(x, y, z, r):
     return base, cx - np.float32(lx), cy - np.float32(ly), cz - np.float32(lz)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def encode_forward(points, table, resolutions, offsets, cells, fractions):
     """(P, 3) float32 points → (P, L·F) float32: each level's features, trilinearly interpolated.
 
@@ -71,7 +73,7 @@ def encode_forward(points, table, resolutions, offsets, cells, fractions):
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def encode_backward(cells, fractions, grad_features, resolutions, offsets, rows, features, bands):
     """The dense (rows, F) float32 gradient of Σ grad_features · encode_forward(points) with
     respect to the table, from the ``cells`` and ``fractions`` the forward kept. Each of
@@ -116,7 +118,7 @@ def encode_backward(cells, fractions, grad_features, resolutions, offsets, rows,
 MLP_BLOCK = 2048
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
 def mlp_forward(features, w1t, b1, w2, b2):
     """(P, I) features → (P, O) raw outputs of Linear(I, H) → ReLU → Linear(H, O); ``w1t`` is the
     first layer's (out, in) weight transposed to (I, H), so the inner loops run over the H
@@ -137,7 +139,7 @@ def mlp_forward(features, w1t, b1, w2, b2):
     return out
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
 def mlp_backward(features, grad_out, w1t, b1, w2):
     """Gradients of Σ grad_out · mlp_forward(features): with respect to the features (P, I), and
     per block of MLP_BLOCK points the partial sums for w1 (transposed, as ``w1t``), b1, w2 and
@@ -145,20 +147,32 @@ def mlp_backward(features, grad_out, w1t, b1, w2):
     count, inputs, hidden, outputs = features.shape[0], features.shape[1], w1t.shape[1], w2.shape[0]
     blocks = (count + MLP_BLOCK - 1) // MLP_BLOCK
     grad_features = np.empty((count, inputs), dtype=np.float32)
-    grad_w1t = np.zeros((blocks, inputs, hidden), dtype=np.float32)
-    grad_b1 = np.zeros((blocks, hidden), dtype=np.float32)
-    grad_w2 = np.zeros((blocks, outputs, hidden), dtype=np.float32)
-    grad_b2 = np.zeros((blocks, outputs), dtype=np.float32)
+    # Allocated empty and zeroed by the block that owns them: np.zeros here would be a parallel
+    # loop of its own, which numba compiles separately (seconds at a new user's first run).
+    grad_w1t = np.empty((blocks, inputs, hidden), dtype=np.float32)
+    grad_b1 = np.empty((blocks, hidden), dtype=np.float32)
+    grad_w2 = np.empty((blocks, outputs, hidden), dtype=np.float32)
+    grad_b2 = np.empty((blocks, outputs), dtype=np.float32)
     for block in prange(blocks):
         h = np.empty(hidden, dtype=np.float32)
         grad_h = np.empty(hidden, dtype=np.float32)
+        for j in range(hidden):
+            grad_b1[block, j] = np.float32(0.0)
+            for i in range(inputs):
+                grad_w1t[block, i, j] = np.float32(0.0)
+            for o in range(outputs):
+                grad_w2[block, o, j] = np.float32(0.0)
+        for o in range(outputs):
+            grad_b2[block, o] = np.float32(0.0)
         for p in range(block * MLP_BLOCK, min(count, (block + 1) * MLP_BLOCK)):
-            h[:] = b1
+            for j in range(hidden):
+                h[j] = b1[j]
             for i in range(inputs):
                 x = features[p, i]
                 for j in range(hidden):
                     h[j] += w1t[i, j] * x
-            grad_h[:] = 0.0
+            for j in range(hidden):
+                grad_h[j] = np.float32(0.0)
             for o in range(outputs):
                 g = grad_out[p, o]
                 grad_b2[block, o] += g

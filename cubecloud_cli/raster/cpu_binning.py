@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from cubecloud_cli.jit import PRANGE_ONLY
 from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
 
@@ -51,7 +52,7 @@ def stable_depth_order(candidates, depths):
     return order
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
     """Per Gaussian: the inclusive pixel box (x0, x1, y0, y1) as ``pixel_bounds`` with opacities
     computes it (empty, (0, −1, 0, −1), where culled), and the power level ln(255·o) ≥ 0 below
@@ -83,7 +84,7 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
     return bounds, levels
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def _entry_tiles(order, bounds, first, tiles_x, tile_of_entry, gaussian_of_entry):
     for rank in prange(order.size):
         g = order[rank]
@@ -139,7 +140,7 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     return offsets, entries, slots, order, first
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def sum_per_gaussian(slot_values, order, first, count):
     """(count, K) sums of each Gaussian's rows of the Gaussian-major (entries, K) ``slot_values``,
     in parallel over Gaussians (each owns its rows: no two threads write the same memory)."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cubecloud_cli.jit import PRANGE_ONLY
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
 
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
@@ -55,7 +56,7 @@ def exp_negative(power):
     return EXP_TABLE[index] * polynomial
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
 def forward(offsets, entries, bounds, means2d, conics, colours, opacities, levels, background, width, height, tiles_x):
     """Gaussian-major within each tile: every entry, front to back, visits only the tile's pixels
     inside its square, so the work is the pair count rather than pixels × entries.
@@ -136,7 +137,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     return image, final_transmittance, last, blended
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
 def backward(
     offsets,
     entries,

@@ -15,6 +15,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from cubecloud_cli.jit import PRANGE_ONLY
 from cubecloud_cli.raster.constants import (
     EIGENVALUE_FLOOR,
     FRUSTUM_CLAMP,
@@ -98,7 +99,7 @@ def _compensation_ratio(a, b, c, variance):
     return 1.0 - deficit, deficit, blurred
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def project_forward(means, scales, quaternions, rotation, translation, focal, width, height, near, variance, antialias):
     """means2d (N, 2), conics (N, 3), covariances2d (N, 3), depths (N,), radii (N,) and the Mip
     filter's opacity factors (N,) (ones without ``antialias``) as ``project``; ``variance`` is the
@@ -155,7 +156,7 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
     return means2d, conics, covariances2d, depths, radii, compensations
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def project_backward(
     means,
     scales,
