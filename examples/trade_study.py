@@ -73,7 +73,7 @@ class Knob:
 
 KNOBS = {
     "volume": Knob("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
-    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # fast: 500, 1000, 2000
+    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # fast: 375, 750, 1500
     "cameras": Knob("export", "--cameras", choices=("orbit", "sphere")),
     "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 30, 120
     "points_per_cube": Knob("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048

@@ -256,7 +256,8 @@ def test_help_shows_the_preset_values():
     help_text = words("cunerf")
     from cubecloud_cli.presets import CUNERF_PRESETS, PRESETS
 
-    assert f"fast 4000, balanced {CUNERF_PRESETS['balanced']['fast']['iterations']}" in help_text
+    fast = CUNERF_PRESETS["fast"]["fast"]["iterations"]
+    assert f"fast {fast}, balanced {CUNERF_PRESETS['balanced']['fast']['iterations']}" in help_text
     assert "isotropic volume rendering" in help_text
     assert f"balanced {PRESETS['preprocess']['balanced']['size']}," in words("preprocess")
     assert f"balanced {PRESETS['splat']['balanced']['max_gaussians']}," in words("splat")

@@ -140,9 +140,9 @@ def test_default_knob_values_follow_the_preset():
         "preset",
         "volume=96",
         "volume=192",
-        "cunerf_iterations=500",
-        "cunerf_iterations=1000",
-        "cunerf_iterations=2000",
+        "cunerf_iterations=375",
+        "cunerf_iterations=750",
+        "cunerf_iterations=1500",
         "cameras=orbit",
         "views=30",
         "views=120",
@@ -164,14 +164,14 @@ def test_the_camera_antialias_and_cunerf_knobs():
     a stage option given to every configuration moves the base, as on the command line."""
     study = _load_script()
     base = study.preset_values("fast", {})
-    assert (base["cameras"], base["antialias"], base["cunerf_iterations"]) == ("sphere", "on", 4000)
+    assert (base["cameras"], base["antialias"], base["cunerf_iterations"]) == ("sphere", "on", 3000)
     assert study.configurations(["cameras", "antialias", "cunerf_iterations"], base) == [
         ("preset", {}),
         ("cameras=orbit", {"export": ["--cameras", "orbit"]}),
         ("antialias=off", {"splat": ["--no-antialias"]}),
-        ("cunerf_iterations=500", {"cunerf": ["--iterations", "500"]}),
-        ("cunerf_iterations=1000", {"cunerf": ["--iterations", "1000"]}),
-        ("cunerf_iterations=2000", {"cunerf": ["--iterations", "2000"]}),
+        ("cunerf_iterations=375", {"cunerf": ["--iterations", "375"]}),
+        ("cunerf_iterations=750", {"cunerf": ["--iterations", "750"]}),
+        ("cunerf_iterations=1500", {"cunerf": ["--iterations", "1500"]}),
     ]
     moved = study.preset_values("fast", {"splat": ["--antialias", "--no-antialias"], "export": ["--cameras", "orbit"]})
     assert (moved["antialias"], moved["cameras"]) == ("off", "orbit")
