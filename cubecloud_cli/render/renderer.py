@@ -127,7 +127,7 @@ def _fused_grid_dvr(field, model: ImageModel, device: torch.device) -> bool:
 def _march_grid_dvr(field: GridField, model: ImageModel, origin, directions, entry, first, last) -> torch.Tensor:
     transfer = model.transfer
     colours = dvr_march(
-        field._zyx[0, 0].numpy(),
+        field.zyx.numpy(),
         origin.double().numpy(),
         directions.numpy(),
         entry.numpy(),

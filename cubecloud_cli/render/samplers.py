@@ -131,6 +131,11 @@ class GridField:
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         return _sample_grid(self._zyx, points, "bilinear")
 
+    @property
+    def zyx(self) -> torch.Tensor:
+        """The (S, S, S) volume indexed [z, y, x], x contiguous (what ``grid_sample`` reads)."""
+        return self._zyx[0, 0]
+
     def support(self, threshold: float) -> Support:
         return support_of_volume(self.volume, threshold)
 
