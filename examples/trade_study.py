@@ -75,9 +75,9 @@ KNOBS = {
     "volume": Knob("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
     "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # fast: 375, 750, 1500
     "cameras": Knob("export", "--cameras", choices=("orbit", "sphere")),
-    "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 30, 120
+    "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 60, 240
     "points_per_cube": Knob("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048
-    "iterations": Knob("splat", "--iterations", (0.5, 2.0)),  # fast: 1000, 4000
+    "iterations": Knob("splat", "--iterations", (0.5, 2.0)),  # fast: 750, 3000
     "budget": Knob("splat", "--max-gaussians", (0.125, 0.25)),  # fast: 25 000, 50 000 (smaller budgets)
     "antialias": Knob("splat", "--antialias", choices=("on", "off")),
 }
