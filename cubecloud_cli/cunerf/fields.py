@@ -135,9 +135,13 @@ class GridField(NeuralField):
         inputs = config.features * len(config.resolutions)
         self.mlp = nn.Sequential(nn.Linear(inputs, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 2))
 
+    def _on_cpu_kernels(self, points: torch.Tensor) -> bool:
+        """Whether the numba kernels apply: float32 on the CPU (the torch path serves the rest)."""
+        return points.device.type == "cpu" and self.table.dtype == torch.float32
+
     def encode(self, points: torch.Tensor) -> torch.Tensor:
         """(P, 3) -> (P, levels · features): each level's features, trilinearly interpolated."""
-        if points.device.type == "cpu" and self.table.dtype == torch.float32:
+        if self._on_cpu_kernels(points):
             return FusedGridLookup.apply(self.table, points, self.config.resolutions, self.offsets)
         indices, weights = [], []
         for level, resolution in enumerate(self.config.resolutions):
@@ -150,7 +154,7 @@ class GridField(NeuralField):
         return features.reshape(points.shape[0], -1)
 
     def raw(self, points: torch.Tensor) -> torch.Tensor:
-        if points.device.type == "cpu" and self.table.dtype == torch.float32:
+        if self._on_cpu_kernels(points):
             first, last = self.mlp[0], self.mlp[2]
             return FusedMLP.apply(self.encode(points), first.weight, first.bias, last.weight, last.bias)
         return self.mlp(self.encode(points))
