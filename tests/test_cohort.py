@@ -2,12 +2,14 @@
 corrupt scan among them, and resumed after being killed mid-way."""
 
 import csv
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from cli_helpers import assert_one_line_error, invoke
@@ -47,6 +49,9 @@ def test_three_scans_and_a_corrupt_one_run_locally_and_the_report_lists_the_fail
     assert "4 scans, 3 finished." in report and "| Cube-Cloud 3DGS |" in report and "| broken |" in report
     assert not (out / "broken" / "eval").exists()
     assert not (out / "cohort" / "lock").exists()
+    launcher = json.loads((out / "cohort" / "config.json").read_text())["cubecloud"]
+    assert launcher[1:3] == ["-m", "cubecloud_cli.cohort.job_client"]  # jobs here start through the job server
+    assert not Path(launcher[3]).exists()  # which stopped with the cohort
 
 
 def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(tmp_path):
@@ -66,6 +71,8 @@ def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(tmp_pa
     assert result.exit_code == 0, result.output
     assert rows(out)["case0"]["status"] == "done"
     assert "--profile" in (out / "cohort" / "snakemake_command.txt").read_text()
+    launcher = json.loads((out / "cohort" / "config.json").read_text())["cubecloud"]
+    assert launcher[1:] == ["-m", "cubecloud_cli"]  # an executor may send jobs elsewhere: no job server
 
 
 def test_a_cohort_killed_mid_way_resumes_where_it_stopped(tmp_path):

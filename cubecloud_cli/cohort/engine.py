@@ -41,6 +41,11 @@ class EngineOptions:
     profile: Path | None = None
     jobs: int | None = None  # jobs at once through an executor (Snakemake's --jobs)
 
+    @property
+    def on_this_machine(self) -> bool:
+        """Every job runs here, so one job server can start them all (a profile may name an executor)."""
+        return self.executor is None and self.profile is None
+
 
 def require_snakemake() -> None:
     try:
@@ -60,14 +65,20 @@ def per_scan_options(scan: CohortScan) -> list[str]:
     return options
 
 
-def write_config(out: Path, scans: list[CohortScan], run_options: list[str]) -> Path:
-    """OUT/cohort/config.json, written whole before it replaces the old one."""
+PLAIN_COMMAND = [sys.executable, "-m", "cubecloud_cli"]  # the same Python, on every node of a shared filesystem
+
+
+def write_config(
+    out: Path, scans: list[CohortScan], run_options: list[str], command: list[str] = PLAIN_COMMAND
+) -> Path:
+    """OUT/cohort/config.json, written whole before it replaces the old one. ``command`` is how a
+    job starts cubecloud: plainly, or through this machine's job server (job_server.py)."""
     directory = Path(out) / COHORT_DIR
     directory.mkdir(parents=True, exist_ok=True)
     config = {
         "scans": {scan.id: {"scan": str(scan.scan), "options": per_scan_options(scan)} for scan in scans},
         "run_options": run_options,
-        "cubecloud": [sys.executable, "-m", "cubecloud_cli"],  # the same Python, on every node of a shared filesystem
+        "cubecloud": list(command),
         "resources": STAGE_RESOURCES,
     }
     partial = directory / "config.json.partial"

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 from cubecloud_cli.cohort.engine import (
+    PLAIN_COMMAND,
     EngineOptions,
     cohort_lock,
     failure,
@@ -13,6 +16,7 @@ from cubecloud_cli.cohort.engine import (
     run_snakemake,
     write_config,
 )
+from cubecloud_cli.cohort.job_server import job_server
 from cubecloud_cli.cohort.report import scan_record, write_cohort_report
 from cubecloud_cli.cohort.scans import CohortScan, scans_from_arguments, scans_from_csv
 from cubecloud_cli.errors import CubecloudError
@@ -24,6 +28,17 @@ def scan_list(arguments: list[Path], csv_path: Path | None) -> list[CohortScan]:
     if arguments and csv_path is not None:
         raise CubecloudError("give the scans either as arguments or as --scans CSV, not both")
     return scans_from_csv(csv_path) if csv_path is not None else scans_from_arguments(arguments)
+
+
+@contextmanager
+def job_launcher(engine: EngineOptions) -> Iterator[list[str]]:
+    """How jobs start cubecloud: through a job server when they all run on this machine (a job
+    then starts in 0.1 s instead of 2–3 s), plainly when an executor sends them elsewhere."""
+    if engine.on_this_machine:
+        with job_server() as command:
+            yield command
+    else:
+        yield PLAIN_COMMAND
 
 
 def run_cohort(
@@ -41,10 +56,12 @@ def run_cohort(
     out = Path(out).resolve()
     if profile is not None and not Path(profile).is_dir():
         raise CubecloudError(f"--profile {profile} is not a folder: give a Snakemake profile folder (config.yaml)")
+    engine = EngineOptions(cores, executor, Path(profile) if profile else None, jobs)
     with cohort_lock(out):
-        config = write_config(out, scans, run_options)
-        log.info(f"cohort of {len(scans)} scans in {out}: {len(scans) * 6} jobs on Snakemake")
-        code = run_snakemake(out, config, EngineOptions(cores, executor, Path(profile) if profile else None, jobs))
+        with job_launcher(engine) as command:
+            config = write_config(out, scans, run_options, command)
+            log.info(f"cohort of {len(scans)} scans in {out}: {len(scans) * 6} jobs on Snakemake")
+            code = run_snakemake(out, config, engine)
         records = []
         for scan in scans:
             finished = (out / scan.id / "eval" / "manifest.json").is_file()

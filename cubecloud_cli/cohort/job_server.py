@@ -1,0 +1,194 @@
+"""The cohort's job server on this machine: one process that imports cubecloud (torch, numba and the
+stages) once and forks a child for each job that job_client.py hands it, so that a job does not
+spend 2–3 s starting Python and importing torch. Thirty jobs of five scans paid that 30 times.
+
+A forked child is the job: it takes the client's standard streams (passed over the socket), folder
+and environment, runs ``cubecloud ARGS...`` and sends its exit code back. The server runs nothing of
+torch or numba itself, so it holds no thread pool that a fork would break, and each job sets its own
+thread count as a fresh process would. If the client dies (a killed job), the child is interrupted
+as Ctrl-C would: the stage saves its checkpoint and stops. The server stops when the cohort that
+started it does. The socket lives in a folder only this user can enter.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import traceback
+from pathlib import Path
+from typing import Iterator
+
+from cubecloud_cli.errors import CubecloudError
+
+READY = "ready"
+STARTUP_SECONDS = 120.0  # importing torch on a cold, busy machine
+
+
+def _receive_request(connection: socket.socket) -> tuple[dict, list[int]]:
+    data, fds, _, _ = socket.recv_fds(connection, 1 << 16, 3)
+    if len(data) < 4:
+        raise ValueError("a request shorter than its length")
+    (length,) = struct.unpack("!I", data[:4])
+    body = bytearray(data[4:])
+    while len(body) < length:
+        chunk = connection.recv(length - len(body))
+        if not chunk:
+            raise ValueError("a request cut short")
+        body += chunk
+    if len(fds) != 3:
+        raise ValueError(f"a request with {len(fds)} streams instead of 3")
+    return json.loads(bytes(body)), list(fds)
+
+
+def _exit_code(exit: SystemExit) -> int:
+    if exit.code is None:
+        return 0
+    if isinstance(exit.code, int):
+        return exit.code
+    print(exit.code, file=sys.stderr)
+    return 1
+
+
+def _interrupt_when_client_leaves(connection: socket.socket) -> None:
+    """The client sends nothing after its request: end-of-stream means it has gone."""
+    try:
+        while connection.recv(1024):
+            pass
+    except OSError:
+        pass
+    os.kill(os.getpid(), signal.SIGINT)
+
+
+def _run_job(listener: socket.socket, connection: socket.socket, request: dict, fds: list[int]) -> None:
+    """In the forked child: become the job, run it, report its exit code. Never returns."""
+    code = 1
+    try:
+        listener.close()
+        for number in (signal.SIGCHLD, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(number, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for target, fd in zip((0, 1, 2), fds):
+            os.dup2(fd, target)
+            os.close(fd)
+        sys.stdin = open(0, closefd=False)
+        sys.stdout = open(1, "w", closefd=False, buffering=1 if os.isatty(1) else -1)
+        sys.stderr = open(2, "w", closefd=False, buffering=1)
+        os.chdir(request["cwd"])
+        os.environ.clear()
+        os.environ.update(request["env"])
+        connection.sendall(f"pid {os.getpid()}\n".encode())
+        threading.Thread(target=_interrupt_when_client_leaves, args=(connection,), daemon=True).start()
+        sys.argv = ["cubecloud", *request["argv"]]
+        from cubecloud_cli.cli import main
+
+        try:
+            main()
+            code = 0
+        except SystemExit as exit:
+            code = _exit_code(exit)
+        except KeyboardInterrupt:
+            code = 130
+    except BaseException:
+        traceback.print_exc()
+    finally:
+        # The client leaves once it has the code; its leaving must not interrupt this exit.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with contextlib.suppress(BaseException):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        with contextlib.suppress(BaseException):
+            connection.sendall(f"exit {code}\n".encode())
+        os._exit(code)
+
+
+def serve(path: str, parent: int) -> None:
+    """Accept jobs at ``path`` until ``parent``, the cohort that started the server, is gone."""
+    import cubecloud_cli.cli  # noqa: F401  (what every job would import: the reason for the server)
+
+    signal.signal(signal.SIGCHLD, signal.SIG_IGN)  # finished children are reaped by the kernel
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(path)
+    listener.listen(64)
+    listener.settimeout(1.0)
+    print(READY, flush=True)
+    while os.getppid() == parent:
+        try:
+            connection, _ = listener.accept()
+        except socket.timeout:
+            continue
+        connection.settimeout(None)
+        try:
+            request, fds = _receive_request(connection)
+        except (OSError, ValueError) as problem:
+            print(f"cubecloud job server: a bad request ({problem})", file=sys.stderr, flush=True)
+            connection.close()
+            continue
+        sys.stdout.flush()
+        sys.stderr.flush()
+        if os.fork() == 0:
+            try:
+                _run_job(listener, connection, request, fds)
+            finally:
+                os._exit(1)  # a child never returns to the accept loop
+        connection.close()
+        for fd in fds:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def job_server() -> Iterator[list[str]]:
+    """Start a job server for this cohort; yield the command prefix its jobs start cubecloud with
+    (the client and the server's socket). The server stops when the block ends."""
+    folder = tempfile.mkdtemp(prefix="cubecloud-jobs-")  # mode 0700; short, for the socket path limit
+    path = str(Path(folder) / "socket")
+    server = subprocess.Popen(
+        [sys.executable, "-m", "cubecloud_cli.cohort.job_server", path, str(os.getpid())],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        started = _wait_until_ready(server)
+        if not started:
+            raise CubecloudError("the cohort's job server did not start (see the lines above): run the cohort again")
+        yield [sys.executable, "-m", "cubecloud_cli.cohort.job_client", path]
+    finally:
+        server.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            server.wait(timeout=10)
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _wait_until_ready(server: subprocess.Popen) -> bool:
+    result: dict[str, str] = {}
+
+    def read_first_line() -> None:
+        result["line"] = server.stdout.readline().strip()
+
+    reader = threading.Thread(target=read_first_line, daemon=True)
+    reader.start()
+    reader.join(STARTUP_SECONDS)
+    return result.get("line") == READY
+
+
+def main() -> None:
+    if len(sys.argv) != 3 or not sys.argv[2].isdigit():
+        print("usage: python -m cubecloud_cli.cohort.job_server SOCKET PARENT-PID", file=sys.stderr)
+        sys.exit(2)
+    with contextlib.suppress(KeyboardInterrupt):
+        serve(sys.argv[1], int(sys.argv[2]))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,133 @@
+"""The cohort's job server: a job started through it behaves as `python -m cubecloud_cli` would
+(its streams, folder, exit code and one-line errors, the same bits out), a killed job saves and
+stops, and the server goes when its cohort goes."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cubecloud_cli.cohort.job_server import job_server
+
+PLAIN = [sys.executable, "-m", "cubecloud_cli"]
+
+
+@pytest.fixture(scope="module")
+def server_command():
+    with job_server() as command:
+        yield command
+
+
+def run(command, *args, cwd=None):
+    return subprocess.run([*command, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def server_children(parent: int) -> list[int]:
+    children = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
+                children.append(int(entry.name))
+    return children
+
+
+def wait_until(condition, seconds: float = 300.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+def test_a_job_through_the_server_writes_to_the_clients_streams(server_command):
+    assert server_command[2] == "cubecloud_cli.cohort.job_client" and Path(server_command[3]).is_socket()
+    through_server, plain = run(server_command, "--version"), run(PLAIN, "--version")
+    assert through_server.returncode == plain.returncode == 0
+    assert through_server.stdout == plain.stdout == f"cubecloud {__import__('cubecloud_cli').__version__}\n"
+
+
+def test_bad_input_through_the_server_is_the_same_one_line_error(server_command, tmp_path):
+    through_server = run(
+        server_command, "run", tmp_path / "nowhere.nii.gz", "-o", tmp_path / "w", "--stage", "preprocess"
+    )
+    plain = run(PLAIN, "run", tmp_path / "nowhere.nii.gz", "-o", tmp_path / "w", "--stage", "preprocess")
+    assert through_server.returncode == plain.returncode == 2
+    assert through_server.stderr == plain.stderr and through_server.stderr.startswith("error: ")
+    assert "Traceback" not in through_server.stderr and through_server.stderr.count("\n") == 1
+
+
+def test_without_a_server_the_client_runs_cubecloud_plainly(tmp_path):
+    client = [sys.executable, "-m", "cubecloud_cli.cohort.job_client", str(tmp_path / "no-socket")]
+    result = run(client, "run", tmp_path / "nowhere.nii.gz", "-o", tmp_path / "w", "--stage", "preprocess")
+    assert result.returncode == 2 and "nowhere.nii.gz does not exist" in result.stderr
+
+
+def test_stages_through_the_server_run_in_the_clients_folder_and_write_the_same_bits(server_command, tmp_path):
+    tiny = ["--size", "32", "--cunerf-iterations", "40", "--threads", "2", "-q"]
+    for command, folder in ((server_command, tmp_path / "server"), (PLAIN, tmp_path / "plain")):
+        folder.mkdir()
+        for stage in ("preprocess", "cunerf"):
+            result = run(command, "run", "-o", "work", *tiny, "--stage", stage, cwd=folder)  # -o relative to cwd
+            assert result.returncode == 0, result.stderr
+    for artifact in ("preprocess/volume.npy", "cunerf/model.pt"):
+        assert (tmp_path / "server/work" / artifact).read_bytes() == (tmp_path / "plain/work" / artifact).read_bytes()
+
+
+def test_a_job_whose_client_is_killed_saves_its_checkpoint_and_stops(server_command, tmp_path):
+    work = tmp_path / "work"
+    assert run(server_command, "run", "-o", work, "--size", "32", "--stage", "preprocess", "-q").returncode == 0
+    log = open(tmp_path / "job.log", "w")
+    client = subprocess.Popen(
+        [*server_command, "cunerf", str(work), "--iterations", "1000000", "--checkpoint-every", "20"],
+        stdout=log, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    server_pid = next(pid for pid in server_children(os.getpid()) if server_command[3] in _cmdline(pid))
+    checkpoint = work / ".cunerf.partial" / "checkpoint.pt"
+    assert wait_until(lambda: checkpoint.is_file() and server_children(server_pid)), "the job never trained"
+    jobs = server_children(server_pid)
+    client.send_signal(signal.SIGKILL)  # as a scheduler would kill the job's process
+    client.wait()
+    assert wait_until(lambda: not any(Path(f"/proc/{pid}").exists() for pid in jobs)), "the job kept running"
+    log.close()
+    assert "interrupted: iteration" in (tmp_path / "job.log").read_text()
+    assert not (work / "cunerf").exists()
+
+
+def test_the_server_stops_when_the_cohort_that_started_it_is_gone(tmp_path):
+    socket_path = tmp_path / "socket"
+    starter = subprocess.run(
+        [sys.executable, "-c",
+         "import os, subprocess, sys\n"
+         f"server = subprocess.Popen([sys.executable, '-m', 'cubecloud_cli.cohort.job_server', {str(socket_path)!r},"
+         " str(os.getpid())], stdout=subprocess.PIPE, text=True)\n"
+         "assert server.stdout.readline().strip() == 'ready'\n"
+         "print(server.pid)\n"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert starter.returncode == 0, starter.stderr
+    server_pid = int(starter.stdout.strip())
+    assert wait_until(lambda: not _running(server_pid), 30), "the server outlived its cohort"
+
+
+def _cmdline(pid) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"  # a zombie has stopped; only its parent, gone here, would reap it
