@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 import traceback
 from pathlib import Path
 from typing import Iterator
@@ -31,6 +32,7 @@ from cubecloud_cli.errors import CubecloudError
 
 READY = "ready"
 STARTUP_SECONDS = 120.0  # importing torch on a cold, busy machine
+JOB_EXIT_SECONDS = 5.0  # a finished job's process flushing and exiting
 
 
 def _receive_request(connection: socket.socket) -> tuple[dict, list[int]]:
@@ -110,16 +112,55 @@ def _run_job(listener: socket.socket, connection: socket.socket, request: dict, 
         os._exit(code)
 
 
+def _reap_finished_jobs(signum, frame) -> None:
+    """Wait for every finished job, so that their CPU time and memory count in the server's, and
+    so in the cohort's (``/usr/bin/time cubecloud cohort`` sees them)."""
+    with contextlib.suppress(ChildProcessError):
+        while os.waitpid(-1, os.WNOHANG)[0] > 0:
+            pass
+
+
+class _Stopped(Exception):
+    """SIGTERM: the cohort is done with the server."""
+
+
+def _stop(signum, frame) -> None:
+    raise _Stopped
+
+
+def _wait_for_jobs(seconds: float) -> None:
+    """Reap the jobs still exiting when the cohort stops the server (their client has its exit
+    code already), so that they count in the cohort's resources; a job still running is left."""
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            if os.waitpid(-1, os.WNOHANG)[0] == 0:
+                time.sleep(0.02)
+        except ChildProcessError:
+            return
+
+
 def serve(path: str, parent: int) -> None:
     """Accept jobs at ``path`` until ``parent``, the cohort that started the server, is gone."""
     import cubecloud_cli.cli  # noqa: F401  (what every job would import: the reason for the server)
 
-    signal.signal(signal.SIGCHLD, signal.SIG_IGN)  # finished children are reaped by the kernel
+    signal.signal(signal.SIGCHLD, _reap_finished_jobs)
+    signal.signal(signal.SIGTERM, _stop)
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     listener.bind(path)
     listener.listen(64)
     listener.settimeout(1.0)
     print(READY, flush=True)
+    try:
+        _accept_jobs(listener, parent)
+    except _Stopped:
+        pass
+    finally:
+        _wait_for_jobs(JOB_EXIT_SECONDS)
+
+
+def _accept_jobs(listener: socket.socket, parent: int) -> None:
     while os.getppid() == parent:
         try:
             connection, _ = listener.accept()
