@@ -12,7 +12,8 @@ import torch
 
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.metrics import psnr_from_mse
-from cubecloud_cli.raster.backends import Rasterized, Rasterizer, rasterizer_for
+from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
+from cubecloud_cli.raster.cpu_warmup import BackwardCompile
 from cubecloud_cli.splat.data import TrainingScene
 from cubecloud_cli.splat.densify import DensifyStrategy, GradientStats, apply_plan, plan_densification, reset_opacity
 from cubecloud_cli.splat.gaussians import Gaussians
@@ -134,8 +135,12 @@ class SplatTrainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.means_lr()
+        # The first step of a process compiles the rasterizer's backward on the other core.
+        backward_compile = BackwardCompile.start() if self.rasterizer is NUMBA else None
         rendered = self.render(view, retain=True)
         loss = photometric_loss(rendered.image, self.images[view], self.settings.dssim_weight)
+        if backward_compile is not None:
+            backward_compile.before_backward()
         loss.backward()
         self.iteration += 1
         refining = self.strategy.refining(self.iteration)
