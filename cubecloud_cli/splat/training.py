@@ -94,6 +94,7 @@ class SplatTrainer:
         self.stats = GradientStats(len(gaussians), device)
         self.generator = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
+        self._stepped = False
         self.elapsed_s = 0.0
         self.history: list[dict] = []
         self._queue: list[int] = []
@@ -135,8 +136,12 @@ class SplatTrainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self.means_lr()
-        # The first step of a process compiles the rasterizer's backward on the other core.
-        backward_compile = BackwardCompile.start() if self.rasterizer is NUMBA else None
+        # A trainer's first step compiles the rasterizer's backward on the other core (unless
+        # this process has it already); later steps need not ask.
+        backward_compile = None
+        if not self._stepped and self.rasterizer is NUMBA:
+            backward_compile = BackwardCompile.start()
+        self._stepped = True
         rendered = self.render(view, retain=True)
         loss = photometric_loss(rendered.image, self.images[view], self.settings.dssim_weight)
         if backward_compile is not None:
