@@ -19,15 +19,10 @@ also compiles the viewer's shaders and WebAssembly sorter; the later loads show 
 from __future__ import annotations
 
 import argparse
-import base64
-import io
 import json
-import shutil
 import socket
-import subprocess
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +30,7 @@ import torch
 
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import write_gaussians_ply
-from cubecloud_cli.view.browser import chromium
+from cubecloud_cli.view.browser import Chromium
 from cubecloud_cli.view.server import SceneViewer
 
 WINDOW = (900, 700)  # the tests' and the README pictures' page size
@@ -66,58 +61,6 @@ def synthetic_work(directory: Path, count: int, seed: int = 0) -> Path:
     return directory
 
 
-class DevTools:
-    """The few DevTools-protocol calls the measurement needs, over one page's websocket."""
-
-    def __init__(self, port: int):
-        from websockets.sync.client import connect
-
-        targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30).read())
-        page = next(t for t in targets if t["type"] == "page")
-        self.socket = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=30)
-        self.next_id = 0
-
-    def call(self, method: str, **params) -> dict:
-        self.next_id += 1
-        self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
-        while True:
-            message = json.loads(self.socket.recv(timeout=120))
-            if message.get("id") == self.next_id:
-                if "error" in message:
-                    raise RuntimeError(f"{method}: {message['error']}")
-                return message["result"]
-
-    def screenshot(self) -> np.ndarray | None:
-        """The page as it is now, or None while a navigation has no page to capture yet."""
-        import imageio.v3 as iio
-
-        try:
-            data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-        except RuntimeError as error:
-            if "Not attached" not in str(error):
-                raise
-            time.sleep(0.05)
-            return None
-        return iio.imread(io.BytesIO(data))[..., :3]
-
-
-def start_browser(profile: Path, window: tuple[int, int]) -> tuple[subprocess.Popen, int]:
-    browser = chromium()
-    if browser is None:
-        raise SystemExit("needs chromium (Debian: apt-get install chromium)")
-    command = [browser, "--headless", "--no-sandbox", "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
-               "--hide-scrollbars", f"--window-size={window[0]},{window[1]}", "--remote-debugging-port=0",
-               f"--user-data-dir={profile}", "about:blank"]  # fmt: skip
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    port_file = profile / "DevToolsActivePort"
-    for _ in range(600):
-        if port_file.is_file() and port_file.read_text().strip():
-            return process, int(port_file.read_text().split()[0])
-        time.sleep(0.1)
-    process.kill()
-    raise SystemExit("chromium did not open its DevTools port within a minute")
-
-
 def scene_drawn(image: np.ndarray) -> bool:
     """The viewer's black background is in (the page starts light grey) and Gaussians are drawn in
     the middle of the window, away from the browser's notice and the controls."""
@@ -127,16 +70,16 @@ def scene_drawn(image: np.ndarray) -> bool:
     return background < 10 and float((middle > SCENE_THRESHOLD).mean()) > 0.02
 
 
-def time_first_frame(devtools: DevTools, url: str, timeout_s: float = 300.0) -> tuple[float, float, int, np.ndarray]:
+def time_first_frame(browser: Chromium, url: str, timeout_s: float = 300.0) -> tuple[float, float, int, np.ndarray]:
     """Seconds from navigation to the first screenshot with the scene, the last capture's duration,
     the number of captures, and that first frame."""
-    devtools.call("Page.navigate", url="about:blank")
+    browser.call("Page.navigate", url="about:blank")
     start = time.perf_counter()
-    devtools.call("Page.navigate", url=url)
+    browser.call("Page.navigate", url=url)
     captures = 0
     while time.perf_counter() - start < timeout_s:
         before = time.perf_counter()
-        image = devtools.screenshot()
+        image = browser.capture()
         captures += 1
         if image is not None and scene_drawn(image):
             return time.perf_counter() - start, time.perf_counter() - before, captures, image
@@ -210,25 +153,19 @@ def main() -> None:
         serve_s = time.perf_counter() - start
         print(f"scene: {len(viewer.splats)} Gaussians from {work}, {viewer.visible_count()} drawn; "
               f"server ready in {serve_s:.2f} s")  # fmt: skip
-        process, port = start_browser(scratch / "profile", WINDOW)
         try:
-            devtools = DevTools(port)
-            devtools.call("Page.enable")
-            devtools.call("Emulation.setDeviceMetricsOverride", width=WINDOW[0], height=WINDOW[1],
-                          deviceScaleFactor=1, mobile=False)  # fmt: skip
-            for load in range(args.loads):
-                seconds, capture_s, captures, frame = time_first_frame(devtools, viewer.url)
-                state = "cold" if load == 0 else "warm"
-                print(f"load {load + 1} ({state}): first frame after {seconds:.2f} s "
-                      f"({captures} captures, the last took {capture_s:.2f} s)")  # fmt: skip
+            with Chromium(WINDOW) as browser:
+                for load in range(args.loads):
+                    seconds, capture_s, captures, frame = time_first_frame(browser, viewer.url)
+                    state = "cold" if load == 0 else "warm"
+                    print(f"load {load + 1} ({state}): first frame after {seconds:.2f} s "
+                          f"({captures} captures, the last took {capture_s:.2f} s)")  # fmt: skip
             if args.save:
                 import imageio.v3 as iio
 
                 iio.imwrite(args.save, frame)
         finally:
-            process.kill()
             viewer.stop()
-            shutil.rmtree(scratch / "profile", ignore_errors=True)
 
 
 if __name__ == "__main__":

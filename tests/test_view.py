@@ -3,7 +3,6 @@
 import math
 import shutil
 import socket
-import time
 
 import numpy as np
 import pytest
@@ -186,8 +185,10 @@ def agreement(shot: np.ndarray, pixels: np.ndarray, values: np.ndarray) -> float
 def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_up(viewer, work, tmp_path):
     from cubecloud_cli.view.layers import camera_view, slice_pixel_world
 
-    time.sleep(1)
-    shot = screenshot(viewer.url, tmp_path / "home.png", ready=drawn)
+    def ready(image: np.ndarray) -> bool:
+        return drawn(image) and viewer.browsers_at_home()
+
+    shot = screenshot(viewer.url, tmp_path / "home.png", ready=ready)
     before = scene_pixels(shot)
     height, width = before.shape
     assert before.sum() > 0.02 * height * width, "no scene drawn"
@@ -200,8 +201,7 @@ def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_
     assert agreement(shot, pixels, image.reshape(-1)) > 0.85, "the first view is not the export's"
 
     viewer.set_clip("sagittal", 0.0)
-    time.sleep(1)
-    after = scene_pixels(screenshot(viewer.url, tmp_path / "cut.png", ready=drawn))
+    after = scene_pixels(screenshot(viewer.url, tmp_path / "cut.png", ready=ready))
     assert 0.2 * before.sum() < after.sum() < 0.8 * before.sum()
     removed = before & ~after
     kept_centre = np.array(np.nonzero(after)).mean(axis=1)
@@ -212,8 +212,7 @@ def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_
     viewer.set_clip("off")
     viewer.show_splats(False)
     viewer.show_slice("axial", index=16, visible=True)
-    time.sleep(1)
-    shot = screenshot(viewer.url, tmp_path / "slice.png", ready=drawn)
+    shot = screenshot(viewer.url, tmp_path / "slice.png", ready=ready)
     size = viewer.slices.size
     cells = [(row, column) for row in range(size) for column in range(size)]
     world = np.array([slice_pixel_world("axial", 16, size, row, column) for row, column in cells])

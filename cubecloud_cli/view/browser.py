@@ -1,10 +1,21 @@
-"""A screenshot of the viewer as a person sees it: headless Chromium with software WebGL (used
-by the tests and by examples/view_screenshot.py)."""
+"""A screenshot of the viewer as a person sees it: headless Chromium with software WebGL, driven over
+the DevTools protocol (used by the tests, examples/view_screenshot.py and bench/view.py).
+
+The page is polled in real time until it shows what was asked for and holds still. A fixed
+budget of the browser's virtual time is not enough: virtual time runs ahead while the page waits
+for the server's messages, so on a busy machine the shot came before the scene's camera did.
+"""
 
 from __future__ import annotations
 
+import base64
+import io
+import json
 import shutil
 import subprocess
+import tempfile
+import time
+import urllib.request
 from pathlib import Path
 from typing import Callable
 
@@ -12,36 +23,140 @@ import numpy as np
 
 from cubecloud_cli.errors import CubecloudError
 
+SETTLED_GREY_LEVELS = 1.0  # mean change between two captures below which the page holds still
+
 
 def chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def background_in(image: np.ndarray) -> bool:
+    """The viewer's black background has replaced the page's default grey (at the bottom edge,
+    away from the controls)."""
+    width = image.shape[1]
+    return float(image[-10:, width // 3 : 2 * width // 3].mean()) < 10
+
+
+class Chromium:
+    """One headless Chromium with one page, and the few DevTools calls a screenshot needs."""
+
+    def __init__(self, size: tuple[int, int] = (900, 700)):
+        from websockets.sync.client import connect  # viser's dependency: present wherever view runs
+
+        browser = chromium()
+        if browser is None:
+            raise CubecloudError("no chromium found: install it (Debian: apt-get install chromium)")
+        self.profile = Path(tempfile.mkdtemp(prefix="cubecloud-chromium-"))
+        command = [browser, "--headless", "--no-sandbox", "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
+                   "--hide-scrollbars", f"--window-size={size[0]},{size[1]}", "--remote-debugging-port=0",
+                   f"--user-data-dir={self.profile}", "about:blank"]  # fmt: skip
+        self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            port = self._devtools_port()
+            targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=60).read())
+            page = next(target for target in targets if target["type"] == "page")
+            self.socket = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=60)
+            self.next_id = 0
+            self.call("Page.enable")
+            self.call("Emulation.setDeviceMetricsOverride", width=size[0], height=size[1], deviceScaleFactor=1,
+                      mobile=False)  # fmt: skip
+        except BaseException:
+            self.close()
+            raise
+
+    def _devtools_port(self) -> int:
+        port_file = self.profile / "DevToolsActivePort"
+        for _ in range(1200):
+            if port_file.is_file() and port_file.read_text().strip():
+                return int(port_file.read_text().split()[0])
+            if self.process.poll() is not None:
+                break
+            time.sleep(0.05)
+        raise CubecloudError("chromium did not open its DevTools port within a minute: is it installed whole?")
+
+    def call(self, method: str, **params) -> dict:
+        self.next_id += 1
+        self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        while True:
+            message = json.loads(self.socket.recv(timeout=300))
+            if message.get("id") == self.next_id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                return message["result"]
+
+    def open(self, url: str) -> None:
+        """Load ``url`` afresh, as a person opening the page (a blank page first: the same URL
+        again would otherwise keep the old page's state)."""
+        self.call("Page.navigate", url="about:blank")
+        self.call("Page.navigate", url=url)
+
+    def capture(self) -> np.ndarray | None:
+        """The page as it is now, (H, W, 3) uint8, or None while a navigation has none to show."""
+        import imageio.v3 as iio
+
+        try:
+            data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+        except RuntimeError as error:
+            if "Not attached" not in str(error):
+                raise
+            time.sleep(0.05)
+            return None
+        return iio.imread(io.BytesIO(data))[..., :3]
+
+    def close(self) -> None:
+        if getattr(self, "socket", None) is not None:
+            self.socket.close()
+        self.process.kill()
+        self.process.wait()
+        shutil.rmtree(self.profile, ignore_errors=True)
+
+    def __enter__(self) -> Chromium:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def settled_capture(
+    browser: Chromium, ready: Callable[[np.ndarray], bool], timeout_s: float
+) -> tuple[np.ndarray | None, bool]:
+    """Capture until the page shows the background and ``ready`` holds on two captures in a row
+    that differ by less than SETTLED_GREY_LEVELS (a splat sort or a late texture still lands
+    between them otherwise). Returns the last capture and whether it settled in time."""
+    deadline = time.monotonic() + timeout_s
+    last, previous = None, None
+    while time.monotonic() < deadline:
+        image = browser.capture()
+        if image is None:
+            continue
+        last = image
+        if not (background_in(image) and ready(image)):
+            previous = None
+            continue
+        if previous is not None:
+            change = np.abs(image.astype(np.int16) - previous.astype(np.int16)).mean()
+            if change < SETTLED_GREY_LEVELS:
+                return image, True
+        previous = image
+    return last, False
 
 
 def screenshot(
     url: str,
     path: Path,
     size: tuple[int, int] = (900, 700),
-    attempts: int = 4,
     ready: Callable[[np.ndarray], bool] = lambda image: True,
+    timeout_s: float = 300.0,
 ) -> np.ndarray:
-    """The page once the scene has arrived, as an (H, W, 3) array also written to ``path``. Until the
-    viewer's black background is in, the page shows its default grey, and the shot is taken again;
-    so it is while ``ready(image)`` is False (the background can arrive before the scene does, on a
-    busy machine)."""
+    """The page at ``url`` once it has settled with ``ready(image)`` True, as an (H, W, 3) int32
+    array also written to ``path``."""
     import imageio.v3 as iio
 
-    browser = chromium()
-    if browser is None:
-        raise CubecloudError("no chromium found: install it (Debian: apt-get install chromium)")
-    command = [browser, "--headless", "--no-sandbox", "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
-               "--hide-scrollbars", f"--window-size={size[0]},{size[1]}", "--virtual-time-budget=15000",
-               f"--screenshot={path}", url]  # fmt: skip
-    for _ in range(attempts):
-        subprocess.run(command, capture_output=True, timeout=180, check=False)
-        if Path(path).is_file():
-            image = iio.imread(path)[..., :3].astype(np.int32)
-            width = image.shape[1]
-            background_in = image[-10:, width // 3 : 2 * width // 3].mean() < 10  # the bottom edge
-            if background_in and ready(image):
-                return image
-    raise CubecloudError(f"the viewer's page at {url} never finished loading: see {path}")
+    with Chromium(size) as browser:
+        browser.open(url)
+        image, settled = settled_capture(browser, ready, timeout_s)
+    if image is not None:
+        iio.imwrite(path, image)
+    if not settled:
+        raise CubecloudError(f"the viewer's page at {url} did not settle within {timeout_s:.0f} s: see {path}")
+    return image.astype(np.int32)

@@ -214,6 +214,16 @@ class SceneViewer:
         """Put ``client`` (every connected one when None) where export camera ``index`` stands."""
         self._look(client, camera_view(self.context.cameras, index).scaled(self.scale))
 
+    def browsers_at_home(self) -> bool:
+        """Whether a browser is connected and every connected one reports the home view's camera
+        (a screenshot that must show the first view waits for this)."""
+        clients = list(self.server.get_clients().values())
+        tolerance = 1e-3 * float(np.linalg.norm(self.home.position - self.home.look_at))
+        return bool(clients) and all(
+            float(np.linalg.norm(np.asarray(client.camera.position) - self.home.position)) < tolerance
+            for client in clients
+        )
+
     def drawn_splats(self) -> ViewSplats:
         """The Gaussians on the page: the detail's share, less those beyond the clipping plane."""
         return visible_splats(self.splats.subset(slice(0, detail_count(len(self.splats), self.detail))), self.clip)
