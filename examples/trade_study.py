@@ -45,11 +45,11 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from cubecloud_cli.artifacts import is_complete
+from cubecloud_cli.cohort.job_server import JobServerOnDemand
 from cubecloud_cli.eval.figures import line_plot_svg
 
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
@@ -163,11 +163,17 @@ def configurations(knobs: list[str], base: dict, values: dict[str, list] | None 
 
 
 def run_configuration(
-    name: str, commands: dict[str, list[str]], keys: dict[str, tuple], work: Path, done: dict[tuple, Path]
+    name: str,
+    commands: dict[str, list[str]],
+    keys: dict[str, tuple],
+    work: Path,
+    done: dict[tuple, Path],
+    jobs: JobServerOnDemand,
 ) -> None:
     """Run the stages in order. A stage whose command chain (``keys``) an earlier configuration
     ran is hard-linked from it; one already here from the same chain is kept; anything else is
-    (re)done, with every stage after it."""
+    (re)done, with every stage after it, through the job server (a fresh process that does not
+    spend 2–5 s importing torch again)."""
     record = work / ".trade"
     record.mkdir(parents=True, exist_ok=True)
     stale = False
@@ -186,7 +192,7 @@ def run_configuration(
                 shutil.rmtree(work / stage)
             print(f"  {name}: cubecloud {' '.join(commands[stage])}", flush=True)
             # --force: a run interrupted earlier restarts, so its recorded time is whole.
-            subprocess.run([sys.executable, "-m", "cubecloud_cli", *commands[stage], "--force", "-q"], check=True)
+            subprocess.run([*jobs.command(), *commands[stage], "--force", "-q"], check=True)
             marker.write_text(json.dumps(list(map(list, key))))
         done[key] = work / stage
 
@@ -350,14 +356,15 @@ def main() -> None:
     done: dict[tuple, Path] = {}
     rows = []
     base = preset_values(args.preset, extra)
-    for name, overrides in configurations(knobs, base, values):
-        work = args.out / name.replace("=", "-")
-        commands = stage_commands(args.scan, work, args.preset, args.window, overrides, extra)
-        keys = chain_keys(stage_commands(args.scan, Path("WORK"), args.preset, args.window, overrides, extra))
-        if name == "preset" and args.base:
-            seed_from_base(args.base, work, keys)
-        run_configuration(name, commands, keys, work, done)
-        rows += collect(name, work)
+    with JobServerOnDemand() as jobs:
+        for name, overrides in configurations(knobs, base, values):
+            work = args.out / name.replace("=", "-")
+            commands = stage_commands(args.scan, work, args.preset, args.window, overrides, extra)
+            keys = chain_keys(stage_commands(args.scan, Path("WORK"), args.preset, args.window, overrides, extra))
+            if name == "preset" and args.base:
+                seed_from_base(args.base, work, keys)
+            run_configuration(name, commands, keys, work, done, jobs)
+            rows += collect(name, work)
     for item in args.include:
         name, _, directory = item.partition("=")
         missing = [stage for stage in STAGES if not is_complete(Path(directory) / stage)]

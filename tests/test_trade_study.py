@@ -115,7 +115,10 @@ def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys
     keys = trade.chain_keys(trade.stage_commands(None, Path("WORK"), "fast", None, {}))
     trade.seed_from_base(finished, work, keys)
     capsys.readouterr()
-    trade.run_configuration("preset", trade.stage_commands(None, work, "fast", None, {}), keys, work, {})
+    commands = trade.stage_commands(None, work, "fast", None, {})
+    with trade.JobServerOnDemand() as jobs:
+        trade.run_configuration("preset", commands, keys, work, {}, jobs)
+        assert jobs._command is None  # no server started: nothing was to run
     assert "cubecloud" not in capsys.readouterr().out  # every stage kept, none rerun
     for stage in trade.STAGES:
         assert (work / stage / "manifest.json").stat().st_ino == (finished / stage / "manifest.json").stat().st_ino

@@ -211,6 +211,27 @@ def job_server() -> Iterator[list[str]]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+class JobServerOnDemand:
+    """A job server that starts with the first job asking for it, so that a study with nothing
+    left to run starts none: ``with JobServerOnDemand() as jobs: run([*jobs.command(), ...])``."""
+
+    def __init__(self) -> None:
+        self._stack = contextlib.ExitStack()
+        self._command: list[str] | None = None
+
+    def command(self) -> list[str]:
+        """The command prefix that starts cubecloud through the server."""
+        if self._command is None:
+            self._command = self._stack.enter_context(job_server())
+        return self._command
+
+    def __enter__(self) -> JobServerOnDemand:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+
 def _wait_until_ready(server: subprocess.Popen) -> bool:
     result: dict[str, str] = {}
 
