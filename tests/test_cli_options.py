@@ -39,7 +39,7 @@ def test_run_takes_every_option_of_preprocess_as_preprocess_reads_it():
 
 
 # eval's --output is where a comparison goes, not a work directory: -o is compared in the run test.
-@pytest.mark.parametrize("flag", SHARED + tuple(set(options_of("preprocess")) - {"--output", "-o"}))
+@pytest.mark.parametrize("flag", SHARED + tuple(sorted(set(options_of("preprocess")) - {"--output", "-o"})))
 def test_a_shared_option_reads_the_same_in_every_command(flag):
     found = {name: options_of(name)[flag] for name in COMMANDS if flag in options_of(name)}
     assert found, flag
