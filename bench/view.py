@@ -30,7 +30,7 @@ import torch
 
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import write_gaussians_ply
-from cubecloud_cli.view.browser import Chromium
+from cubecloud_cli.view.browser import Chromium, background_in
 from cubecloud_cli.view.server import SceneViewer
 
 WINDOW = (900, 700)  # the tests' and the README pictures' page size
@@ -65,9 +65,8 @@ def scene_drawn(image: np.ndarray) -> bool:
     """The viewer's black background is in (the page starts light grey) and Gaussians are drawn in
     the middle of the window, away from the browser's notice and the controls."""
     height, width = image.shape[:2]
-    background = image[-10:, width // 3 : 2 * width // 3].mean()
     middle = image[height // 4 : 3 * height // 4, width // 6 : width // 2 + width // 8].mean(axis=-1)
-    return background < 10 and float((middle > SCENE_THRESHOLD).mean()) > 0.02
+    return background_in(image) and float((middle > SCENE_THRESHOLD).mean()) > 0.02
 
 
 def time_first_frame(browser: Chromium, url: str, timeout_s: float = 300.0) -> tuple[float, float, int, np.ndarray]:

@@ -54,7 +54,7 @@ def main() -> None:
         viewer.show_points(args.points)
         viewer.show_cameras(args.cameras)
         started = time.perf_counter()
-        screenshot(viewer.url, args.out)
+        screenshot(viewer.url, args.out, ready=lambda image: viewer.browsers_at_home())
         print(f"wrote {args.out}: {viewer.visible_count()} of {len(viewer.splats)} Gaussians drawn, "
               f"page shot in {time.perf_counter() - started:.1f} s")  # fmt: skip
     finally:
