@@ -5,6 +5,7 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py --gaussians 300000
     python bench/view.py --work work            # a finished work directory (its splat run)
     python bench/view.py --detail 10            # the 10 % of the Gaussians that shape the picture most
+    python bench/view.py --query fixedDpr=0.5   # the canvas at half the resolution (viser's URL option)
     python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
 
 
@@ -138,6 +139,7 @@ def main() -> None:
     parser.add_argument("--loads", type=int, default=3, help="page loads in one browser (the first is cold)")
     parser.add_argument("--detail", type=float, default=100.0, help="percent of the Gaussians drawn (view --detail)")
     parser.add_argument("--trade", action="store_true", help="with --work: held-out PSNR at each detail, no browser")
+    parser.add_argument("--query", default="", help="added to the page's URL, e.g. fixedDpr=0.5 (viser's pixel ratio)")
     parser.add_argument("--save", type=Path, help="write the last load's first frame here (a PNG), to look at")
     args = parser.parse_args()
     if args.trade:
@@ -155,7 +157,8 @@ def main() -> None:
         try:
             with Chromium(WINDOW) as browser:
                 for load in range(args.loads):
-                    seconds, capture_s, captures, frame = time_first_frame(browser, viewer.url)
+                    url = f"{viewer.url}/?{args.query}" if args.query else viewer.url
+                    seconds, capture_s, captures, frame = time_first_frame(browser, url)
                     state = "cold" if load == 0 else "warm"
                     print(f"load {load + 1} ({state}): first frame after {seconds:.2f} s "
                           f"({captures} captures, the last took {capture_s:.2f} s)")  # fmt: skip
