@@ -126,6 +126,19 @@ def test_reset_view_and_a_click_on_a_camera_move_the_browsers_camera(viewer):
     assert np.allclose(viewer.home.position, viewer.context.cameras.centres()[0] * viewer.scale)
 
 
+def test_a_screenshot_waits_for_every_browser_to_reach_the_home_view(viewer, monkeypatch):
+    clients = {}
+    monkeypatch.setattr(viewer.server, "get_clients", lambda: clients)
+    assert not viewer.browsers_at_home()  # none connected yet
+    at_home, elsewhere = FakeClient(), FakeClient()
+    viewer.reset_view(at_home)
+    viewer.look_through(elsewhere, 3)
+    clients.update({0: at_home, 1: elsewhere})
+    assert not viewer.browsers_at_home()
+    viewer.reset_view(elsewhere)
+    assert viewer.browsers_at_home()
+
+
 def test_a_damaged_volume_leaves_the_slices_out_and_still_shows_the_gaussians(work, tmp_path):
     from cubecloud_cli.view.server import SceneViewer
 
