@@ -155,9 +155,9 @@ def main() -> None:
         print(f"scene: {len(viewer.splats)} Gaussians from {work}, {viewer.visible_count()} drawn; "
               f"server ready in {serve_s:.2f} s")  # fmt: skip
         try:
+            url = f"{viewer.url}/?{args.query}" if args.query else viewer.url
             with Chromium(WINDOW) as browser:
                 for load in range(args.loads):
-                    url = f"{viewer.url}/?{args.query}" if args.query else viewer.url
                     seconds, capture_s, captures, frame = time_first_frame(browser, url)
                     state = "cold" if load == 0 else "warm"
                     print(f"load {load + 1} ({state}): first frame after {seconds:.2f} s "

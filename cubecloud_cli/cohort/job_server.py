@@ -1,6 +1,7 @@
 """The cohort's job server on this machine: one process that imports cubecloud (torch, numba and the
 stages) once and forks a child for each job that job_client.py hands it, so that a job does not
 spend 2–3 s starting Python and importing torch. Thirty jobs of five scans paid that 30 times.
+The studies in examples/ (table_one.py, trade_study.py) start their stages through it too.
 
 A forked child is the job: it takes the client's standard streams (passed over the socket), folder
 and environment, runs ``cubecloud ARGS...`` and sends its exit code back. The server runs nothing of
@@ -187,8 +188,9 @@ def _accept_jobs(listener: socket.socket, parent: int) -> None:
 
 @contextlib.contextmanager
 def job_server() -> Iterator[list[str]]:
-    """Start a job server for this cohort; yield the command prefix its jobs start cubecloud with
-    (the client and the server's socket). The server stops when the block ends."""
+    """Start a job server for the calling process (a cohort, a study); yield the command prefix
+    its jobs start cubecloud with (the client and the server's socket). The server stops when the
+    block ends."""
     folder = tempfile.mkdtemp(prefix="cubecloud-jobs-")  # mode 0700; short, for the socket path limit
     path = str(Path(folder) / "socket")
     server = subprocess.Popen(
@@ -211,6 +213,18 @@ def job_server() -> Iterator[list[str]]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def _wait_until_ready(server: subprocess.Popen) -> bool:
+    result: dict[str, str] = {}
+
+    def read_first_line() -> None:
+        result["line"] = server.stdout.readline().strip()
+
+    reader = threading.Thread(target=read_first_line, daemon=True)
+    reader.start()
+    reader.join(STARTUP_SECONDS)
+    return result.get("line") == READY
+
+
 class JobServerOnDemand:
     """A job server that starts with the first job asking for it, so that a study with nothing
     left to run starts none: ``with JobServerOnDemand() as jobs: run([*jobs.command(), ...])``."""
@@ -230,18 +244,6 @@ class JobServerOnDemand:
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
-
-
-def _wait_until_ready(server: subprocess.Popen) -> bool:
-    result: dict[str, str] = {}
-
-    def read_first_line() -> None:
-        result["line"] = server.stdout.readline().strip()
-
-    reader = threading.Thread(target=read_first_line, daemon=True)
-    reader.start()
-    reader.join(STARTUP_SECONDS)
-    return result.get("line") == READY
 
 
 def main() -> None:
