@@ -42,6 +42,23 @@ def test_bad_input_is_one_line_with_exit_2(work, tmp_path):
         assert_one_line_error(invoke("view", work, "--port", str(port)), rf"cannot listen on 127.0.0.1:{port}.*--port")
 
 
+def test_a_port_whose_last_connection_is_closing_counts_as_free():
+    """A viewer stopped and started again at once finds its port's old connections in TIME_WAIT
+    for a minute; the port is free to listen on (as viser's own server sees it)."""
+    from cubecloud_cli.view.server import check_port_free
+
+    with socket.socket() as listener:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's server (asyncio) listens
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        with socket.create_connection(("127.0.0.1", port)) as client:
+            accepted, _ = listener.accept()
+            accepted.close()  # the server's side closes first, so its port waits in TIME_WAIT
+            client.recv(1)
+    check_port_free("127.0.0.1", port)
+
+
 @pytest.fixture
 def viewer(work):
     from cubecloud_cli.view.server import SceneViewer

@@ -13,6 +13,7 @@ import io
 import logging
 import math
 import socket
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -82,8 +83,12 @@ def load_runs(work: Path) -> dict[str, Path]:
 
 
 def check_port_free(host: str, port: int) -> None:
-    """A one-line error now, rather than a server that quietly takes another port."""
+    """A one-line error now, rather than a server that quietly takes another port. A port whose
+    last connections are closing (TIME_WAIT, a minute after a viewer stopped) is free: viser's
+    server reuses it, and so does this probe (on Windows the option would let two listen at once)."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
+        if sys.platform != "win32":
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except OSError as exc:
