@@ -68,6 +68,29 @@ def viewer(work):
     viewer.stop()
 
 
+def test_the_scene_has_no_lighting_to_wait_for(work, monkeypatch):
+    """Nothing in the scene is lit, and viser's default environment map keeps the page's canvas
+    at 5 % opacity until its lighting is built: the viewer turns both off."""
+    from viser import _messages
+    from viser.infra import WebsockMessageHandler
+
+    from cubecloud_cli.view.server import SceneViewer
+
+    sent = []
+    queue_message = WebsockMessageHandler.queue_message
+    monkeypatch.setattr(
+        WebsockMessageHandler,
+        "queue_message",
+        lambda self, message: (sent.append(message), queue_message(self, message))[1],
+    )
+    viewer = SceneViewer(work, port=free_port())
+    viewer.stop()
+    environment = [message for message in sent if isinstance(message, _messages.EnvironmentMapMessage)]
+    lights = [message for message in sent if isinstance(message, _messages.EnableLightsMessage)]
+    assert environment and environment[-1].hdri_data is None
+    assert lights and not lights[-1].enabled
+
+
 def test_the_server_listens_on_localhost_and_the_clipping_plane_hides_half_the_body(viewer):
     assert viewer.url.startswith("http://127.0.0.1:")
     everything = viewer.visible_count()

@@ -17,7 +17,7 @@ import tempfile
 import time
 import urllib.request
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -74,9 +74,14 @@ class Chromium:
             time.sleep(0.05)
         raise CubecloudError("chromium did not open its DevTools port within a minute: is it installed whole?")
 
-    def call(self, method: str, **params) -> dict:
+    def send(self, method: str, **params) -> int:
+        """Send a DevTools command without waiting for its answer; its message id."""
         self.next_id += 1
         self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        return self.next_id
+
+    def call(self, method: str, **params) -> dict:
+        self.send(method, **params)
         while True:
             message = json.loads(self.socket.recv(timeout=300))
             if message.get("id") == self.next_id:
@@ -102,6 +107,40 @@ class Chromium:
             time.sleep(0.05)
             return None
         return iio.imread(io.BytesIO(data))[..., :3]
+
+    def frames(self, url: str, timeout_s: float = 300.0) -> Iterator[tuple[float, np.ndarray]]:
+        """Open ``url`` and yield each frame the page shows, (seconds since the load was asked
+        for, (H, W, 3) uint8), until ``timeout_s``. A screencast hands over the frames the page
+        draws anyway, where each screenshot would make it draw one more: without a GPU a frame of
+        a large scene costs seconds, so polling screenshots slowed the page it was timing."""
+        import imageio.v3 as iio
+
+        self.call("Page.navigate", url="about:blank")
+        start = time.monotonic()
+        while True:  # the blank page attaches a moment after its navigation answers
+            try:
+                self.call("Page.startScreencast", format="png")
+                break
+            except RuntimeError as error:
+                if "Not attached" not in str(error) or time.monotonic() - start > 60:
+                    raise
+                time.sleep(0.05)
+        start = time.perf_counter()
+        self.send("Page.navigate", url=url)
+        try:
+            while time.perf_counter() - start < timeout_s:
+                try:
+                    message = json.loads(self.socket.recv(timeout=1.0))
+                except TimeoutError:
+                    continue
+                if message.get("method") != "Page.screencastFrame":
+                    continue
+                frame = message["params"]
+                self.send("Page.screencastFrameAck", sessionId=frame["sessionId"])
+                image = iio.imread(io.BytesIO(base64.b64decode(frame["data"])))[..., :3]
+                yield time.perf_counter() - start, image
+        finally:
+            self.call("Page.stopScreencast")
 
     def close(self) -> None:
         if getattr(self, "socket", None) is not None:

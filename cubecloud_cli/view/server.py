@@ -139,6 +139,11 @@ class SceneViewer:
         check_port_free(host, port)
         self.server = start_server(host, port)
         self.server.scene.set_up_direction("+z")  # RAS: superior is up
+        # Nothing here is lit (splats, images, points, lines, labels), and the default environment
+        # map keeps the canvas at 5 % opacity until the page has built its lighting and faded in
+        # over five frames: without a GPU that hid a 100k-Gaussian scene for ~15 s (docs/view.md).
+        self.server.scene.configure_environment_map(hdri=None)
+        self.server.scene.configure_default_lights(enabled=False)
         # The black the training images were rendered on (PNG: a tiny JPEG does not reach the page).
         self.server.scene.set_background_image(np.zeros((64, 64, 3), dtype=np.uint8), format="png")
         self._set_initial_camera()
