@@ -9,12 +9,14 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
 
 
-Chromium is driven over the DevTools protocol: the clock starts when the page is asked to load and
-stops at the first frame the page shows with the scene in its centre, taken from a screencast (the
-frames the page draws anyway; polled screenshots made it draw more, which slowed it by seconds). The browser renders WebGL with whatever it has:
-on this project's GPU-less machines that is SwiftShader, a CPU rasterizer, so the figure here
-bounds what a desktop browser with a GPU needs from above. The first page load of a fresh browser
-also compiles the viewer's shaders and WebAssembly sorter; the later loads show the warm figure.
+Chromium is driven over the DevTools protocol, and the page's frames are taken from a screencast
+(the frames it draws anyway: polled screenshots made it draw more, which slowed it by seconds). The
+clock starts when the page is asked to load. Two figures: the first frame with the scene in its
+centre (the coarse set the viewer sends first, view/delivery.py), and the first frame with every
+Gaussian, sorted and settled. The browser renders WebGL with whatever it has: on this project's
+GPU-less machines that is SwiftShader, a CPU rasterizer, so the figures here bound what a desktop
+browser with a GPU needs from above. The first page load of a fresh browser also compiles the
+viewer's shaders and WebAssembly sorter; the later loads show the warm figure.
 """
 
 from __future__ import annotations
@@ -70,13 +72,32 @@ def scene_drawn(image: np.ndarray) -> bool:
     return background_in(image) and float((middle > SCENE_THRESHOLD).mean()) > 0.02
 
 
-def time_first_frame(browser: Chromium, url: str, timeout_s: float = 300.0) -> tuple[float, int, np.ndarray]:
-    """Seconds from asking for the page to the first frame it shows with the scene, the frames
-    shown before it, and that frame (a screencast: the page is not made to draw extra frames)."""
-    for shown, (seconds, image) in enumerate(browser.frames(url, timeout_s)):
-        if scene_drawn(image):
-            return seconds, shown, image
-    raise SystemExit(f"no scene drawn within {timeout_s:.0f} s")
+def time_frames(
+    browser: Chromium, url: str, viewer: SceneViewer, timeout_s: float = 300.0
+) -> tuple[float, float, np.ndarray]:
+    """Seconds from asking for the page to its first frame with the scene in it (the coarse set,
+    when the scene is larger than that), and to its first frame with every Gaussian that the next
+    frame repeats (sorted and settled), and that frame. From a screencast: the page is not made to
+    draw extra frames."""
+    first, coarse, candidate = None, None, None
+    for seconds, image in browser.frames(url, timeout_s):
+        if first is None and not scene_drawn(image):
+            continue
+        first = seconds if first is None else first
+        if not viewer.delivery.pages_complete():
+            coarse = image  # the page has only the coarse set
+            continue
+        if coarse is not None and frame_change(image, coarse) < 1.0:
+            continue  # sent every Gaussian, still showing the coarse set
+        if candidate is not None and frame_change(image, candidate[1]) < 1.0:
+            return first, *candidate
+        candidate = (seconds, image)
+    raise SystemExit(f"the scene was not drawn whole within {timeout_s:.0f} s")
+
+
+def frame_change(image: np.ndarray, other: np.ndarray) -> float:
+    """Mean change in grey levels between two frames."""
+    return float(np.abs(image.astype(np.int16) - other.astype(np.int16)).mean())
 
 
 def detail_trade(work: Path, percents=(100, 50, 30, 10, 3)) -> None:
@@ -151,10 +172,10 @@ def main() -> None:
             url = f"{viewer.url}/?{args.query}" if args.query else viewer.url
             with Chromium(WINDOW) as browser:
                 for load in range(args.loads):
-                    seconds, shown, frame = time_first_frame(browser, url)
+                    first, whole, frame = time_frames(browser, url, viewer)
                     state = "cold" if load == 0 else "warm"
-                    print(f"load {load + 1} ({state}): first frame with the scene after {seconds:.2f} s "
-                          f"({shown} frames shown before it)")  # fmt: skip
+                    print(f"load {load + 1} ({state}): first frame with the scene after {first:.2f} s, "
+                          f"with every Gaussian after {whole:.2f} s")  # fmt: skip
             if args.save:
                 import imageio.v3 as iio
 

@@ -166,9 +166,10 @@ def test_reset_view_and_a_click_on_a_camera_move_the_browsers_camera(viewer):
     assert np.allclose(viewer.home.position, viewer.context.cameras.centres()[0] * viewer.scale)
 
 
-def test_a_screenshot_waits_for_every_browser_to_reach_the_home_view(viewer, monkeypatch):
-    clients = {}
+def test_a_screenshot_waits_for_every_browser_to_reach_the_home_view_with_every_gaussian(viewer, monkeypatch):
+    clients, complete = {}, [True]
     monkeypatch.setattr(viewer.server, "get_clients", lambda: clients)
+    monkeypatch.setattr(viewer.delivery, "pages_complete", lambda: complete[0])
     assert not viewer.browsers_at_home()  # none connected yet
     at_home, elsewhere = FakeClient(), FakeClient()
     viewer.reset_view(at_home)
@@ -177,6 +178,8 @@ def test_a_screenshot_waits_for_every_browser_to_reach_the_home_view(viewer, mon
     assert not viewer.browsers_at_home()
     viewer.reset_view(elsewhere)
     assert viewer.browsers_at_home()
+    complete[0] = False  # a page still has only the coarse set
+    assert not viewer.browsers_at_home()
 
 
 def test_a_damaged_volume_leaves_the_slices_out_and_still_shows_the_gaussians(work, tmp_path):
@@ -241,6 +244,7 @@ def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_
     def ready(image: np.ndarray) -> bool:
         return drawn(image) and viewer.browsers_at_home()
 
+    viewer.delivery.coarse = len(viewer.splats) // 4  # the page gets a coarse set first, as a large scene's would
     shot = screenshot(viewer.url, tmp_path / "home.png", ready=ready)
     before = scene_pixels(shot)
     height, width = before.shape

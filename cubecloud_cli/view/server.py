@@ -23,6 +23,7 @@ from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs
 from cubecloud_cli.splat.ply import read_gaussians_ply
 from cubecloud_cli.view.context import load_context
+from cubecloud_cli.view.delivery import SplatDelivery
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
 from cubecloud_cli.view.splats import (
     CLIP_AXES,
@@ -147,7 +148,11 @@ class SceneViewer:
         # The black the training images were rendered on (PNG: a tiny JPEG does not reach the page).
         self.server.scene.set_background_image(np.zeros((64, 64, 3), dtype=np.uint8), format="png")
         self._set_initial_camera()
-        self._draw()  # the Gaussians first: the page shows them while the rest arrives
+        self.delivery = SplatDelivery(
+            self.drawn_splats().scaled(self.scale), connected=lambda client_id: client_id in self.server.get_clients()
+        )
+        self.server.on_client_connect(self.delivery.open_page)
+        self.server.on_client_disconnect(self.delivery.close_page)
         self._add_labels()
         self._add_context_layers()
         self._add_controls()
@@ -199,7 +204,7 @@ class SceneViewer:
 
     def show_splats(self, visible: bool) -> None:
         """Show or hide the Gaussians (to see the slices or the points alone)."""
-        self._nodes["splats"].visible = bool(visible)
+        self.delivery.set_visible(bool(visible))
         self._sync_controls(splats=bool(visible))
 
     def show_points(self, visible: bool) -> None:
@@ -226,12 +231,16 @@ class SceneViewer:
 
     def browsers_at_home(self) -> bool:
         """Whether a browser is connected and every connected one reports the home view's camera
-        (a screenshot that must show the first view waits for this)."""
+        and has been sent every drawn Gaussian (a screenshot of the first view waits for this)."""
         clients = list(self.server.get_clients().values())
         tolerance = 1e-3 * float(np.linalg.norm(self.home.position - self.home.look_at))
-        return bool(clients) and all(
-            float(np.linalg.norm(np.asarray(client.camera.position) - self.home.position)) < tolerance
-            for client in clients
+        return (
+            bool(clients)
+            and self.delivery.pages_complete()
+            and all(
+                float(np.linalg.norm(np.asarray(client.camera.position) - self.home.position)) < tolerance
+                for client in clients
+            )
         )
 
     def drawn_splats(self) -> ViewSplats:
@@ -262,11 +271,7 @@ class SceneViewer:
                     each.camera.fov = pose.fov
 
     def _draw(self) -> None:
-        shown = self.drawn_splats().scaled(self.scale)
-        visible = self._nodes["splats"].visible if "splats" in self._nodes else True
-        self._nodes["splats"] = self.server.scene.add_gaussian_splats(
-            "/splats", shown.centers, shown.covariances, shown.rgbs, shown.opacities, visible=visible
-        )
+        self.delivery.show(self.drawn_splats().scaled(self.scale))
 
     def _draw_points(self) -> None:
         """The Cube-Cloud points on the kept side of the clipping plane."""
