@@ -46,7 +46,9 @@ def linear_interpolation_matrix(known: np.ndarray, wanted: np.ndarray) -> np.nda
     upper = np.clip(np.searchsorted(known, wanted), 1, known.size - 1)
     lower = upper - 1
     span = known[upper] - known[lower]
-    fraction = np.clip((wanted - known[lower]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+    # Clipped before the division: a far coordinate over a subnormal span would overflow.
+    reach = np.clip(wanted - known[lower], 0.0, span)
+    fraction = np.divide(reach, span, out=np.zeros_like(reach), where=span > 0)
     rows = np.arange(wanted.size)
     matrix[rows, lower] = 1.0 - fraction
     matrix[rows, upper] += fraction
