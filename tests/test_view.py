@@ -142,9 +142,10 @@ def test_the_slices_points_and_cameras_follow_their_controls(viewer, work):
 
 
 class FakeClient:
-    """What SceneViewer needs of a connected browser: its camera, set atomically."""
+    """What SceneViewer needs of a connected browser: its id and its camera, set atomically."""
 
-    def __init__(self):
+    def __init__(self, client_id: int = 0):
+        self.client_id = client_id
         self.camera = type("Camera", (), {})()
 
     def atomic(self):
@@ -167,18 +168,18 @@ def test_reset_view_and_a_click_on_a_camera_move_the_browsers_camera(viewer):
 
 
 def test_a_screenshot_waits_for_every_browser_to_reach_the_home_view_with_every_gaussian(viewer, monkeypatch):
-    clients, complete = {}, [True]
+    clients, drawn = {}, [True]
     monkeypatch.setattr(viewer.server, "get_clients", lambda: clients)
-    monkeypatch.setattr(viewer.delivery, "pages_complete", lambda: complete[0])
+    monkeypatch.setattr(viewer.delivery, "pages_drawn", lambda client_ids: drawn[0] and list(client_ids) == [0, 1])
     assert not viewer.browsers_at_home()  # none connected yet
-    at_home, elsewhere = FakeClient(), FakeClient()
+    at_home, elsewhere = FakeClient(0), FakeClient(1)
     viewer.reset_view(at_home)
     viewer.look_through(elsewhere, 3)
     clients.update({0: at_home, 1: elsewhere})
     assert not viewer.browsers_at_home()
     viewer.reset_view(elsewhere)
     assert viewer.browsers_at_home()
-    complete[0] = False  # a page still has only the coarse set
+    drawn[0] = False  # a page has not drawn every Gaussian yet
     assert not viewer.browsers_at_home()
 
 

@@ -9,6 +9,7 @@ for the server's messages, so on a busy machine the shot came before the scene's
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import json
 import shutil
@@ -109,11 +110,13 @@ class Chromium:
         return iio.imread(io.BytesIO(data))[..., :3]
 
     def frames(self, url: str, timeout_s: float = 300.0) -> Iterator[tuple[float, np.ndarray]]:
-        """Open ``url`` and yield each frame the page shows, (seconds since the load was asked
-        for, (H, W, 3) uint8), until ``timeout_s``. A screencast hands over the frames the page
-        draws anyway, where each screenshot would make it draw one more: without a GPU a frame of
-        a large scene costs seconds, so polling screenshots slowed the page it was timing."""
+        """Open ``url`` and yield each frame the page shows, (seconds from asking for the page to
+        the frame being drawn, (H, W, 3) uint8), until ``timeout_s``. A screencast hands over the
+        frames the page draws anyway, where each screenshot would make it draw one more: without
+        a GPU a frame of a large scene costs seconds, so polling screenshots slowed the page it
+        was timing. Close the generator (``contextlib.closing``) to stop the screencast."""
         import imageio.v3 as iio
+        from websockets.exceptions import ConnectionClosed
 
         self.call("Page.navigate", url="about:blank")
         start = time.monotonic()
@@ -125,22 +128,26 @@ class Chromium:
                 if "Not attached" not in str(error) or time.monotonic() - start > 60:
                     raise
                 time.sleep(0.05)
-        start = time.perf_counter()
-        self.send("Page.navigate", url=url)
+        start, start_wall = time.perf_counter(), time.time()
+        navigation = self.send("Page.navigate", url=url)
         try:
             while time.perf_counter() - start < timeout_s:
                 try:
                     message = json.loads(self.socket.recv(timeout=1.0))
                 except TimeoutError:
                     continue
+                if message.get("id") == navigation and (message.get("error") or message["result"].get("errorText")):
+                    raise CubecloudError(f"chromium could not open {url}: {message.get('error') or message['result']}")
                 if message.get("method") != "Page.screencastFrame":
                     continue
                 frame = message["params"]
                 self.send("Page.screencastFrameAck", sessionId=frame["sessionId"])
                 image = iio.imread(io.BytesIO(base64.b64decode(frame["data"])))[..., :3]
-                yield time.perf_counter() - start, image
+                drawn_at = frame.get("metadata", {}).get("timestamp")  # seconds since the epoch
+                yield (time.perf_counter() - start if drawn_at is None else drawn_at - start_wall), image
         finally:
-            self.call("Page.stopScreencast")
+            with contextlib.suppress(RuntimeError, OSError, ConnectionError, ConnectionClosed):
+                self.call("Page.stopScreencast")  # the browser may be gone already: nothing to stop
 
     def close(self) -> None:
         if getattr(self, "socket", None) is not None:

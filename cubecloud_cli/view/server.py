@@ -142,12 +142,14 @@ class SceneViewer:
         self.server.scene.set_up_direction("+z")  # RAS: superior is up
         # Nothing here is lit (splats, images, points, lines, labels), and the default environment
         # map keeps the canvas at 5 % opacity until the page has built its lighting and faded in
-        # over five frames: without a GPU that hid a 100k-Gaussian scene for ~15 s (docs/view.md).
+        # over five frames: without a GPU that hid a 100k-Gaussian scene 18–26 s longer (docs/view.md).
         self.server.scene.configure_environment_map(hdri=None)
         self.server.scene.configure_default_lights(enabled=False)
         # The black the training images were rendered on (PNG: a tiny JPEG does not reach the page).
         self.server.scene.set_background_image(np.zeros((64, 64, 3), dtype=np.uint8), format="png")
         self._set_initial_camera()
+        # Each page gets its Gaussians once it has connected, after viser has replayed it the shared
+        # scene (slices, points, cameras, controls): the coarse set first (delivery.py).
         self.delivery = SplatDelivery(
             self.drawn_splats().scaled(self.scale), connected=lambda client_id: client_id in self.server.get_clients()
         )
@@ -231,12 +233,13 @@ class SceneViewer:
 
     def browsers_at_home(self) -> bool:
         """Whether a browser is connected and every connected one reports the home view's camera
-        and has been sent every drawn Gaussian (a screenshot of the first view waits for this)."""
+        and has drawn every Gaussian it is shown (a screenshot of the first view waits for this;
+        it costs each page a frame, see SplatDelivery.pages_drawn)."""
         clients = list(self.server.get_clients().values())
         tolerance = 1e-3 * float(np.linalg.norm(self.home.position - self.home.look_at))
         return (
             bool(clients)
-            and self.delivery.pages_complete()
+            and self.delivery.pages_drawn([client.client_id for client in clients])
             and all(
                 float(np.linalg.norm(np.asarray(client.camera.position) - self.home.position)) < tolerance
                 for client in clients
