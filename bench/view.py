@@ -5,6 +5,7 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py --gaussians 300000
     python bench/view.py --work work            # a finished work directory (its splat run)
     python bench/view.py --detail 10            # the 10 % of the Gaussians that shape the picture most
+    python bench/view.py --coarse 3000          # each page gets 3000 Gaussians first instead of 10 000
     python bench/view.py --query fixedDpr=0.5   # the canvas at half the resolution (viser's URL option)
     python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
 
@@ -35,6 +36,7 @@ import torch
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import write_gaussians_ply
 from cubecloud_cli.view.browser import Chromium, background_in
+from cubecloud_cli.view.delivery import COARSE_GAUSSIANS
 from cubecloud_cli.view.server import SceneViewer
 
 WINDOW = (900, 700)  # the tests' and the README pictures' page size
@@ -158,6 +160,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, help="a finished work directory instead of the synthetic scene")
     parser.add_argument("--loads", type=int, default=3, help="page loads in one browser (the first is cold)")
     parser.add_argument("--detail", type=float, default=100.0, help="percent of the Gaussians drawn (view --detail)")
+    parser.add_argument("--coarse", type=int, default=COARSE_GAUSSIANS, help="Gaussians each page gets first")
     parser.add_argument("--trade", action="store_true", help="with --work: held-out PSNR at each detail, no browser")
     parser.add_argument("--query", default="", help="added to the page's URL, e.g. fixedDpr=0.5 (viser's pixel ratio)")
     parser.add_argument("--save", type=Path, help="write the last load's first frame here (a PNG), to look at")
@@ -171,6 +174,7 @@ def main() -> None:
         work = args.work or synthetic_work(scratch / "work", args.gaussians)
         start = time.perf_counter()
         viewer = SceneViewer(work, port=free_port(), detail=args.detail)
+        viewer.delivery.coarse = args.coarse
         serve_s = time.perf_counter() - start
         print(f"scene: {len(viewer.splats)} Gaussians from {work}, {viewer.visible_count()} drawn; "
               f"server ready in {serve_s:.2f} s")  # fmt: skip
