@@ -50,7 +50,6 @@ from pathlib import Path
 
 from cubecloud_cli.artifacts import is_complete
 from cubecloud_cli.cohort.job_server import JobServerOnDemand
-from cubecloud_cli.eval.figures import line_plot_svg
 
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
 
@@ -397,6 +396,9 @@ def main() -> None:
 
 def write_plot(rows: list[dict], path: Path) -> None:
     """Novel-view PSNR against pipeline time, one point per configuration and method, each named."""
+    # Imported here: the eval package brings torch (3 s), which a refused or --help run never needs.
+    from cubecloud_cli.eval.figures import line_plot_svg
+
     scored = [r for r in rows if isinstance(r["novel_psnr"], (int, float))]
     series = []
     labels = {}
