@@ -35,7 +35,7 @@ import torch
 
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.ply import write_gaussians_ply
-from cubecloud_cli.view.browser import Chromium, background_in
+from cubecloud_cli.view.browser import SETTLED_GREY_LEVELS, Chromium, background_in, frame_change
 from cubecloud_cli.view.delivery import COARSE_GAUSSIANS
 from cubecloud_cli.view.server import SceneViewer
 
@@ -95,17 +95,16 @@ def time_frames(
             since_all += 1
             # A full set that adds little to the coarse one (--detail near it) looks the same:
             # after a few frames any settled frame is the whole scene.
-            if coarse is not None and frame_change(image, coarse) < 1.0 and since_all < WHOLE_AFTER_FRAMES:
+            if (
+                coarse is not None
+                and frame_change(image, coarse) < SETTLED_GREY_LEVELS
+                and since_all < WHOLE_AFTER_FRAMES
+            ):
                 continue
-            if candidate is not None and frame_change(image, candidate[1]) < 1.0:
+            if candidate is not None and frame_change(image, candidate[1]) < SETTLED_GREY_LEVELS:
                 return first, *candidate
             candidate = (seconds, image)
     raise SystemExit(f"the scene was not drawn whole within {timeout_s:.0f} s")
-
-
-def frame_change(image: np.ndarray, other: np.ndarray) -> float:
-    """Mean change in grey levels between two frames."""
-    return float(np.abs(image.astype(np.int16) - other.astype(np.int16)).mean())
 
 
 def detail_trade(work: Path, percents=(100, 50, 30, 10, 3)) -> None:

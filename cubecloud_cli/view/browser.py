@@ -31,6 +31,11 @@ def chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
+def frame_change(image: np.ndarray, other: np.ndarray) -> float:
+    """Mean change in grey levels between two captures of the page."""
+    return float(np.abs(image.astype(np.int16) - other.astype(np.int16)).mean())
+
+
 def background_in(image: np.ndarray) -> bool:
     """The viewer's black background has replaced the page's default grey (at the bottom edge,
     away from the controls)."""
@@ -179,10 +184,8 @@ def settled_capture(
         if not (background_in(image) and ready(image)):
             previous = None
             continue
-        if previous is not None:
-            change = np.abs(image.astype(np.int16) - previous.astype(np.int16)).mean()
-            if change < SETTLED_GREY_LEVELS:
-                return image, True
+        if previous is not None and frame_change(image, previous) < SETTLED_GREY_LEVELS:
+            return image, True
         previous = image
     return last, False
 

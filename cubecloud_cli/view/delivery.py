@@ -106,7 +106,7 @@ class SplatDelivery:
             sends = page.sends  # read before the request: a set sent after it is not covered
             if page.drawn_after < sends and self._wait_until_drawn(page.client):
                 page.drawn_after = max(page.drawn_after, sends)
-        return all(page.sent_all and page.drawn_after == page.sends for page in pages)
+        return all(page.drawn_after == page.sends for page in pages)
 
     def _open_pages(self) -> list[Page]:
         with self._pages_lock:

@@ -237,13 +237,14 @@ class SceneViewer:
         it costs each page a frame, see SplatDelivery.pages_drawn)."""
         clients = list(self.server.get_clients().values())
         tolerance = 1e-3 * float(np.linalg.norm(self.home.position - self.home.look_at))
+        # The camera first: the drawn check asks each page for a frame.
         return (
             bool(clients)
-            and self.delivery.pages_drawn([client.client_id for client in clients])
             and all(
                 float(np.linalg.norm(np.asarray(client.camera.position) - self.home.position)) < tolerance
                 for client in clients
             )
+            and self.delivery.pages_drawn([client.client_id for client in clients])
         )
 
     def drawn_splats(self) -> ViewSplats:
