@@ -11,11 +11,13 @@ each run through the whole pipeline, with every stage's wall time and the held-o
 
 Knobs (each varied alone around the preset; ``--preset`` fast by default). Unless ``--values``
 says otherwise, a numeric knob takes values relative to the preset's own: volume ×0.75 and ×1.5,
-CuNeRF iterations ×0.125, ×0.25 and ×0.5, views ×0.5 and ×2, points per cube ×0.25 and ×4,
-iterations ×0.5 and ×2, budget ×1/8 and ×1/4; a choice takes every value but the preset's.
+CuNeRF iterations ×0.125, ×0.25 and ×0.5, CuNeRF batch ×0.5 and ×2, views ×0.5 and ×2, points
+per cube ×0.25 and ×4, iterations ×0.5 and ×2, budget ×1/8 and ×1/4; a choice takes every value
+but the preset's.
 
     volume             preprocess --size
     cunerf_iterations  cunerf --iterations
+    cunerf_batch       cunerf --batch-size
     cameras            export --cameras (orbit, sphere)
     views              export --views
     points_per_cube    export --points-per-cube
@@ -73,6 +75,7 @@ class Knob:
 KNOBS = {
     "volume": Knob("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
     "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # fast: 375, 750, 1500
+    "cunerf_batch": Knob("cunerf", "--batch-size", (0.5, 2.0)),  # fast: 1024, 4096
     "cameras": Knob("export", "--cameras", choices=("orbit", "sphere")),
     "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 60, 240
     "points_per_cube": Knob("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048
@@ -90,6 +93,7 @@ def preset_values(preset: str, extra: dict[str, list[str]]) -> dict:
         "volume": PRESETS["preprocess"][preset]["size"],
         "views": PRESETS["export"][preset]["views"],
         "cunerf_iterations": resolve_cunerf(preset, None, {})["iterations"],
+        "cunerf_batch": resolve_cunerf(preset, None, {})["batch_size"],
         "cameras": PRESETS["export"][preset]["cameras"],
         "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
         "iterations": PRESETS["splat"][preset]["iterations"],

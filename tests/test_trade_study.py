@@ -146,6 +146,8 @@ def test_default_knob_values_follow_the_preset():
         "cunerf_iterations=375",
         "cunerf_iterations=750",
         "cunerf_iterations=1500",
+        "cunerf_batch=1024",  # half and twice the preset's 2048 cubes
+        "cunerf_batch=4096",
         "cameras=orbit",
         "views=60",
         "views=240",
@@ -159,6 +161,7 @@ def test_default_knob_values_follow_the_preset():
     ]
     balanced = names("balanced")
     assert "volume=144" in balanced and "iterations=14000" in balanced and "budget=37500" in balanced
+    assert "cunerf_batch=4096" in balanced and "cunerf_batch=16384" in balanced  # around its 8192
     assert not [name for name in names("paper") if name.startswith("budget")]  # the paper sets no budget to vary
 
 
