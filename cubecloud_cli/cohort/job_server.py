@@ -142,9 +142,18 @@ def _wait_for_jobs(seconds: float) -> None:
             return
 
 
+def warm_imports() -> None:
+    """Import what every job would otherwise import for itself, without starting a thread: the CLI
+    and its stages (torch, numba), and torch._dynamo, which torch.optim imports when a process
+    builds its first optimizer (about 2 s: each cunerf and splat job paid it again)."""
+    import torch._dynamo  # noqa: F401
+
+    import cubecloud_cli.cli  # noqa: F401
+
+
 def serve(path: str, parent: int) -> None:
     """Accept jobs at ``path`` until ``parent``, the cohort that started the server, is gone."""
-    import cubecloud_cli.cli  # noqa: F401  (what every job would import: the reason for the server)
+    warm_imports()
 
     signal.signal(signal.SIGCHLD, _reap_finished_jobs)
     signal.signal(signal.SIGTERM, _stop)
