@@ -89,11 +89,12 @@ def preset_values(preset: str, extra: dict[str, list[str]]) -> dict:
     """Each knob's value in the base configuration: the preset's, or the --stage-options one."""
     from cubecloud_cli.presets import PRESETS, resolve_cunerf
 
+    cunerf = resolve_cunerf(preset, None, {})
     values = {
         "volume": PRESETS["preprocess"][preset]["size"],
         "views": PRESETS["export"][preset]["views"],
-        "cunerf_iterations": resolve_cunerf(preset, None, {})["iterations"],
-        "cunerf_batch": resolve_cunerf(preset, None, {})["batch_size"],
+        "cunerf_iterations": cunerf["iterations"],
+        "cunerf_batch": cunerf["batch_size"],
         "cameras": PRESETS["export"][preset]["cameras"],
         "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
         "iterations": PRESETS["splat"][preset]["iterations"],

@@ -151,7 +151,7 @@ class SceneViewer:
         # Each page gets its Gaussians once it has connected, after viser has replayed it the shared
         # scene (slices, points, cameras, controls): the coarse set first (delivery.py).
         self.delivery = SplatDelivery(
-            self.drawn_splats().scaled(self.scale), connected=lambda client_id: client_id in self.server.get_clients()
+            self._shown_splats(), connected=lambda client_id: client_id in self.server.get_clients()
         )
         self.server.on_client_connect(self.delivery.open_page)
         self.server.on_client_disconnect(self.delivery.close_page)
@@ -274,8 +274,12 @@ class SceneViewer:
                 if pose.fov is not None:
                     each.camera.fov = pose.fov
 
+    def _shown_splats(self) -> ViewSplats:
+        """The drawn Gaussians in view units, as each page gets them."""
+        return self.drawn_splats().scaled(self.scale)
+
     def _draw(self) -> None:
-        self.delivery.show(self.drawn_splats().scaled(self.scale))
+        self.delivery.show(self._shown_splats())
 
     def _draw_points(self) -> None:
         """The Cube-Cloud points on the kept side of the clipping plane."""
