@@ -62,6 +62,36 @@ def test_no_cameras_in_view_falls_back_to_their_distance():
     assert float(intervals[0]) == pytest.approx(6.0 / 100.0)
 
 
+def test_the_compiled_pass_matches_the_definition_in_tensors():
+    """Every mean against every camera, written out in torch: the nearest depth of those that see it."""
+    cameras = orbit_cameras(OrbitSpec(views=24, radius=3.0, resolution=48))  # a ring in the z = 0 plane
+    means = torch.rand(300, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * 6 - 3
+    means[::10, 2] *= 10  # far above and below the ring: seen by none
+    rotations, translations = torch.as_tensor(cameras.rotations), torch.as_tensor(cameras.translations)
+    camera = torch.einsum("cij,nj->cni", rotations, means) + translations[:, None]
+    depth = camera[..., 2]
+    limit = 1.3 * cameras.width / 2
+    with torch.no_grad():
+        projected = cameras.focal * camera[..., :2] / depth.clamp_min(1e-9)[..., None]
+    seen = (depth > 0.2) & (projected.abs() <= limit).all(dim=-1)
+    nearest = torch.where(seen, depth, torch.inf).min(dim=0).values
+    expected = torch.where(seen.any(dim=0), nearest, nearest[seen.any(dim=0)].max()) / cameras.focal
+    assert bool((~seen.any(dim=0)).any()) and bool(seen.any(dim=0).any())  # both kinds are in the sample
+    torch.testing.assert_close(sampling_intervals(means, cameras), expected, rtol=1e-12, atol=0)
+
+
+def test_means_at_the_extremes_are_seen_by_no_camera_and_keep_a_finite_interval():
+    cameras = two_cameras_on_z(4.0, 8.0)
+    means = torch.tensor(
+        [[0.0, 0.0, 0.0], [math.nan, 0.0, 0.0], [math.inf, 0.0, 0.0], [0.0, 0.0, -math.inf], [1e300, 1e300, -1e300]],
+        dtype=torch.float64,
+    )
+    intervals = sampling_intervals(means, cameras)
+    torch.testing.assert_close(intervals, torch.full((5,), 4.0 / 100.0, dtype=torch.float64))
+    alone = sampling_intervals(means[1:], cameras)  # none seen: the cameras' mean distance
+    torch.testing.assert_close(alone, torch.full((4,), 6.0 / 100.0, dtype=torch.float64))
+
+
 @settings(max_examples=80, deadline=None)
 @given(st.lists(st.floats(-10, 10), min_size=3, max_size=3), st.floats(1e-12, 1e4))
 def test_the_filter_spreads_mass_and_stays_finite_at_the_extremes(log_scales, variance):

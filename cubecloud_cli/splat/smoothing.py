@@ -16,9 +16,12 @@ eval scored.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from numba import njit, prange
 
 from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.jit import PRANGE_ONLY
 from cubecloud_cli.raster.projection import NEAR_PLANE
 
 FILTER_SCALE = 0.2  # s: the filter's variance in squared training pixels
@@ -28,38 +31,51 @@ SCREEN_MARGIN = 0.15
 RECOMPUTE_EVERY = 100  # iterations, after densification has stopped
 
 
-def sampling_intervals(means: torch.Tensor, cameras: PinholeCameras, chunk: int = 16) -> torch.Tensor:
+def sampling_intervals(means: torch.Tensor, cameras: PinholeCameras) -> torch.Tensor:
     """(N,) the finest world distance one training pixel spans at each mean: min over the cameras
     that see it of depth / focal. Means that no camera sees get the largest interval of those
     seen (or 1 pixel at the cameras' mean distance, if none is seen)."""
-    device, dtype = means.device, means.dtype
-    rotations = torch.as_tensor(cameras.rotations, dtype=dtype, device=device)
-    translations = torch.as_tensor(cameras.translations, dtype=dtype, device=device)
-    focal = float(cameras.focal)
     half_w, half_h = cameras.width / 2.0, cameras.height / 2.0
-    limit_x, limit_y = (1.0 + 2.0 * SCREEN_MARGIN) * half_w, (1.0 + 2.0 * SCREEN_MARGIN) * half_h
-    nearest = torch.full((means.shape[0],), float("inf"), dtype=dtype, device=device)
-    with torch.no_grad():
-        for start in range(0, len(cameras), chunk):
-            camera = (
-                torch.einsum("cij,nj->cni", rotations[start : start + chunk], means)
-                + translations[start : start + chunk, None]
-            )
-            depth = camera[..., 2]
-            in_front = depth > NEAR_PLANE
-            safe = torch.where(in_front, depth, torch.ones_like(depth))
-            x = focal * camera[..., 0] / safe
-            y = focal * camera[..., 1] / safe
-            seen = in_front & (x.abs() <= limit_x) & (y.abs() <= limit_y)
-            depth_seen = torch.where(seen, depth, torch.full_like(depth, float("inf")))
-            nearest = torch.minimum(nearest, depth_seen.min(dim=0).values)
-        seen_any = torch.isfinite(nearest)
-        if bool(seen_any.any()):
-            fallback = nearest[seen_any].max()
-        else:
-            fallback = torch.as_tensor(cameras.centres(), dtype=dtype, device=device).norm(dim=1).mean()
-        nearest = torch.where(seen_any, nearest, fallback)
-    return nearest / focal
+    nearest = nearest_seen_depths(
+        means.detach().cpu().numpy().astype(np.float64),
+        np.ascontiguousarray(cameras.rotations, dtype=np.float64),
+        np.ascontiguousarray(cameras.translations, dtype=np.float64),
+        float(cameras.focal),
+        (1.0 + 2.0 * SCREEN_MARGIN) * half_w,
+        (1.0 + 2.0 * SCREEN_MARGIN) * half_h,
+        NEAR_PLANE,
+    )
+    seen_any = np.isfinite(nearest)
+    if seen_any.any():
+        fallback = nearest[seen_any].max()
+    else:
+        fallback = np.linalg.norm(cameras.centres(), axis=1).mean()
+    nearest = np.where(seen_any, nearest, fallback)
+    return torch.from_numpy(nearest / float(cameras.focal)).to(dtype=means.dtype, device=means.device)
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def nearest_seen_depths(means, rotations, translations, focal, limit_x, limit_y, near):
+    """(N,) per mean, the smallest depth among the cameras that see it (in front of the near
+    plane, projecting within ±limit pixels of the centre), +inf where none does.
+
+    One compiled pass over means × cameras: the same test in torch tensors of N × cameras took
+    0.12 s for 100k means and 112 views, and it runs at every densification step."""
+    count, views = means.shape[0], rotations.shape[0]
+    nearest = np.full(count, np.inf)
+    for i in prange(count):
+        x, y, z = means[i, 0], means[i, 1], means[i, 2]
+        best = np.inf
+        for c in range(views):
+            depth = rotations[c, 2, 0] * x + rotations[c, 2, 1] * y + rotations[c, 2, 2] * z + translations[c, 2]
+            if not depth > near or depth >= best:  # a NaN mean is seen by no camera
+                continue
+            across = rotations[c, 0, 0] * x + rotations[c, 0, 1] * y + rotations[c, 0, 2] * z + translations[c, 0]
+            down = rotations[c, 1, 0] * x + rotations[c, 1, 1] * y + rotations[c, 1, 2] * z + translations[c, 1]
+            if abs(focal * across / depth) <= limit_x and abs(focal * down / depth) <= limit_y:
+                best = depth
+        nearest[i] = best
+    return nearest
 
 
 def filter_variances(means: torch.Tensor, cameras: PinholeCameras) -> torch.Tensor:
