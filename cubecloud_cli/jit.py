@@ -8,7 +8,10 @@ compilation, for allocations that take microseconds. The ``prange`` loops, and s
 arithmetic and results, are the same either way.
 """
 
+import numpy as np
+from numba import types
 from numba.core.cpu import ParallelOptions
+from numba.extending import overload
 
 # A ParallelOptions, not a dict: numba pops the keys of a dict it is given as it reads them.
 PRANGE_ONLY = ParallelOptions(
@@ -23,3 +26,20 @@ PRANGE_ONLY = ParallelOptions(
         "fusion": False,
     }
 )
+
+
+def as_real(value, like):
+    """``value`` as a number of ``like``'s float type (``like`` an array or a scalar), so that a
+    kernel's constants keep float32 arithmetic float32 and float64 arithmetic exact."""
+    dtype = like.dtype if isinstance(like, np.ndarray) else np.asarray(like).dtype
+    return dtype.type(value)
+
+
+@overload(as_real, inline="always")
+def _as_real(value, like):
+    real = like.dtype if isinstance(like, types.Array) else like
+
+    def cast(value, like):
+        return real(value)
+
+    return cast

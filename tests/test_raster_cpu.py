@@ -100,10 +100,40 @@ def test_projection_kernels_at_the_extremes(mean, log_scale, quaternion, anisotr
     compare_projection(means, scales, torch.tensor([quaternion], dtype=torch.float64), antialias=antialias)
 
 
-def test_the_exp_table_is_accurate_wherever_a_pair_is_kept():
+def test_the_inline_exp_is_accurate_wherever_a_pair_is_kept():
     powers = np.concatenate([np.linspace(0.0, 6.0, 200_001), [1e-300, math.log(255.0), 6.0]])
     approx = np.array([exp_negative(p) for p in powers])
     assert np.max(np.abs(approx - np.exp(-powers)) / np.exp(-powers)) < 1e-11
+    singles = powers.astype(np.float32)
+    approx = np.array([exp_negative(p) for p in singles])
+    exact = np.exp(-singles.astype(np.float64))
+    assert np.max(np.abs(approx - exact) / exact) < 5e-6  # float32 kernels composite in float32
+
+
+def test_a_tile_list_too_long_for_float32_positions_composites_in_float64(monkeypatch):
+    """The backward compares entry positions in the compute type; past float32's exact integers
+    (2²⁴ entries in one tile, lowered here to 4) the frame is composited in float64 instead."""
+    from cubecloud_cli.raster import cpu_kernels
+
+    means, scales, quaternions = gaussians(60, 5)
+    opacities = torch.rand(60, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    colours = torch.rand(60, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    args = (*pose(), float(CAMERAS.focal), W, H)
+
+    def render(dtype):
+        inputs = [t.to(dtype).requires_grad_(True) for t in (means, scales, quaternions, opacities, colours)]
+        image = NUMBA.render(inputs[0], inputs[1], inputs[2], inputs[3], inputs[4], *args).image
+        (image * torch.linspace(-1, 1, image.numel(), dtype=dtype).view_as(image)).sum().backward()
+        return image.detach(), [t.grad for t in inputs]
+
+    single_image, single_grads = render(torch.float32)
+    monkeypatch.setitem(cpu_kernels.EXACT_POSITIONS, np.dtype(np.float32), 4)
+    widened_image, widened_grads = render(torch.float32)
+    assert widened_image.dtype == torch.float32 and not torch.equal(widened_image, single_image)
+    double_image, double_grads = render(torch.float64)
+    torch.testing.assert_close(widened_image, double_image.float(), rtol=0, atol=1e-6)
+    for widened, double in zip(widened_grads, double_grads):
+        torch.testing.assert_close(widened, double.float(), rtol=1e-4, atol=1e-5)
 
 
 def projected_scene(count=300, seed=3):

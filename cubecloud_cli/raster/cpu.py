@@ -14,8 +14,8 @@ from cubecloud_cli.raster.projection import Projected, dilation
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
-    """A float32 or float64 array, strided or not: the kernels read any of these (and compute in
-    float64), so float32 training tensors and gradient slices are not copied."""
+    """A float32 or float64 array, strided or not: the kernels read any of these (and composite in
+    the precision of the conics), so float32 training tensors and gradient slices are not copied."""
     array = tensor.detach().cpu().numpy()
     if array.dtype not in (np.float32, np.float64):
         array = array.astype(np.float32 if array.dtype.itemsize < 4 else np.float64)
@@ -96,6 +96,8 @@ class _Composite(torch.autograd.Function):
         )
         offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
+        if offsets.size > 1 and np.diff(offsets).max() >= kernels.EXACT_POSITIONS[arrays[2].dtype]:
+            arrays = tuple(a.astype(np.float64) if a.dtype == np.float32 else a for a in arrays)
         image, final_transmittance, last, blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
         ctx.saved = (
             offsets,

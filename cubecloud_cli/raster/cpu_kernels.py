@@ -3,13 +3,14 @@
 Same rules and the same pairs as the PyTorch oracle (``pairs.py``): each splat covers the pixels
 of its 3σ square, Gaussians are composited front to back in the oracle's depth order, α ≤ 0.99,
 pairs with α < 1/255 are skipped, and a pixel stops before its transmittance would fall below
-1e-4. Arithmetic is float64 inside the kernels; inputs may be float32 or float64.
+1e-4. Arithmetic is in the inputs' precision: float32 training tensors composite in float32, as
+the reference CUDA rasterizer does; float64 inputs (the tests' oracle comparisons) in float64.
 
 What makes them fast on two cores (``bench/raster.py``): within a tile each Gaussian visits only
-its own pixels (work ∝ pairs, not pixels × Gaussians); a pair beyond the α = 1/255 ellipse is
-rejected before any exp, and the exp is inline (a table and a short polynomial, not a libm
-call); rows whose pixels have all stopped are skipped by a bit mask; the backward skips entries
-that blended nothing.
+the rows of its own box; each row is one fixed 16-pixel loop without branches (every test a
+select), which LLVM turns into SIMD, 8 float32 lanes at a time on AVX2. The exp is inline
+arithmetic (a polynomial, then squarings), not a libm call; rows whose pixels have all stopped
+are skipped by a bit mask; the backward skips entries that blended nothing.
 
 Backward walks each pixel's list back to front (as the reference CUDA code does), recovering the
 transmittance before each Gaussian by division by (1 − α) ≥ 0.01. Gradients go into one row per
@@ -22,44 +23,105 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.jit import PRANGE_ONLY
+from cubecloud_cli.jit import PRANGE_ONLY, as_real
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
 
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
 LEVEL_MARGIN = 1e-9
+# exp(−p) = exp(−p/32)³²: the polynomial's argument stays below 6/32, where degree 9 is exact to
+# float64 rounding. Powers above 6 are reached only by opacities above e⁶/255 ≈ 1.6, outside the
+# [0, 1] contract; such a Gaussian takes libm's exp instead.
+EXP_POLYNOMIAL_LIMIT = 6.0
 
-
-# exp(−i/16) for the table-driven exp below; powers beyond ln 255 < 6 are never evaluated.
-EXP_STEPS_PER_UNIT = 16
-EXP_TABLE_LIMIT = 6.0
-EXP_TABLE = np.exp(-np.arange(int(EXP_TABLE_LIMIT) * EXP_STEPS_PER_UNIT + 2) / EXP_STEPS_PER_UNIT)
-
-
-@njit(cache=True, fastmath=True, inline="always")
-def pair_gaussian(power):
-    """exp(−power) for the kernels' pairs: inline below 6, libm beyond (reached only with
-    opacities above e⁶/255 ≈ 1.6, outside the [0, 1] contract, but then still right)."""
-    return exp_negative(power) if power <= EXP_TABLE_LIMIT else np.exp(-power)
+# How the pixel loops stay SIMD (numba hands them to LLVM's loop vectorizer, which gives up on
+# any of these): each loop runs over one whole tile row, 16 pixels, indexed by the loop variable
+# alone (an index like row + i is checked for wrap-around, a branch); every test is a select
+# between values of the compute type (int64 compares or counters halve the width); no call and
+# no inner loop in the body; no Python division check (error_model="numpy": 1 − α ≥ 0.01); and
+# few arrays written, each a plain 2D tile array, none passed to a helper (reference counting
+# calls). Rows of 8 pixels would waste fewer lanes on narrow splats, but LLVM's cost model does
+# not vectorize a loop that short.
+# The backward compares entry positions within a tile in the compute type: float32 counts exactly
+# to 2²⁴, so ``cpu.py`` composites a tile list longer than that in float64.
+EXACT_POSITIONS = {np.dtype(np.float32): 2**24, np.dtype(np.float64): 2**53}
 
 
 @njit(cache=True, fastmath=True, inline="always")
 def exp_negative(power):
-    """exp(−power) for 0 ≤ power ≤ 6: exp(−i/16) from a table times exp(−r), r < 1/16, by a
-    degree-6 polynomial in Estrin's form (relative error below 1e-12). Inline arithmetic with a
-    short dependency chain instead of a libm call, which was the largest cost of a pair."""
-    scaled = power * EXP_STEPS_PER_UNIT
-    index = np.int64(scaled)
-    r = (scaled - index) * (1.0 / EXP_STEPS_PER_UNIT)
-    r2 = r * r
-    tail = (1.0 / 24.0 - r * (1.0 / 120.0)) + r2 * (1.0 / 720.0)
-    polynomial = (1.0 - r) + r2 * ((0.5 - r * (1.0 / 6.0)) + r2 * tail)
-    return EXP_TABLE[index] * polynomial
+    """exp(−power) for 0 ≤ power ≤ 6 in power's precision, without a branch or a table: Taylor's
+    degree-9 polynomial of exp(−power/32) in Estrin's form, squared five times. Relative error
+    below 1e-12 in float64; below 5e-6 in float32, where the squarings double the rounding error
+    five times (far under the 1/255 steps that decide which pairs count)."""
+    x = power * as_real(1.0 / 32.0, power)
+    x2 = x * x
+    x4 = x2 * x2
+    one = as_real(1.0, power)
+    low = (one - x) + x2 * (as_real(0.5, power) - x * as_real(1.0 / 6.0, power))
+    middle = (as_real(1.0 / 24.0, power) - x * as_real(1.0 / 120.0, power)) + x2 * (
+        as_real(1.0 / 720.0, power) - x * as_real(1.0 / 5040.0, power)
+    )
+    high = as_real(1.0 / 40320.0, power) - x * as_real(1.0 / 362880.0, power)
+    e = low + x4 * (middle + x4 * high)
+    e = e * e  # written out, not a loop: an inner loop would keep the caller's loop from SIMD
+    e = e * e
+    e = e * e
+    e = e * e
+    return e * e
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def polynomial_falloff(power):
+    """exp(−power) of a pair, for Gaussians whose power level is within the polynomial's range."""
+    return exp_negative(min(power, as_real(EXP_POLYNOMIAL_LIMIT, power)))
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def exact_falloff(power):
+    """exp(−power) by libm, for the rare Gaussian beyond the polynomial's range. A separate
+    function rather than a branch in the pixel loop: a call there would keep it from SIMD."""
+    return np.exp(-power)
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def pair_alpha(dx, dy, a, b, c, opacity, falloff):
+    """A pair's power (clamped at 0), Gaussian falloff exp(−power) and α = min(0.99, o·falloff)."""
+    zero = as_real(0.0, dx)
+    power = max(as_real(0.5, dx) * (a * dx * dx + c * dy * dy) + b * dx * dy, zero)
+    gaussian = falloff(power)
+    return power, gaussian, min(as_real(MAX_ALPHA, dx), opacity * gaussian)
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def blend_row(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff):
+    """Blend one Gaussian into row ``r`` of a tile, where its box spans dx ∈ [low, high].
+    Channel 0 is blended here; ``weights`` keeps each pixel's T·α (0 where not blended) for the
+    caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
+    the sign says which pixels are live. Returns (pixels stopped, whether any was blended)."""
+    zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
+    min_alpha, stop_level = as_real(MIN_ALPHA, dx0), as_real(TRANSMITTANCE_STOP, dx0)
+    stops = blends = zero
+    dx = dx0
+    for i in range(TILE):
+        before = transmittance[r, i]
+        power, _, alpha = pair_alpha(dx, dy, a, b, c, opacity, falloff)
+        valid = (dx >= low) & (dx <= high) & (power <= cut) & (alpha >= min_alpha) & (before > zero)
+        after = before * (one - alpha)
+        stop = valid & (after < stop_level)
+        blend = valid & (after >= stop_level)
+        weight = before * alpha if blend else zero
+        transmittance[r, i] = -before if stop else (after if blend else before)
+        colour[r, i] += weight * colour_0
+        weights[i] = weight
+        stops += one if stop else zero
+        blends += one if blend else zero
+        dx += one
+    return int(stops), blends > zero
 
 
 @njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
 def forward(offsets, entries, bounds, means2d, conics, colours, opacities, levels, background, width, height, tiles_x):
-    """Gaussian-major within each tile: every entry, front to back, visits only the tile's pixels
-    inside its square, so the work is the pair count rather than pixels × entries.
+    """Gaussian-major within each tile: every entry, front to back, visits only the rows of its
+    box, so the work follows the pair count rather than pixels × entries.
 
     ``last`` is, per pixel, the entry where the backward pass starts: the entry at which the pixel
     stopped (not blended), else the tile's end. Any entry before it with α ≥ 1/255 was blended.
@@ -67,8 +129,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     One body on purpose: the per-tile state (transmittance, the bit masks of live pixels) lives in
     the body of the parallel loop over tiles, which numba compiles as one kernel."""
     channels = colours.shape[1]
-    image = np.zeros((height * width, channels))
-    final_transmittance = np.ones(height * width)
+    real = conics.dtype
+    image = np.zeros((height * width, channels), dtype=real)
+    final_transmittance = np.ones(height * width, dtype=real)
     last = np.zeros(height * width, dtype=np.int64)
     blended = np.zeros(entries.size, dtype=np.bool_)  # entries that blended any pixel
     for tile in prange(offsets.size - 1):
@@ -76,68 +139,166 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
-        # live_transmittance is 0 once a pixel has stopped; its final value is kept apart.
-        live_transmittance = np.ones(TILE * TILE)
-        stopped_transmittance = np.zeros(TILE * TILE)
-        colour = np.zeros((TILE * TILE, channels))
-        last_entry = np.full(TILE * TILE, end)  # where the backward pass starts, per pixel
+        # > 0: live; < 0: stopped, holding −T before the stop; 0: beyond the image's edge.
+        transmittance = np.zeros((TILE, TILE), dtype=real)
+        transmittance[: bottom - top + 1, : right - left + 1] = 1.0
+        colour = np.zeros((TILE, TILE), dtype=real)  # channel 0; the others, rarely used, apart
+        other_colours = np.zeros((channels, TILE, TILE), dtype=real)
+        weights = np.zeros(TILE, dtype=real)
+        last_entry = np.full((TILE, TILE), end)  # where the backward pass starts, per pixel
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
         alive = (right - left + 1) * (bottom - top + 1)
         for k in range(start, end):
             if alive == 0:
                 break
             g = entries[k]
-            u, v, opacity = means2d[g, 0], means2d[g, 1], opacities[g]
-            a, b, c, level = conics[g, 0], conics[g, 1], conics[g, 2], levels[g]
-            colour_0 = colours[g, 0]
-            x0, x1 = max(left, bounds[g, 0]), min(right, bounds[g, 1])
-            columns = ((1 << (x1 - x0 + 1)) - 1) << (x0 - left)
+            cut = as_real(levels[g] + LEVEL_MARGIN, conics)
+            u, v, opacity = means2d[g, 0], means2d[g, 1], as_real(opacities[g], conics)
+            a, b, c, colour_0 = conics[g, 0], conics[g, 1], conics[g, 2], as_real(colours[g, 0], conics)
+            first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
+            columns = ((1 << (final - first + 1)) - 1) << first
+            dx0 = as_real(left + 0.5 - u, conics)
+            low, high = dx0 + as_real(first, conics), dx0 + as_real(final, conics)
+            any_blend = False
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
-                if live_columns[py - top] & columns == 0:
+                r = py - top
+                if live_columns[r] & columns == 0:
                     continue  # every pixel of this row under the splat has stopped
-                dy = py + 0.5 - v
-                row = (py - top) * TILE - left
-                for px in range(x0, x1 + 1):
-                    local = row + px
-                    before = live_transmittance[local]
-                    if before == 0.0:
-                        continue
-                    dx = px + 0.5 - u
-                    power = max(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy, 0.0)
-                    if power > level + LEVEL_MARGIN:
-                        continue
-                    alpha = min(MAX_ALPHA, opacity * pair_gaussian(power))
-                    if alpha < MIN_ALPHA:
-                        continue
-                    after = before * (1.0 - alpha)
-                    if after < TRANSMITTANCE_STOP:
-                        stopped_transmittance[local] = before
-                        live_transmittance[local] = 0.0
-                        last_entry[local] = k
-                        live_columns[py - top] &= ~(1 << (px - left))
-                        alive -= 1
-                        continue
-                    weight = before * alpha
-                    blended[k] = True
-                    if channels == 1:
-                        colour[local, 0] += weight * colour_0
-                    else:
-                        for ch in range(channels):
-                            colour[local, ch] += weight * colours[g, ch]
-                    live_transmittance[local] = after
+                dy = as_real(py + 0.5 - v, conics)
+                if levels[g] > EXP_POLYNOMIAL_LIMIT:
+                    stops, blends = blend_row(
+                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+                    )  # fmt: skip
+                else:
+                    stops, blends = blend_row(
+                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                    )  # fmt: skip
+                any_blend |= blends
+                for ch in range(1, channels):
+                    for i in range(TILE):
+                        other_colours[ch, r, i] += weights[i] * colours[g, ch]
+                if stops > 0:  # rare: each pixel stops once
+                    mask = 0
+                    for i in range(TILE):
+                        if transmittance[r, i] > 0.0:
+                            mask |= 1 << i
+                        elif transmittance[r, i] < 0.0 and last_entry[r, i] == end:
+                            last_entry[r, i] = k
+                    live_columns[r] = mask
+                    alive -= stops
+            if any_blend:
+                blended[k] = True
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
-                local = (py - top) * TILE + (px - left)
+                r, i = py - top, px - left
                 pixel = py * width + px
-                transmittance = live_transmittance[local] + stopped_transmittance[local]
-                for ch in range(channels):
-                    image[pixel, ch] = colour[local, ch] + transmittance * background[ch]
-                final_transmittance[pixel] = transmittance
-                last[pixel] = last_entry[local]
+                remaining = abs(transmittance[r, i])
+                image[pixel, 0] = colour[r, i] + remaining * background[0]
+                for ch in range(1, channels):
+                    image[pixel, ch] = other_colours[ch, r, i] + remaining * background[ch]
+                final_transmittance[pixel] = remaining
+                last[pixel] = last_entry[r, i]
     return image, final_transmittance, last, blended
 
 
-@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline="always", error_model="numpy")
+def unblend_pair(after, last_position, position, dx, dy, low, high, a, b, c, cut, opacity, falloff):
+    """Undo one pair, back to front, from the pixel's T after it: whether it was blended, T before
+    it (0 if not blended), 1 / (1 − α), the Gaussian falloff and the unclamped o·falloff.
+    Scalars in and out: an array passed to a helper inside the pixel loop costs reference counting
+    calls there, and a call keeps the loop from SIMD."""
+    zero, one = as_real(0.0, dx), as_real(1.0, dx)
+    power, gaussian, alpha = pair_alpha(dx, dy, a, b, c, opacity, falloff)
+    valid = (dx >= low) & (dx <= high) & (position < last_position) & (power <= cut)
+    valid = valid & (alpha >= as_real(MIN_ALPHA, dx))
+    survive = one / (one - alpha)
+    before = after * survive if valid else zero
+    return valid, before, survive, gaussian, opacity * gaussian
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
+    """A pair's share of the gradients of mean2d (2), conic (3) and opacity, from the loss's
+    gradient with respect to its α. Where α is clamped at 0.99 it does not move; where the power
+    is clamped at 0 neither do the conic and mean."""
+    zero, half = as_real(0.0, dx), as_real(0.5, dx)
+    moving = grad_alpha if raw <= as_real(MAX_ALPHA, dx) else zero
+    raw_power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+    grad_power = -moving * raw if raw_power > zero else zero
+    return (
+        -grad_power * (a * dx + b * dy),
+        -grad_power * (c * dy + b * dx),
+        grad_power * half * dx * dx,
+        grad_power * dx * dy,
+        grad_power * half * dy * dy,
+        moving * gaussian,
+    )
+
+
+@njit(cache=True, fastmath=True, inline="always", error_model="numpy")
+def unblend_grey_row(
+    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
+):  # fmt: skip
+    """One Gaussian's gradients over row ``r`` of a tile of one channel, back to front: the sums
+    for mean2d (2), conic (3), opacity and colour. ``behind`` is the colour composited behind it."""
+    zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
+    g_u = g_v = g_a = g_b = g_c = g_opacity = g_colour = zero
+    dx = dx0
+    for i in range(TILE):
+        valid, before, survive, gaussian, raw = unblend_pair(
+            transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, falloff
+        )
+        transmittance[r, i] = before if valid else transmittance[r, i]
+        weight = before * (raw if raw < as_real(MAX_ALPHA, dx) else as_real(MAX_ALPHA, dx))
+        grad = tile_grad[r, i]
+        grad_alpha = grad * (before * colour_0 - behind[r, i] * survive) if valid else zero
+        g_colour += weight * grad
+        behind[r, i] += weight * colour_0
+        d_u, d_v, d_a, d_b, d_c, d_opacity = pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c)
+        g_u += d_u
+        g_v += d_v
+        g_a += d_a
+        g_b += d_b
+        g_c += d_c
+        g_opacity += d_opacity
+        dx += one
+    return g_u, g_v, g_a, g_b, g_c, g_opacity, g_colour
+
+
+@njit(cache=True, fastmath=True, inline="always", error_model="numpy")
+def unblend_colour_row(
+    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours, falloff, colour_grad
+):  # fmt: skip
+    """``unblend_grey_row`` for several channels (``behind`` and ``tile_grad`` per channel first;
+    the colour gradients added into ``colour_grad``). Not SIMD: RGB scenes are not CT's."""
+    zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
+    g_u = g_v = g_a = g_b = g_c = g_opacity = zero
+    dx = dx0
+    for i in range(TILE):
+        valid, before, survive, gaussian, raw = unblend_pair(
+            transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, falloff
+        )
+        if valid:
+            transmittance[r, i] = before
+            weight = before * min(raw, as_real(MAX_ALPHA, dx))
+            grad_alpha = zero
+            for ch in range(colours.size):
+                colour = as_real(colours[ch], dx)
+                grad_alpha += tile_grad[ch, r, i] * (before * colour - behind[ch, r, i] * survive)
+                colour_grad[ch] += weight * tile_grad[ch, r, i]
+                behind[ch, r, i] += weight * colour
+            d_u, d_v, d_a, d_b, d_c, d_opacity = pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c)
+            g_u += d_u
+            g_v += d_v
+            g_a += d_a
+            g_b += d_b
+            g_c += d_c
+            g_opacity += d_opacity
+        dx += one
+    return g_u, g_v, g_a, g_b, g_c, g_opacity
+
+
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True, error_model="numpy")
 def backward(
     offsets,
     entries,
@@ -163,29 +324,37 @@ def backward(
 
     One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]
+    real = conics.dtype
     slot_grads = np.zeros((entries.size, 6 + channels))
     for tile in prange(offsets.size - 1):
         start = offsets[tile]
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
-        transmittance = np.ones(TILE * TILE)
-        behind = np.zeros((TILE * TILE, channels))  # colour from behind the current Gaussian
-        last_entry = np.zeros(TILE * TILE, dtype=np.int64)
-        tile_grad = np.zeros((TILE * TILE, channels))
-        colour_grad = np.zeros(channels)
+        transmittance = np.ones((TILE, TILE), dtype=real)
+        # One channel's colour from behind the current Gaussian and loss gradient as 2D arrays,
+        # several channels' as 3D (channel first).
+        behind = np.zeros((TILE, TILE), dtype=real)
+        tile_grad = np.zeros((TILE, TILE), dtype=real)
+        behind_channels = np.zeros((channels, TILE, TILE), dtype=real)
+        grad_channels = np.zeros((channels, TILE, TILE), dtype=real)
+        # Per pixel, where its backward pass starts, counted from the tile's first entry in the
+        # compute type (an int64 compare would halve the SIMD width); −1 beyond the image's edge.
+        last_entry = np.full((TILE, TILE), -1.0, dtype=real)
+        colour_grad = np.zeros(channels, dtype=real)
+        row_latest = np.zeros(TILE, dtype=np.int64)  # per row, the largest last entry
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
-                local = (py - top) * TILE + (px - left)
+                r, i = py - top, px - left
                 pixel = py * width + px
-                transmittance[local] = final_transmittance[pixel]
-                last_entry[local] = last[pixel]
+                transmittance[r, i] = final_transmittance[pixel]
+                last_entry[r, i] = last[pixel] - start
+                row_latest[r] = max(row_latest[r], last[pixel])
+                behind[r, i] = final_transmittance[pixel] * background[0]
+                tile_grad[r, i] = grad_image[pixel, 0]
                 for ch in range(channels):
-                    behind[local, ch] = final_transmittance[pixel] * background[ch]
-                    tile_grad[local, ch] = grad_image[pixel, ch]
-        row_latest = np.zeros(TILE, dtype=np.int64)  # per row, the largest last_entry
-        for local in range(TILE * TILE):
-            row_latest[local // TILE] = max(row_latest[local // TILE], last_entry[local])
+                    behind_channels[ch, r, i] = final_transmittance[pixel] * background[ch]
+                    grad_channels[ch, r, i] = grad_image[pixel, ch]
         latest = start
         for r in range(TILE):
             latest = max(latest, row_latest[r])
@@ -193,60 +362,59 @@ def backward(
             if not blended[k]:  # its gradients are all zero
                 continue
             g = entries[k]
-            u, v, opacity = means2d[g, 0], means2d[g, 1], opacities[g]
-            a, b, c, level = conics[g, 0], conics[g, 1], conics[g, 2], levels[g]
-            colour_0 = colours[g, 0]
-            x0, x1 = max(left, bounds[g, 0]), min(right, bounds[g, 1])
+            cut = as_real(levels[g] + LEVEL_MARGIN, conics)
+            u, v, opacity = means2d[g, 0], means2d[g, 1], as_real(opacities[g], conics)
+            a, b, c, colour_0 = conics[g, 0], conics[g, 1], conics[g, 2], as_real(colours[g, 0], conics)
+            first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
+            dx0 = as_real(left + 0.5 - u, conics)
+            low, high = dx0 + as_real(first, conics), dx0 + as_real(final, conics)
+            position = as_real(k - start, conics)
+            exact = levels[g] > EXP_POLYNOMIAL_LIMIT
             # Sums over this entry's pixels, kept in registers and written to its slot once.
             g_u = g_v = g_a = g_b = g_c = g_opacity = g_colour_0 = 0.0
             colour_grad[:] = 0.0
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
-                if k >= row_latest[py - top]:
+                r = py - top
+                if k >= row_latest[r]:
                     continue  # every pixel of this row stopped before this entry
-                dy = py + 0.5 - v
-                row = (py - top) * TILE - left
-                for px in range(x0, x1 + 1):
-                    local = row + px
-                    if k >= last_entry[local]:
-                        continue
-                    dx = px + 0.5 - u
-                    raw_power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    power = max(raw_power, 0.0)
-                    if power > level + LEVEL_MARGIN:
-                        continue
-                    gaussian = pair_gaussian(power)
-                    raw = opacity * gaussian
-                    alpha = min(MAX_ALPHA, raw)
-                    if alpha < MIN_ALPHA:
-                        continue
-                    survive = 1.0 / (1.0 - alpha)
-                    before = transmittance[local] * survive
-                    transmittance[local] = before
-                    weight = before * alpha
-                    if channels == 1:
-                        grad_alpha = tile_grad[local, 0] * (before * colour_0 - behind[local, 0] * survive)
-                        g_colour_0 += weight * tile_grad[local, 0]
-                        behind[local, 0] += weight * colour_0
+                dy = as_real(py + 0.5 - v, conics)
+                if channels > 1:
+                    if exact:
+                        sums = unblend_colour_row(
+                            transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], exact_falloff, colour_grad
+                        )  # fmt: skip
                     else:
-                        grad_alpha = 0.0
-                        for ch in range(channels):
-                            grad_alpha += tile_grad[local, ch] * (before * colours[g, ch] - behind[local, ch] * survive)
-                            colour_grad[ch] += weight * tile_grad[local, ch]
-                            behind[local, ch] += weight * colours[g, ch]
-                    if raw <= MAX_ALPHA:  # above it α is clamped and does not move
-                        g_opacity += grad_alpha * gaussian
-                        if raw_power > 0.0:
-                            grad_power = -grad_alpha * raw
-                            g_u -= grad_power * (a * dx + b * dy)
-                            g_v -= grad_power * (c * dy + b * dx)
-                            g_a += grad_power * 0.5 * dx * dx
-                            g_b += grad_power * dx * dy
-                            g_c += grad_power * 0.5 * dy * dy
+                        sums = unblend_colour_row(
+                            transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], polynomial_falloff, colour_grad
+                        )  # fmt: skip
+                    g_u += sums[0]
+                    g_v += sums[1]
+                    g_a += sums[2]
+                    g_b += sums[3]
+                    g_c += sums[4]
+                    g_opacity += sums[5]
+                    continue
+                if exact:
+                    grey = unblend_grey_row(
+                        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+                    )  # fmt: skip
+                else:
+                    grey = unblend_grey_row(
+                        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                    )  # fmt: skip
+                g_u += grey[0]
+                g_v += grey[1]
+                g_a += grey[2]
+                g_b += grey[3]
+                g_c += grey[4]
+                g_opacity += grey[5]
+                g_colour_0 += grey[6]
             slot = slots[k]
             slot_grads[slot, 0], slot_grads[slot, 1], slot_grads[slot, 2] = g_u, g_v, g_a
             slot_grads[slot, 3], slot_grads[slot, 4], slot_grads[slot, 5] = g_b, g_c, g_opacity
             if channels == 1:
-                colour_grad[0] = g_colour_0
-            for ch in range(channels):
-                slot_grads[slot, 6 + ch] = colour_grad[ch]
+                slot_grads[slot, 6] = g_colour_0
+            else:
+                for ch in range(channels):
+                    slot_grads[slot, 6 + ch] = colour_grad[ch]
     return slot_grads

@@ -33,7 +33,7 @@ def compile_backward_side() -> None:
     cpu_kernels.backward(
         np.zeros(1, index), empty(0, dtype=index), empty(0, dtype=index), empty(0, 4, dtype=index),
         empty(0, 2), empty(0, 3), empty(0, 1), empty(0), empty(0, dtype=wide), empty(1),
-        16, 16, 1, empty(0, dtype=wide), empty(0, dtype=index), empty(0, dtype=np.bool_), empty(0, 1),
+        16, 16, 1, empty(0), empty(0, dtype=index), empty(0, dtype=np.bool_), empty(0, 1),
     )  # fmt: skip
     # Training's gradients of means2d and conics arrive as column slices of one buffer: strided.
     strided_means2d, strided_conics = empty(2, 4)[:, :2], empty(2, 4)[:, :3]
