@@ -35,7 +35,7 @@ def as_real(value, like):
     return dtype.type(value)
 
 
-@overload(as_real, inline="always")
+@overload(as_real)
 def _as_real(value, like):
     real = like.dtype if isinstance(like, types.Array) else like
 

@@ -118,6 +118,15 @@ def blend_row(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cu
     return int(stops), blends > zero
 
 
+@njit(cache=True, fastmath=True)
+def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
+    """``blend_row`` with libm's exp, out of line: a second inlined copy of the row loop for a
+    Gaussian outside the [0, 1] opacity contract would double the kernel's first compilation."""
+    return blend_row(
+        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+    )
+
+
 @njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
 def forward(offsets, entries, bounds, means2d, conics, colours, opacities, levels, background, width, height, tiles_x):
     """Gaussian-major within each tile: every entry, front to back, visits only the rows of its
@@ -141,7 +150,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
         # > 0: live; < 0: stopped, holding −T before the stop; 0: beyond the image's edge.
         transmittance = np.zeros((TILE, TILE), dtype=real)
-        transmittance[: bottom - top + 1, : right - left + 1] = 1.0
+        for r in range(bottom - top + 1):
+            for i in range(right - left + 1):
+                transmittance[r, i] = 1.0
         colour = np.zeros((TILE, TILE), dtype=real)  # channel 0; the others, rarely used, apart
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
         weights = np.zeros(TILE, dtype=real)
@@ -166,8 +177,8 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                     continue  # every pixel of this row under the splat has stopped
                 dy = as_real(py + 0.5 - v, conics)
                 if levels[g] > EXP_POLYNOMIAL_LIMIT:
-                    stops, blends = blend_row(
-                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+                    stops, blends = blend_row_exactly(
+                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
                     )  # fmt: skip
                 else:
                     stops, blends = blend_row(
@@ -265,19 +276,47 @@ def unblend_grey_row(
     return g_u, g_v, g_a, g_b, g_c, g_opacity, g_colour
 
 
-@njit(cache=True, fastmath=True, inline="always", error_model="numpy")
+@njit(cache=True, fastmath=True, error_model="numpy")
+def unblend_grey_row_exactly(
+    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+):  # fmt: skip
+    """``unblend_grey_row`` with libm's exp, out of line (as ``blend_row_exactly``)."""
+    return unblend_grey_row(
+        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+    )  # fmt: skip
+
+
+@njit(cache=True, fastmath=True, error_model="numpy")
 def unblend_colour_row(
-    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours, falloff, colour_grad
+    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours, exact, colour_grad
 ):  # fmt: skip
     """``unblend_grey_row`` for several channels (``behind`` and ``tile_grad`` per channel first;
-    the colour gradients added into ``colour_grad``). Not SIMD: RGB scenes are not CT's."""
+    the colour gradients added into ``colour_grad``; libm's exp where ``exact``). Scalar and out
+    of line: RGB scenes are not CT's, and the kernel's first compilation stays short."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     g_u = g_v = g_a = g_b = g_c = g_opacity = zero
     dx = dx0
     for i in range(TILE):
-        valid, before, survive, gaussian, raw = unblend_pair(
-            transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, falloff
-        )
+        if exact:
+            valid, before, survive, gaussian, raw = unblend_pair(
+                transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, exact_falloff
+            )
+        else:
+            valid, before, survive, gaussian, raw = unblend_pair(
+                transmittance[r, i],
+                last_entry[r, i],
+                position,
+                dx,
+                dy,
+                low,
+                high,
+                a,
+                b,
+                c,
+                cut,
+                opacity,
+                polynomial_falloff,
+            )
         if valid:
             transmittance[r, i] = before
             weight = before * min(raw, as_real(MAX_ALPHA, dx))
@@ -379,14 +418,9 @@ def backward(
                     continue  # every pixel of this row stopped before this entry
                 dy = as_real(py + 0.5 - v, conics)
                 if channels > 1:
-                    if exact:
-                        sums = unblend_colour_row(
-                            transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], exact_falloff, colour_grad
-                        )  # fmt: skip
-                    else:
-                        sums = unblend_colour_row(
-                            transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], polynomial_falloff, colour_grad
-                        )  # fmt: skip
+                    sums = unblend_colour_row(
+                        transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], exact, colour_grad
+                    )  # fmt: skip
                     g_u += sums[0]
                     g_v += sums[1]
                     g_a += sums[2]
@@ -395,8 +429,8 @@ def backward(
                     g_opacity += sums[5]
                     continue
                 if exact:
-                    grey = unblend_grey_row(
-                        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+                    grey = unblend_grey_row_exactly(
+                        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
                     )  # fmt: skip
                 else:
                     grey = unblend_grey_row(
