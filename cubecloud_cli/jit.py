@@ -6,6 +6,9 @@ assignment and array expression of a kernel into a parallel loop of its own, eac
 separate function: that made up most of the 19 s a new user waited for the rasterizer's first
 compilation, for allocations that take microseconds. The ``prange`` loops, and so the kernels'
 arithmetic and results, are the same either way.
+
+``as_real`` types a kernel's constants like its inputs. A literal such as ``0.5`` is float64 to
+numba and would turn float32 arithmetic into float64 (and halve its SIMD width).
 """
 
 import numpy as np

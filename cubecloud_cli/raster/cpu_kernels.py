@@ -169,7 +169,8 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
             first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
             columns = ((1 << (final - first + 1)) - 1) << first
             dx0 = as_real(left + 0.5 - u, conics)
-            low, high = dx0 + as_real(first, conics), dx0 + as_real(final, conics)
+            # Half a pixel of slack: dx steps by 1, and its rounding must not drop an edge column.
+            low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
             any_blend = False
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
                 r = py - top
@@ -406,7 +407,8 @@ def backward(
             a, b, c, colour_0 = conics[g, 0], conics[g, 1], conics[g, 2], as_real(colours[g, 0], conics)
             first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
             dx0 = as_real(left + 0.5 - u, conics)
-            low, high = dx0 + as_real(first, conics), dx0 + as_real(final, conics)
+            # Half a pixel of slack: dx steps by 1, and its rounding must not drop an edge column.
+            low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
             position = as_real(k - start, conics)
             exact = levels[g] > EXP_POLYNOMIAL_LIMIT
             # Sums over this entry's pixels, kept in registers and written to its slot once.
