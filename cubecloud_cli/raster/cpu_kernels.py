@@ -247,6 +247,15 @@ def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     )
 
 
+@njit(cache=True, fastmath=True, inline="always")
+def added(sums, terms):
+    """Six running gradient sums plus one pair's six terms."""
+    return (
+        sums[0] + terms[0], sums[1] + terms[1], sums[2] + terms[2],
+        sums[3] + terms[3], sums[4] + terms[4], sums[5] + terms[5],
+    )  # fmt: skip
+
+
 @njit(cache=True, fastmath=True, inline="always", error_model="numpy")
 def unblend_grey_row(
     transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
@@ -254,7 +263,8 @@ def unblend_grey_row(
     """One Gaussian's gradients over row ``r`` of a tile of one channel, back to front: the sums
     for mean2d (2), conic (3), opacity and colour. ``behind`` is the colour composited behind it."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
-    g_u = g_v = g_a = g_b = g_c = g_opacity = g_colour = zero
+    sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
+    g_colour = zero
     dx = dx0
     for i in range(TILE):
         valid, before, survive, gaussian, raw = unblend_pair(
@@ -266,15 +276,9 @@ def unblend_grey_row(
         grad_alpha = grad * (before * colour_0 - behind[r, i] * survive) if valid else zero
         g_colour += weight * grad
         behind[r, i] += weight * colour_0
-        d_u, d_v, d_a, d_b, d_c, d_opacity = pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c)
-        g_u += d_u
-        g_v += d_v
-        g_a += d_a
-        g_b += d_b
-        g_c += d_c
-        g_opacity += d_opacity
+        sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
         dx += one
-    return g_u, g_v, g_a, g_b, g_c, g_opacity, g_colour
+    return sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], g_colour
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
@@ -295,7 +299,7 @@ def unblend_colour_row(
     the colour gradients added into ``colour_grad``; libm's exp where ``exact``). Scalar and out
     of line: RGB scenes are not CT's, and the kernel's first compilation stays short."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
-    g_u = g_v = g_a = g_b = g_c = g_opacity = zero
+    sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
     dx = dx0
     for i in range(TILE):
         if exact:
@@ -304,20 +308,8 @@ def unblend_colour_row(
             )
         else:
             valid, before, survive, gaussian, raw = unblend_pair(
-                transmittance[r, i],
-                last_entry[r, i],
-                position,
-                dx,
-                dy,
-                low,
-                high,
-                a,
-                b,
-                c,
-                cut,
-                opacity,
-                polynomial_falloff,
-            )
+                transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, polynomial_falloff
+            )  # fmt: skip
         if valid:
             transmittance[r, i] = before
             weight = before * min(raw, as_real(MAX_ALPHA, dx))
@@ -327,15 +319,9 @@ def unblend_colour_row(
                 grad_alpha += tile_grad[ch, r, i] * (before * colour - behind[ch, r, i] * survive)
                 colour_grad[ch] += weight * tile_grad[ch, r, i]
                 behind[ch, r, i] += weight * colour
-            d_u, d_v, d_a, d_b, d_c, d_opacity = pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c)
-            g_u += d_u
-            g_v += d_v
-            g_a += d_a
-            g_b += d_b
-            g_c += d_c
-            g_opacity += d_opacity
+            sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
         dx += one
-    return g_u, g_v, g_a, g_b, g_c, g_opacity
+    return sums
 
 
 @njit(parallel=PRANGE_ONLY, cache=True, fastmath=True, error_model="numpy")
@@ -412,7 +398,8 @@ def backward(
             position = as_real(k - start, conics)
             exact = levels[g] > EXP_POLYNOMIAL_LIMIT
             # Sums over this entry's pixels, kept in registers and written to its slot once.
-            g_u = g_v = g_a = g_b = g_c = g_opacity = g_colour_0 = 0.0
+            entry_sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # mean2d (2), conic (3), opacity
+            g_colour_0 = 0.0
             colour_grad[:] = 0.0
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
                 r = py - top
@@ -423,12 +410,7 @@ def backward(
                     sums = unblend_colour_row(
                         transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], exact, colour_grad
                     )  # fmt: skip
-                    g_u += sums[0]
-                    g_v += sums[1]
-                    g_a += sums[2]
-                    g_b += sums[3]
-                    g_c += sums[4]
-                    g_opacity += sums[5]
+                    entry_sums = added(entry_sums, sums)
                     continue
                 if exact:
                     grey = unblend_grey_row_exactly(
@@ -438,16 +420,11 @@ def backward(
                     grey = unblend_grey_row(
                         transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
-                g_u += grey[0]
-                g_v += grey[1]
-                g_a += grey[2]
-                g_b += grey[3]
-                g_c += grey[4]
-                g_opacity += grey[5]
+                entry_sums = added(entry_sums, grey)
                 g_colour_0 += grey[6]
             slot = slots[k]
-            slot_grads[slot, 0], slot_grads[slot, 1], slot_grads[slot, 2] = g_u, g_v, g_a
-            slot_grads[slot, 3], slot_grads[slot, 4], slot_grads[slot, 5] = g_b, g_c, g_opacity
+            for j in range(6):
+                slot_grads[slot, j] = entry_sums[j]
             if channels == 1:
                 slot_grads[slot, 6] = g_colour_0
             else:
