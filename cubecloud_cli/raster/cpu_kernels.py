@@ -216,7 +216,8 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
 @njit(cache=True, fastmath=True, inline="always", error_model="numpy")
 def unblend_pair(after, last_position, position, dx, dy, low, high, a, b, c, cut, opacity, falloff):
     """Undo one pair, back to front, from the pixel's T after it: whether it was blended, T before
-    it (0 if not blended), 1 / (1 − α), the Gaussian falloff and the unclamped o·falloff.
+    it and its weight T·α (both 0 if not blended), 1 / (1 − α), the Gaussian falloff and the
+    unclamped o·falloff.
     Scalars in and out: an array passed to a helper inside the pixel loop costs reference counting
     calls there, and a call keeps the loop from SIMD."""
     zero, one = as_real(0.0, dx), as_real(1.0, dx)
@@ -225,7 +226,7 @@ def unblend_pair(after, last_position, position, dx, dy, low, high, a, b, c, cut
     valid = valid & (alpha >= as_real(MIN_ALPHA, dx))
     survive = one / (one - alpha)
     before = after * survive if valid else zero
-    return valid, before, survive, gaussian, opacity * gaussian
+    return valid, before, before * alpha, survive, gaussian, opacity * gaussian
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -267,11 +268,10 @@ def unblend_grey_row(
     g_colour = zero
     dx = dx0
     for i in range(TILE):
-        valid, before, survive, gaussian, raw = unblend_pair(
+        valid, before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, falloff
         )
         transmittance[r, i] = before if valid else transmittance[r, i]
-        weight = before * (raw if raw < as_real(MAX_ALPHA, dx) else as_real(MAX_ALPHA, dx))
         grad = tile_grad[r, i]
         grad_alpha = grad * (before * colour_0 - behind[r, i] * survive) if valid else zero
         g_colour += weight * grad
@@ -303,16 +303,15 @@ def unblend_colour_row(
     dx = dx0
     for i in range(TILE):
         if exact:
-            valid, before, survive, gaussian, raw = unblend_pair(
+            valid, before, weight, survive, gaussian, raw = unblend_pair(
                 transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, exact_falloff
             )
         else:
-            valid, before, survive, gaussian, raw = unblend_pair(
+            valid, before, weight, survive, gaussian, raw = unblend_pair(
                 transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, polynomial_falloff
             )  # fmt: skip
         if valid:
             transmittance[r, i] = before
-            weight = before * min(raw, as_real(MAX_ALPHA, dx))
             grad_alpha = zero
             for ch in range(colours.size):
                 colour = as_real(colours[ch], dx)
@@ -378,7 +377,7 @@ def backward(
                 row_latest[r] = max(row_latest[r], last[pixel])
                 behind[r, i] = final_transmittance[pixel] * background[0]
                 tile_grad[r, i] = grad_image[pixel, 0]
-                for ch in range(channels):
+                for ch in range(channels if channels > 1 else 0):  # RGB rows read these instead
                     behind_channels[ch, r, i] = final_transmittance[pixel] * background[ch]
                     grad_channels[ch, r, i] = grad_image[pixel, ch]
         latest = start
