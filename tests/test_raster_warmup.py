@@ -1,37 +1,39 @@
 """The helper that compiles the rasterizer's backward side on the other core must compile exactly
-what training calls: after it has filled an empty numba cache, a splat run loads the backward
-kernels from there and compiles none of them itself."""
+what training calls. numba keys its cache by the argument types, so the helper is right when it
+passes each backward kernel the same types (dtype, dimensions and layout) as a splat run does."""
 
-import json
 import os
 import subprocess
 import sys
 
+import numba
 from cli_helpers import invoke
 
-from cubecloud_cli.raster import cpu_kernels
+from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
 from cubecloud_cli.raster.cpu_warmup import BackwardCompile, compile_backward_side
 
-# Runs `cubecloud splat` with the trainer's own helper switched off, then reports per backward
-# kernel whether this process compiled it (a cache miss) or loaded it (a hit).
-SPLAT_THEN_REPORT = """
-import json, sys
-import cubecloud_cli.raster.cpu_warmup as warmup
-warmup.BackwardCompile.start = classmethod(lambda cls: None)
-from cubecloud_cli.cli import main
-from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
-sys.argv = ["cubecloud", "splat", sys.argv[1], "--iterations", "2", "-q"]
-try:
-    main()
-except SystemExit as exit:
-    assert not exit.code, exit.code
-kernels = {"composite backward": cpu_kernels.backward, "projection backward": cpu_projection.project_backward,
-           "per-Gaussian sums": cpu_binning.sum_per_gaussian}
-print(json.dumps({name: [len(k.stats.cache_hits), len(k.stats.cache_misses)] for name, k in kernels.items()}))
-"""
+BACKWARD_KERNELS = {
+    (cpu_kernels, "backward"): "composite backward",
+    (cpu_projection, "project_backward"): "projection backward",
+    (cpu_binning, "sum_per_gaussian"): "per-Gaussian sums",
+}
 
 
-def test_the_helper_compiles_the_backward_kernels_that_training_loads(tmp_path):
+def record_argument_types(monkeypatch) -> dict[str, set]:
+    """Wrap each backward kernel so that its calls are recorded as numba types, then run it."""
+    calls: dict[str, set] = {name: set() for name in BACKWARD_KERNELS.values()}
+    for (module, attribute), name in BACKWARD_KERNELS.items():
+        kernel = getattr(module, attribute)
+
+        def recorded(*args, kernel=kernel, name=name):
+            calls[name].add(tuple(numba.typeof(a) for a in args))
+            return kernel(*args)
+
+        monkeypatch.setattr(module, attribute, recorded)
+    return calls
+
+
+def test_the_helper_compiles_the_backward_signatures_that_training_calls(tmp_path, monkeypatch):
     work = tmp_path / "work"
     for args in (
         ["preprocess", "-o", work, "--size", "32"],
@@ -39,14 +41,20 @@ def test_the_helper_compiles_the_backward_kernels_that_training_loads(tmp_path):
         ["export", work, "--resolution", "32", "--views", "4", "--max-points", "300", "--novel-directions", "2"],
     ):
         assert invoke(*args, "-q").exit_code == 0
-    environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
-    helper = subprocess.run([sys.executable, "-m", "cubecloud_cli.raster.cpu_warmup"], env=environment, timeout=600)
+    monkeypatch.setattr(BackwardCompile, "start", classmethod(lambda cls: None))
+    calls = record_argument_types(monkeypatch)
+    compile_backward_side()
+    helper = {name: set(types) for name, types in calls.items()}
+    for types in calls.values():
+        types.clear()
+    assert invoke("splat", work, "--iterations", "2", "-q").exit_code == 0
+    assert all(len(types) == 1 for types in helper.values()), helper
+    assert calls == helper  # a contiguous copy where training passes a strided slice would differ here
+
+
+def test_the_helper_runs_as_its_own_process():
+    helper = subprocess.run([sys.executable, "-m", "cubecloud_cli.raster.cpu_warmup"], env=os.environ, timeout=600)
     assert helper.returncode == 0
-    splat = subprocess.run([sys.executable, "-c", SPLAT_THEN_REPORT, str(work)],
-                           env=environment, capture_output=True, text=True, timeout=600)  # fmt: skip
-    assert splat.returncode == 0, splat.stderr
-    loaded = json.loads(splat.stdout.strip().splitlines()[-1])
-    assert loaded == {name: [1, 0] for name in loaded}, loaded  # one signature each, from the cache
 
 
 def test_no_helper_once_this_process_has_the_backward_compiled():

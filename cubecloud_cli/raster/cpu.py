@@ -123,7 +123,9 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_image, grad_coverage):
         offsets, entries, slots, owners, arrays, final_transmittance, last, blended, width, height, tiles_x = ctx.saved
-        grad = _numpy(grad_image.reshape(height * width, -1))
+        # A frame widened to float64 (a tile list past float32's exact integers) takes its
+        # gradient in float64 too: one signature per compute type, as the oracle tests compile.
+        grad = _numpy(grad_image.reshape(height * width, -1)).astype(arrays[2].dtype, copy=False)
         slot_grads = kernels.backward(
             offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad
         )
