@@ -118,10 +118,11 @@ def test_a_tile_list_too_long_for_float32_positions_composites_in_float64(monkey
     means, scales, quaternions = gaussians(60, 5)
     opacities = torch.rand(60, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     colours = torch.rand(60, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
-    args = (*pose(), float(CAMERAS.focal), W, H)
+    rotation, translation = pose(dtype=torch.float32)  # exact in float64 too: the same camera for all three
 
     def render(dtype):
         inputs = [t.to(dtype).requires_grad_(True) for t in (means, scales, quaternions, opacities, colours)]
+        args = (rotation.to(dtype), translation.to(dtype), float(CAMERAS.focal), W, H)
         image = NUMBA.render(inputs[0], inputs[1], inputs[2], inputs[3], inputs[4], *args).image
         (image * torch.linspace(-1, 1, image.numel(), dtype=dtype).view_as(image)).sum().backward()
         return image.detach(), [t.grad for t in inputs]

@@ -49,7 +49,7 @@ def test_the_helper_compiles_the_backward_signatures_that_training_calls(tmp_pat
         types.clear()
     assert invoke("splat", work, "--iterations", "2", "-q").exit_code == 0
     assert all(len(types) == 1 for types in helper.values()), helper
-    assert calls == helper  # a contiguous copy where training passes a strided slice would differ here
+    assert calls == helper  # a strided slice where training passes a contiguous array would differ here
 
 
 def test_the_helper_runs_as_its_own_process():

@@ -14,12 +14,15 @@ from cubecloud_cli.raster.projection import Projected, dilation
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
-    """A float32 or float64 array, strided or not: the kernels read any of these (and composite in
-    the precision of the conics), so float32 training tensors and gradient slices are not copied."""
+    """A contiguous float32 or float64 array (the kernels composite in the precision of the
+    conics). numba compiles a kernel once per dtype and layout, for 5–12 s each: a strided
+    gradient slice or a broadcast gradient would compile a second copy of a kernel that training
+    has compiled already, so they are copied instead (a few MB at most, where training's tensors,
+    contiguous already, are not copied at all)."""
     array = tensor.detach().cpu().numpy()
     if array.dtype not in (np.float32, np.float64):
         array = array.astype(np.float32 if array.dtype.itemsize < 4 else np.float64)
-    return array
+    return array if array.flags.c_contiguous else array.copy(order="C")
 
 
 class _Project(torch.autograd.Function):
