@@ -109,3 +109,22 @@ def test_reading_a_bad_ply_is_a_one_line_error(tmp_path):
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat nonsense\n")
     with pytest.raises(CubecloudError, match="not a readable PLY"):
         read_gaussians_ply(tmp_path / "bad.ply")
+
+
+@pytest.mark.parametrize("smoothing", [False, True])
+def test_gaussians_move_between_devices_whole(smoothing):
+    """`eval --device cuda` moves each run's Gaussians with ``to``: every tensor, the 3D filter's
+    variances too, go along, and nothing else changes (CPU to CPU here; tests/test_cuda.py runs
+    eval on a GPU)."""
+    points, colours = random_points(50, seed=3)
+    gaussians = gaussians_from_points(points, colours)
+    if smoothing:
+        gaussians.smoothing = torch.full((50,), 1e-4)
+    moved = gaussians.to("cpu")
+    for name, tensor in gaussians.parameters().items():
+        assert torch.equal(moved.parameters()[name], tensor)
+    assert (moved.smoothing is None) == (not smoothing)
+    if smoothing:
+        assert torch.equal(moved.smoothing, gaussians.smoothing)
+    torch.testing.assert_close(moved.scales(), gaussians.scales())
+    torch.testing.assert_close(moved.opacities(), gaussians.opacities())

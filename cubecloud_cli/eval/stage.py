@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
 from cubecloud_cli.cameras import PinholeCameras
@@ -287,7 +288,7 @@ def evaluate_work(
         scores = Scores()
         with writer.phase("score"):
             for run in loaded.runs:
-                _score_run(run, loaded, rasterizer, tick, scores, writer.directory)
+                _score_run(run, loaded, rasterizer, device, tick, scores, writer.directory)
             _score_cunerf(work, loaded, scores)
         with writer.phase("pictures"):
             _draw_pictures(loaded, scores, writer.directory)
@@ -320,11 +321,13 @@ def _load_runs(work: Path, folders: list[str], settings: EvalSettings, writer: S
     return LoadedRuns(runs, scene_of, main_scene, own_export, turntables)
 
 
-def _score_run(run: SplatRun, loaded: LoadedRuns, rasterizer, tick, scores: Scores, directory: Path) -> None:
-    """Score one run on its held-out and novel views, and render its turntable."""
+def _score_run(
+    run: SplatRun, loaded: LoadedRuns, rasterizer, device: torch.device, tick, scores: Scores, directory: Path
+) -> None:
+    """Score one run on its held-out and novel views, and render its turntable, on ``device``."""
     scored = loaded.scene_of[run.name]
     test, names = scored.scene.test, [scored.scene.names[i] for i in scored.scene.test]
-    gaussians = run.gaussians()
+    gaussians = run.gaussians().to(device)
     renders, ms = render_views(gaussians, scored.scene.cameras, test, rasterizer, tick, run.antialias)
     if not np.isfinite(renders).all():
         raise CubecloudError(

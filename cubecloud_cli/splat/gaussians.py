@@ -94,6 +94,11 @@ class Gaussians:
         directions = None if degree == 0 else self.means - camera_centre
         return sh_to_colour(self.sh, directions, degree)
 
+    def to(self, device: torch.device | str) -> "Gaussians":
+        """The same Gaussians on ``device`` (a rasterizer draws on the device its inputs are on)."""
+        moved = {name: tensor.to(device) for name, tensor in self.parameters().items()}
+        return Gaussians(**moved, smoothing=None if self.smoothing is None else self.smoothing.to(device))
+
     def parameters(self) -> dict[str, torch.Tensor]:
         return {
             "means": self.means,
