@@ -24,6 +24,18 @@ def ctrl_c_is_delivered():
     signal.signal(signal.SIGINT, previous)
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``cuda`` need a GPU that torch can see; everywhere else they skip."""
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU (torch sees none)")
+    for item in items:
+        if "cuda" in item.keywords:
+            item.add_marker(skip)
+
+
 def shared_scan(name: str) -> Path:
     """A real scan from ../shared/data, or a clean skip when that folder is absent."""
     path = SHARED_DATA / name

@@ -1,0 +1,185 @@
+"""The CUDA paths against the CPU ones (run with `pytest -m cuda` on a machine with a GPU; skipped
+without one): the plain PyTorch rasterizer on the GPU against the numba kernels, gsplat against
+both where it is installed, and cunerf, export, splat and eval with `--device cuda` against the
+same stages on the CPU.
+
+Each comparison prints what it measured, so a GPU session's log (`-s`) holds the figures."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from cli_helpers import invoke
+from test_raster import camera, scene
+
+from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available
+
+pytestmark = pytest.mark.cuda
+W, H = 24, 20
+
+
+def render_with_gradients(backend, device, dtype, tensors, antialias, background):
+    """Image, screen-space gradient and the gradients of means, log-scales, quaternions,
+    opacities and colours for one weighted-sum loss, all back on the CPU in float64."""
+    cameras, rotation, translation = camera(0, dtype)
+    inputs = [t.to(device=device, dtype=dtype).clone().requires_grad_(True) for t in tensors]
+    rendered = backend.render(
+        inputs[0],
+        torch.exp(inputs[1]),
+        inputs[2],
+        inputs[3],
+        inputs[4],
+        rotation.to(device),
+        translation.to(device),
+        float(cameras.focal),
+        W,
+        H,
+        background=background.to(device=device, dtype=dtype),
+        retain_screen_grad=True,
+        antialias=antialias,
+    )
+    # Drawn in float64 whatever the dtype: torch draws other numbers for float32 from one seed.
+    weights = torch.rand(H, W, tensors[4].shape[1], dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    (rendered.image * weights.to(device=device, dtype=dtype)).sum().backward()
+    grads = [rendered.screen_gradient(), *[t.grad for t in inputs]]
+    return rendered.image.detach().double().cpu(), [g.double().cpu() for g in grads]
+
+
+def relative_error(fast: torch.Tensor, oracle: torch.Tensor) -> float:
+    return float((fast - oracle).abs().max() / oracle.abs().max().clamp_min(1e-12))
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+def test_the_torch_rasterizer_on_cuda_matches_the_numba_kernels(antialias):
+    """The same extremes as test_raster's CPU comparison, in float64: the PyTorch path on the GPU
+    against the numba kernels on the CPU, forward and every gradient."""
+    tensors = scene(count=60, seed=4)
+    background = torch.tensor([0.1, 0.3], dtype=torch.float64)
+    image_g, grads_g = render_with_gradients(TORCH, "cuda", torch.float64, tensors, antialias, background)
+    image_c, grads_c = render_with_gradients(NUMBA, "cpu", torch.float64, tensors, antialias, background)
+    errors = [relative_error(g, c) for g, c in zip(grads_g, grads_c)]
+    print(f"torch on cuda vs numba, antialias={antialias}: image {float((image_g - image_c).abs().max()):.2e}, "
+          f"gradients (screen, means, scales, quaternions, opacities, colours) {['%.1e' % e for e in errors]}")  # fmt: skip
+    torch.testing.assert_close(image_g, image_c, rtol=0, atol=1e-6)
+    assert max(errors) < 1e-4
+
+
+def tame_scene(count=200, seed=0):
+    """Gaussians inside the rules that gsplat shares with the reference (α below both caps,
+    opacities above gsplat's 1/255 cull, nothing at the near plane), with three colour channels."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(count, 3, generator=g, dtype=torch.float64) * 1.2 - 0.6
+    log_scales = torch.log(torch.rand(count, 3, generator=g, dtype=torch.float64) * 0.06 + 0.02)
+    quaternions = torch.randn(count, 4, generator=g, dtype=torch.float64)
+    opacities = torch.rand(count, generator=g, dtype=torch.float64) * 0.5 + 0.05
+    colours = torch.rand(count, 3, generator=g, dtype=torch.float64)
+    return means, log_scales, quaternions, opacities, colours
+
+
+def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-30))
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+def test_gsplat_renders_and_differentiates_like_our_rasterizer(antialias):
+    """gsplat (float32, CUDA) against our PyTorch path in float64 on the same scene and camera:
+    the same picture, and gradients pointing the same way. They cannot agree to rounding: gsplat's
+    boxes are opacity-aware and it caps α at 0.999 (backends.py), so the bounds are loose."""
+    if not gsplat_available():
+        pytest.skip("gsplat is not installed")
+    tensors = tame_scene()
+    background = torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64)
+    image_g, grads_g = render_with_gradients(GSPLAT, "cuda", torch.float32, tensors, antialias, background)
+    image_t, grads_t = render_with_gradients(TORCH, "cuda", torch.float64, tensors, antialias, background)
+    difference = (image_g - image_t).abs()
+    cosines = [cosine(g, t) for g, t in zip(grads_g, grads_t)]
+    print(f"gsplat vs torch, antialias={antialias}: image max {float(difference.max()):.2e} "
+          f"mean {float(difference.mean()):.2e}; gradient cosines (screen, means, scales, quaternions, "
+          f"opacities, colours) {['%.5f' % c for c in cosines]}")  # fmt: skip
+    assert float(image_t.max()) > 0.2  # the scene is in view
+    assert float(difference.max()) < 0.03 and float(difference.mean()) < 2e-3
+    assert min(cosines) > 0.98
+
+
+def run_stages(work, device: str, stages) -> None:
+    for args in stages:
+        result = invoke(*args, "--device", device, "-q")
+        assert result.exit_code == 0, (args, result.output)
+
+
+def cunerf_args(work):
+    return ["cunerf", work, "--iterations", "150", "--batch-size", "1024", "--holdout", "2"]
+
+
+def export_args(work):
+    return ["export", work, "--resolution", "32", "--views", "12", "--cube", "8", "--points-per-cube", "64",
+            "--max-points", "1500", "--novel-directions", "2"]  # fmt: skip
+
+
+def splat_args(work):
+    return ["splat", work, "--iterations", "150", "--eval-every", "50", "--checkpoint-every", "50"]
+
+
+@pytest.fixture(scope="module")
+def works(tmp_path_factory):
+    """One preprocess; the rest of the pipeline on the CPU, on the GPU, and the export alone on the
+    GPU from the CPU's trained field."""
+    root = tmp_path_factory.mktemp("cuda")
+    cpu, gpu, cross = root / "cpu", root / "gpu", root / "cross"
+    result = invoke("preprocess", "-o", cpu, "--size", "32", "-q")
+    assert result.exit_code == 0, result.output
+    shutil.copytree(cpu, gpu)
+    run_stages(cpu, "cpu", [cunerf_args(cpu)])
+    shutil.copytree(cpu, cross)
+    run_stages(cpu, "cpu", [export_args(cpu), splat_args(cpu), ["eval", cpu, "--turntable-frames", "4"]])
+    run_stages(gpu, "cuda", [cunerf_args(gpu), export_args(gpu), splat_args(gpu), ["eval", gpu, "--turntable-frames", "4"]])  # fmt: skip
+    run_stages(cross, "cuda", [export_args(cross)])
+    return cpu, gpu, cross
+
+
+def metrics(work, stage):
+    return json.loads((work / stage / "manifest.json").read_text())
+
+
+def test_cunerf_on_cuda_learns_the_volume_as_on_the_cpu(works):
+    cpu, gpu, _ = works
+    on_cpu, on_gpu = metrics(cpu, "cunerf")["metrics"]["psnr_3d"], metrics(gpu, "cunerf")["metrics"]["psnr_3d"]
+    assert metrics(gpu, "cunerf")["runtime"]["device"].startswith("cuda")
+    print(f"cunerf 3D PSNR: cpu {on_cpu:.2f} dB, cuda {on_gpu:.2f} dB")
+    assert abs(on_gpu - on_cpu) < 1.5
+
+
+def test_export_on_cuda_renders_the_cpu_field_as_the_cpu_does(works):
+    """The same trained field exported on each device: the same views to within 8-bit rounding,
+    and about the same Cube-Cloud."""
+    cpu, _, cross = works
+    names = sorted(p.name for p in (cpu / "export" / "images").glob("*.png"))
+    assert names and names == sorted(p.name for p in (cross / "export" / "images").glob("*.png"))
+    worst, total = 0, 0.0
+    for name in names:
+        a = iio.imread(cpu / "export" / "images" / name).astype(np.int16)
+        b = iio.imread(cross / "export" / "images" / name).astype(np.int16)
+        worst, total = max(worst, int(np.abs(a - b).max())), total + float(np.abs(a - b).mean())
+    points = metrics(cpu, "export")["metrics"]["points"], metrics(cross, "export")["metrics"]["points"]
+    print(
+        f"export cpu vs cuda, same field: worst pixel {worst}/255, mean {total / len(names):.4f}/255; points {points}"
+    )
+    assert worst <= 2 and total / len(names) < 0.05
+    assert abs(points[0] - points[1]) <= 0.01 * points[0]
+
+
+def test_splat_and_eval_on_cuda_score_as_on_the_cpu(works):
+    cpu, gpu, _ = works
+    splat_cpu, splat_gpu = metrics(cpu, "splat"), metrics(gpu, "splat")
+    expected = (GSPLAT if gsplat_available() else TORCH).description
+    assert (splat_gpu["rasterizer"], splat_cpu["rasterizer"]) == (expected, NUMBA.description)
+    scores = [json.loads((w / "eval" / "metrics.json").read_text())["results"]["splat"]["psnr"] for w in (cpu, gpu)]
+    held_out = splat_cpu["metrics"]["test_psnr"], splat_gpu["metrics"]["test_psnr"]
+    print(f"splat held-out PSNR cpu {held_out[0]:.2f} / cuda ({expected}) {held_out[1]:.2f} dB; "
+          f"eval PSNR {scores[0]:.2f} / {scores[1]:.2f} dB")  # fmt: skip
+    assert abs(held_out[1] - held_out[0]) < 1.5 and abs(scores[1] - scores[0]) < 1.5
