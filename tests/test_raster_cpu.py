@@ -2,6 +2,8 @@
 against autograd through ``project``, the tile binning against brute force, the inline exp
 against numpy, and the backend choice (with gsplat's adapter run against a stand-in)."""
 
+import importlib.abc
+import importlib.machinery
 import math
 import sys
 import types
@@ -14,7 +16,7 @@ from hypothesis import strategies as st
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import project
-from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_inputs, rasterizer_for
+from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available, gsplat_inputs, rasterizer_for
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import project_cpu
 from cubecloud_cli.raster.cpu_binning import bin_tiles, splat_boxes, sum_per_gaussian
@@ -194,6 +196,48 @@ def test_the_backend_follows_the_device(monkeypatch):
     monkeypatch.setattr("cubecloud_cli.raster.backends.gsplat_available", lambda: True)
     assert rasterizer_for(torch.device("cuda")) is GSPLAT
     assert rasterizer_for(torch.device("mps")) is TORCH
+
+
+@pytest.mark.parametrize(
+    "backend, expected",
+    [("built", True), ("no toolkit", False), ("failed build", False), ("missing dependency", False), ("moved", True)],
+)
+def test_gsplat_counts_only_when_its_kernels_load(monkeypatch, caplog, backend, expected):
+    """gsplat builds its CUDA kernels at first import; where that fails or finds no CUDA toolkit,
+    the PyTorch path draws instead, with a warning that says why."""
+    package = types.ModuleType("gsplat")
+    package.__spec__ = importlib.machinery.ModuleSpec("gsplat", None, is_package=True)
+    cuda = types.ModuleType("gsplat.cuda")
+    package.__path__, cuda.__path__ = [], []  # packages, so that the finder below is asked for _backend
+    monkeypatch.setitem(sys.modules, "gsplat", package)
+    monkeypatch.setitem(sys.modules, "gsplat.cuda", cuda)
+
+    class Loader(importlib.abc.Loader):
+        def create_module(self, spec):
+            return None
+
+        def exec_module(self, module):
+            if backend == "failed build":
+                raise RuntimeError("Error building extension 'gsplat_cuda'")
+            if backend == "missing dependency":
+                raise ModuleNotFoundError("No module named 'jaxtyping'", name="jaxtyping")
+            if backend == "moved":
+                raise ModuleNotFoundError("No module named 'gsplat.cuda._backend'", name="gsplat.cuda._backend")
+            module._C = object() if backend == "built" else None
+
+    class Finder(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            return importlib.machinery.ModuleSpec(name, Loader()) if name == "gsplat.cuda._backend" else None
+
+    monkeypatch.setattr(sys, "meta_path", [Finder(), *sys.meta_path])
+    monkeypatch.delitem(sys.modules, "gsplat.cuda._backend", raising=False)
+    gsplat_available.cache_clear()
+    try:
+        assert gsplat_available() is expected
+    finally:
+        gsplat_available.cache_clear()
+    warned = [r.getMessage() for r in caplog.records if "using plain PyTorch" in r.getMessage()]
+    assert len(warned) == (0 if expected else 1)
 
 
 @pytest.mark.parametrize("antialias", [False, True])

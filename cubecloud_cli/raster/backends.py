@@ -16,7 +16,9 @@ backend.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
+import logging
 from dataclasses import dataclass
 from typing import Callable
 
@@ -137,8 +139,27 @@ def _render_gsplat(
     return Rasterized(colours_out[0], radii, screen_means)
 
 
+@functools.cache
 def gsplat_available() -> bool:
-    return importlib.util.find_spec("gsplat") is not None
+    """Whether gsplat is installed and its CUDA kernels load. gsplat compiles them at its first
+    import (75 s on 16 cores of an H200 machine, docs/gpu.md); without a CUDA toolkit it leaves
+    them out, and a failed build raises whatever the compiler said. Either way the PyTorch path
+    draws instead, and the user is told why."""
+    if importlib.util.find_spec("gsplat") is None:
+        return False
+    try:
+        from gsplat.cuda._backend import _C
+    except ModuleNotFoundError as error:
+        if (error.name or "").startswith("gsplat"):  # its private layout moved: rasterization() decides
+            return True
+        logging.getLogger("cubecloud").warning(f"gsplat cannot load ({error}); using plain PyTorch")
+        return False
+    except Exception as error:  # noqa: BLE001 (a build failure may be any exception)
+        logging.getLogger("cubecloud").warning(f"gsplat's CUDA kernels did not build ({error}); using plain PyTorch")
+        return False
+    if _C is None:
+        logging.getLogger("cubecloud").warning("gsplat found no CUDA toolkit to build its kernels; using plain PyTorch")
+    return _C is not None
 
 
 NUMBA = Rasterizer("numba", "numba CPU kernels", _render_numba)
