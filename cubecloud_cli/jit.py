@@ -7,6 +7,21 @@ separate function: that made up most of the 19 s a new user waited for the raste
 compilation, for allocations that take microseconds. The ``prange`` loops, and so the kernels'
 arithmetic and results, are the same either way.
 
+``FASTMATH`` and ``EXACT_FASTMATH`` keep a seeded run's bits the same whether numba compiled its
+kernels in this process or loaded them from its cache. Numba builds a ``prange`` loop twice: as a
+function of its own, and inlined into the kernel, where it is optimised again. A kernel compiled
+in the process runs the first copy (the process already holds it under the same name); one
+loaded from the cache runs the second. Where the fast-math flags let LLVM round differently in
+the two (fusing a multiply and an add into one FMA, or summing a reduction in another order),
+a run from an empty cache gave other bits than a warm one (docs/results.md).
+
+* ``FASTMATH``, for the rasterizer: every freedom but ``contract`` (no FMA). Its reductions count
+  pixels or sum gradients, and LLVM vectorised them alike in both copies (tests/test_jit.py); dropping
+  ``reassoc`` as well made it 2.3× slower (bench/raster.py).
+* ``EXACT_FASTMATH``, for the grid field's MLP: no freedom that changes a finite result, so both
+  copies must agree. Its hidden-unit sums did differ with ``reassoc``; without it the kernels are
+  as fast.
+
 ``as_real`` types a kernel's constants like its inputs. A literal such as ``0.5`` is float64 to
 numba and would turn float32 arithmetic into float64 (and halve its SIMD width).
 """
@@ -29,6 +44,10 @@ PRANGE_ONLY = ParallelOptions(
         "fusion": False,
     }
 )
+
+
+FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn", "reassoc"}
+EXACT_FASTMATH = {"nnan", "ninf", "nsz"}
 
 
 def as_real(value, like):

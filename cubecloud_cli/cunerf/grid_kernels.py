@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.jit import PRANGE_ONLY
+from cubecloud_cli.jit import EXACT_FASTMATH, PRANGE_ONLY
 
 
 @njit(cache=True, inline="always")
@@ -118,7 +118,7 @@ def encode_backward(cells, fractions, grad_features, resolutions, offsets, rows,
 MLP_BLOCK = 2048
 
 
-@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=EXACT_FASTMATH)
 def mlp_forward(features, w1t, b1, w2, b2):
     """(P, I) features → (P, O) raw outputs of Linear(I, H) → ReLU → Linear(H, O); ``w1t`` is the
     first layer's (out, in) weight transposed to (I, H), so the inner loops run over the H
@@ -139,7 +139,7 @@ def mlp_forward(features, w1t, b1, w2, b2):
     return out
 
 
-@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=EXACT_FASTMATH)
 def mlp_backward(features, grad_out, w1t, b1, w2):
     """Gradients of Σ grad_out · mlp_forward(features): with respect to the features (P, I), and
     per block of MLP_BLOCK points the partial sums for w1 (transposed, as ``w1t``), b1, w2 and

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.jit import PRANGE_ONLY, as_real
+from cubecloud_cli.jit import FASTMATH, PRANGE_ONLY, as_real
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
 
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
@@ -46,7 +46,7 @@ EXP_POLYNOMIAL_LIMIT = 6.0
 EXACT_POSITIONS = {np.dtype(np.float32): 2**24, np.dtype(np.float64): 2**53}
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def exp_negative(power):
     """exp(−power) for 0 ≤ power ≤ 6 in power's precision, without a branch or a table: Taylor's
     degree-9 polynomial of exp(−power/32) in Estrin's form, squared five times. Relative error
@@ -69,20 +69,20 @@ def exp_negative(power):
     return e * e
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def polynomial_falloff(power):
     """exp(−power) of a pair, for Gaussians whose power level is within the polynomial's range."""
     return exp_negative(min(power, as_real(EXP_POLYNOMIAL_LIMIT, power)))
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def exact_falloff(power):
     """exp(−power) by libm, for the rare Gaussian beyond the polynomial's range. A separate
     function rather than a branch in the pixel loop: a call there would keep it from SIMD."""
     return np.exp(-power)
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def pair_alpha(dx, dy, a, b, c, opacity, falloff):
     """A pair's power (clamped at 0), Gaussian falloff exp(−power) and α = min(0.99, o·falloff)."""
     zero = as_real(0.0, dx)
@@ -91,7 +91,7 @@ def pair_alpha(dx, dy, a, b, c, opacity, falloff):
     return power, gaussian, min(as_real(MAX_ALPHA, dx), opacity * gaussian)
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def blend_row(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff):
     """Blend one Gaussian into row ``r`` of a tile, where its box spans dx ∈ [low, high].
     Channel 0 is blended here; ``weights`` keeps each pixel's T·α (0 where not blended) for the
@@ -118,7 +118,7 @@ def blend_row(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cu
     return int(stops), blends > zero
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=FASTMATH)
 def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
     """``blend_row`` with libm's exp, out of line: a second inlined copy of the row loop for a
     Gaussian outside the [0, 1] opacity contract would double the kernel's first compilation."""
@@ -127,7 +127,7 @@ def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, 
     )
 
 
-@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True)
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=FASTMATH)
 def forward(offsets, entries, bounds, means2d, conics, colours, opacities, levels, background, width, height, tiles_x):
     """Gaussian-major within each tile: every entry, front to back, visits only the rows of its
     box, so the work follows the pair count rather than pixels × entries.
@@ -213,7 +213,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     return image, final_transmittance, last, blended
 
 
-@njit(cache=True, fastmath=True, inline="always", error_model="numpy")
+@njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
 def unblend_pair(after, last_position, position, dx, dy, low, high, a, b, c, cut, opacity, falloff):
     """Undo one pair, back to front, from the pixel's T after it: whether it was blended, T before
     it and its weight T·α (both 0 if not blended), 1 / (1 − α), the Gaussian falloff and the
@@ -229,7 +229,7 @@ def unblend_pair(after, last_position, position, dx, dy, low, high, a, b, c, cut
     return valid, before, before * alpha, survive, gaussian, opacity * gaussian
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     """A pair's share of the gradients of mean2d (2), conic (3) and opacity, from the loss's
     gradient with respect to its α. Where α is clamped at 0.99 it does not move; where the power
@@ -248,7 +248,7 @@ def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     )
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def added(sums, terms):
     """Six running gradient sums plus one pair's six terms."""
     return (
@@ -257,7 +257,7 @@ def added(sums, terms):
     )  # fmt: skip
 
 
-@njit(cache=True, fastmath=True, inline="always", error_model="numpy")
+@njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
 def unblend_grey_row(
     transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
 ):  # fmt: skip
@@ -281,7 +281,7 @@ def unblend_grey_row(
     return sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], g_colour
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def unblend_grey_row_exactly(
     transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
 ):  # fmt: skip
@@ -291,7 +291,7 @@ def unblend_grey_row_exactly(
     )  # fmt: skip
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def unblend_colour_row(
     transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours, exact, colour_grad
 ):  # fmt: skip
@@ -323,7 +323,7 @@ def unblend_colour_row(
     return sums
 
 
-@njit(parallel=PRANGE_ONLY, cache=True, fastmath=True, error_model="numpy")
+@njit(parallel=PRANGE_ONLY, cache=True, fastmath=FASTMATH, error_model="numpy")
 def backward(
     offsets,
     entries,
