@@ -68,8 +68,7 @@ from cubecloud_cli.raster import cpu_kernels
 inputs = np.load(sys.argv[1])
 composited = cpu_kernels.forward(*[inputs[f"forward_{i}"] for i in range(9)], *inputs["sizes"])
 mlp = grid_kernels.mlp_forward(*[inputs[f"mlp_{i}"] for i in range(5)])
-gradients = grid_kernels.mlp_backward(inputs["mlp_0"], mlp, inputs["mlp_1"], inputs["mlp_2"], inputs["mlp_3"])
-for array in (*composited, mlp, *gradients):
+for array in (*composited, mlp):
     print(hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest())
 """
 
@@ -77,7 +76,8 @@ for array in (*composited, mlp, *gradients):
 def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
     """The compositing forward and the grid field's MLP (the kernels whose bits differed) run on
     one input in a process that compiles them into an empty cache, then in one that loads them
-    from it: the same bits. A render where they differed by one float32 ulp in 92 of 960 pixels."""
+    from it: the same bits. A render where they differed by one float32 ulp in 92 of 960 pixels.
+    (The backward kernels are left out for the suite's time: 5-8 s more each to compile.)"""
     means, log_scales, quaternions, opacities, colours = (t.float() for t in scene(count=400, seed=5))
     cameras, rotation, translation = camera(0, torch.float32)
     projected = project_cpu(
@@ -104,4 +104,4 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
         ).stdout  # fmt: skip
         for _ in ("compiled in the process", "loaded from the cache")
     ]
-    assert len(runs[0].split()) == 10 and runs[0] == runs[1]
+    assert len(runs[0].split()) == 5 and runs[0] == runs[1]
