@@ -12,7 +12,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
@@ -72,9 +72,13 @@ def compare_projection(means, scales, quaternions, view=1, antialias=False):
             getattr(fast, name)[drawn].detach(), getattr(reference, name)[drawn].detach(), rtol=1e-9, atol=1e-9
         )
     tolerance = 1e-7
+    # A gradient that is zero in exact arithmetic (a round Gaussian's rotation) comes out as
+    # rounding noise of the terms that cancel, terms of the size of the Gaussian's other
+    # gradients: each row is compared at the scale of at least a millionth of its largest.
+    largest = torch.stack([g.abs().nan_to_num(0.0, 0.0, 0.0).amax(dim=1) for g in grads[0]]).amax(dim=0)
     for oracle, kernel in zip(*grads):
         rows = drawn & torch.isfinite(oracle).all(dim=1)
-        scale = oracle[rows].abs().amax(dim=1, keepdim=True).clamp_min(1e-12)
+        scale = torch.maximum(oracle[rows].abs().amax(dim=1), 1e-6 * largest[rows]).clamp_min(1e-12)[:, None]
         if rows.any():
             assert float(((kernel[rows] - oracle[rows]).abs() / scale).max()) < tolerance
         assert torch.isfinite(kernel).all()
@@ -94,6 +98,7 @@ def test_projection_kernels_match_autograd(seed, antialias):
     st.floats(1e-3, 1e3),
     st.booleans(),
 )
+@example((0.0, 0.0, 0.0), 0.0, (0.0, 0.0, 0.0, 1.0), 1.0, False)  # round: rotation gradient 0 ± rounding
 def test_projection_kernels_at_the_extremes(mean, log_scale, quaternion, anisotropy, antialias):
     """One Gaussian anywhere (behind the camera, at the near plane, off screen), of any size and
     shape, with any quaternion including zero, with or without the Mip filter (a point-sized
