@@ -56,8 +56,9 @@ def relative_error(fast: torch.Tensor, oracle: torch.Tensor) -> float:
 
 @pytest.mark.parametrize("antialias", [False, True])
 def test_the_torch_rasterizer_on_cuda_matches_the_numba_kernels(antialias):
-    """The same extremes as test_raster's CPU comparison, in float64: the PyTorch path on the GPU
-    against the numba kernels on the CPU, forward and every gradient."""
+    """test_raster's scene of extremes (a point-sized and an image-sized splat, opacity near 0
+    and 1, identical and off-screen Gaussians) in float64: the PyTorch path on the GPU against
+    the numba kernels on the CPU, forward and every gradient."""
     tensors = scene(count=60, seed=4)
     background = torch.tensor([0.1, 0.3], dtype=torch.float64)
     image_g, grads_g = render_with_gradients(TORCH, "cuda", torch.float64, tensors, antialias, background)
