@@ -89,8 +89,9 @@ def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
 @pytest.mark.parametrize("antialias", [False, True])
 def test_gsplat_renders_and_differentiates_like_our_rasterizer(antialias):
     """gsplat (float32, CUDA) against our PyTorch path in float64 on the same scene and camera:
-    the same picture, and gradients pointing the same way. They cannot agree to rounding: gsplat's
-    boxes are opacity-aware and it caps α at 0.999 (backends.py), so the bounds are loose."""
+    the same picture, and gradients pointing the same way. The scene keeps inside the rules both
+    share (gsplat's boxes are opacity-aware and it caps α at 0.999, backends.py), so only float32
+    rounding separates them."""
     if not gsplat_available():
         pytest.skip("gsplat is not installed")
     tensors = tame_scene()
@@ -103,8 +104,9 @@ def test_gsplat_renders_and_differentiates_like_our_rasterizer(antialias):
           f"mean {float(difference.mean()):.2e}; gradient cosines (screen, means, scales, quaternions, "
           f"opacities, colours) {['%.5f' % c for c in cosines]}")  # fmt: skip
     assert float(image_t.max()) > 0.2  # the scene is in view
-    assert float(difference.max()) < 0.03 and float(difference.mean()) < 2e-3
-    assert min(cosines) > 0.98
+    # On an H200 with gsplat 1.5.3: image within 7.3e-7, every cosine 1.00000 (docs/gpu.md).
+    assert float(difference.max()) < 1e-3 and float(difference.mean()) < 1e-4
+    assert min(cosines) > 0.999
 
 
 def run_stages(work, device: str, stages) -> None:
