@@ -62,7 +62,7 @@ step "pytest -m cuda, PyTorch rasterizer" 200 python3 -m pytest -q -s -m cuda te
 if [[ -n $GSPLAT_SITE ]]; then
 	left=$((DEADLINE - $(date +%s) - 200))
 	((left > 0)) && timeout "$left" tail --pid="$builder" -f /dev/null
-	cat "$OUT/gsplat_build.txt" | tail -n 20
+	tail -n 20 "$OUT/gsplat_build.txt"
 	if grep -q "gsplat built" "$OUT/gsplat_build.txt"; then
 		built=yes
 		export PYTHONPATH="$GSPLAT_SITE:$PLAIN_PATH"

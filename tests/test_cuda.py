@@ -15,39 +15,22 @@ import numpy as np
 import pytest
 import torch
 from cli_helpers import invoke
-from test_raster import camera, scene
+from test_raster import H, W, render_and_differentiate, scene
 
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available
 
 pytestmark = pytest.mark.cuda
-W, H = 24, 20
 
 
 def render_with_gradients(backend, device, dtype, tensors, antialias, background):
     """Image, screen-space gradient and the gradients of means, log-scales, quaternions,
     opacities and colours for one weighted-sum loss, all back on the CPU in float64."""
-    cameras, rotation, translation = camera(0, dtype)
-    inputs = [t.to(device=device, dtype=dtype).clone().requires_grad_(True) for t in tensors]
-    rendered = backend.render(
-        inputs[0],
-        torch.exp(inputs[1]),
-        inputs[2],
-        inputs[3],
-        inputs[4],
-        rotation.to(device),
-        translation.to(device),
-        float(cameras.focal),
-        W,
-        H,
-        background=background.to(device=device, dtype=dtype),
-        retain_screen_grad=True,
-        antialias=antialias,
-    )
     # Drawn in float64 whatever the dtype: torch draws other numbers for float32 from one seed.
     weights = torch.rand(H, W, tensors[4].shape[1], dtype=torch.float64, generator=torch.Generator().manual_seed(3))
-    (rendered.image * weights.to(device=device, dtype=dtype)).sum().backward()
-    grads = [rendered.screen_gradient(), *[t.grad for t in inputs]]
-    return rendered.image.detach().double().cpu(), [g.double().cpu() for g in grads]
+    image, screen, grads = render_and_differentiate(
+        backend, [t.to(dtype) for t in tensors], weights.to(dtype), background.to(dtype), antialias, device
+    )
+    return image.double().cpu(), [g.double().cpu() for g in (screen, *grads)]
 
 
 def relative_error(fast: torch.Tensor, oracle: torch.Tensor) -> float:

@@ -45,6 +45,29 @@ def scene(count=30, seed=0, dtype=torch.float64):
     return means, log_scales, quaternions, opacities, colours
 
 
+def render_and_differentiate(backend, tensors, weights, background, antialias, device="cpu"):
+    """Render (means, log-scales, quaternions, opacities, colours) through ``backend`` from camera 0
+    on ``device`` and backpropagate Σ weights · image: the image, the screen-space gradient and the
+    five inputs' gradients."""
+    cameras, rotation, translation = camera(0, tensors[0].dtype)
+    inputs = [t.to(device).clone().requires_grad_(True) for t in tensors]
+    rendered = backend.render(
+        inputs[0],
+        torch.exp(inputs[1]),
+        *inputs[2:],
+        rotation.to(device),
+        translation.to(device),
+        float(cameras.focal),
+        W,
+        H,
+        background=background.to(device),
+        retain_screen_grad=True,
+        antialias=antialias,
+    )
+    (rendered.image * weights.to(device)).sum().backward()
+    return rendered.image.detach(), rendered.screen_gradient(), [t.grad for t in inputs]
+
+
 def render(means, log_scales, quaternions, opacities, colours, view=0, background=None, compositor=composite):
     cameras, rotation, translation = camera(view, means.dtype)
     projected = project(means, torch.exp(log_scales), quaternions, rotation, translation, float(cameras.focal), W, H)
@@ -257,33 +280,15 @@ def test_the_numba_kernels_match_the_oracle_and_its_gradients(seed, dtype, antia
     opacity near 0 and 1, identical Gaussians, one off screen, one at the near plane, one behind
     the camera and a zero quaternion; plain and through the 2D Mip filter."""
     means, log_scales, quaternions, opacities, colours = (t.to(dtype) for t in scene(count=60, seed=seed))
-    cameras, rotation, translation = camera(0, dtype)
+    cameras = camera(0, dtype)[0]
     forward = torch.tensor(cameras.rotations[0][2], dtype=dtype)
     centre = torch.tensor(cameras.centres()[0], dtype=dtype)
     means[7] = centre + 0.21 * forward  # just past the near plane
     means[8] = centre - 0.5 * forward  # behind the camera
     quaternions[9] = 0.0  # degenerate rotation
     weights = torch.rand(H, W, 2, dtype=dtype, generator=torch.Generator().manual_seed(seed))
-    results = {}
-    for backend in (TORCH, NUMBA):
-        inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
-        rendered = backend.render(
-            inputs[0],
-            torch.exp(inputs[1]),
-            inputs[2],
-            inputs[3],
-            inputs[4],
-            rotation,
-            translation,
-            float(cameras.focal),
-            W,
-            H,
-            background=torch.tensor([0.1, 0.3], dtype=dtype),
-            retain_screen_grad=True,
-            antialias=antialias,
-        )
-        (rendered.image * weights).sum().backward()
-        results[backend.name] = (rendered.image.detach(), rendered.screen_gradient(), [t.grad for t in inputs])
+    tensors, background = (means, log_scales, quaternions, opacities, colours), torch.tensor([0.1, 0.3], dtype=dtype)
+    results = {b.name: render_and_differentiate(b, tensors, weights, background, antialias) for b in (TORCH, NUMBA)}
     tolerance = 1e-4 if dtype == torch.float64 else 2e-3
     (image_t, screen_t, grads_t), (image_n, screen_n, grads_n) = results["torch"], results["numba"]
     torch.testing.assert_close(image_n, image_t, rtol=0, atol=1e-6 if dtype == torch.float64 else 1e-5)

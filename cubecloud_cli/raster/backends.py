@@ -27,6 +27,8 @@ import torch
 from cubecloud_cli.raster.pairs import composite
 from cubecloud_cli.raster.projection import NEAR_PLANE, dilation, project
 
+log = logging.getLogger("cubecloud")
+
 
 @dataclass
 class Rasterized:
@@ -152,13 +154,13 @@ def gsplat_available() -> bool:
     except ModuleNotFoundError as error:
         if (error.name or "").startswith("gsplat"):  # its private layout moved: rasterization() decides
             return True
-        logging.getLogger("cubecloud").warning(f"gsplat cannot load ({error}); using plain PyTorch")
+        log.warning(f"gsplat cannot load ({error}); using plain PyTorch")
         return False
     except Exception as error:  # noqa: BLE001 (a build failure may be any exception)
-        logging.getLogger("cubecloud").warning(f"gsplat's CUDA kernels did not build ({error}); using plain PyTorch")
+        log.warning(f"gsplat's CUDA kernels did not build ({error}); using plain PyTorch")
         return False
     if _C is None:
-        logging.getLogger("cubecloud").warning("gsplat found no CUDA toolkit to build its kernels; using plain PyTorch")
+        log.warning("gsplat found no CUDA toolkit to build its kernels; using plain PyTorch")
     return _C is not None
 
 
