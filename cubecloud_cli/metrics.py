@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+from scipy.ndimage import correlate1d
 
 SSIM_SIGMA = 1.5
 SSIM_TRUNCATE = 3.5
@@ -58,27 +58,32 @@ def gaussian_window() -> torch.Tensor:
     return window / window.sum()
 
 
+def _valid_blur(stack: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """The Gaussian window over the last two axes of ``stack``, kept where it lies inside
+    (…, H−10, W−10): the same sums as an unpadded convolution. scipy's 1D pass runs 3× faster
+    than torch's one-channel conv2d in float64, which made a 128³ volume's SSIM cost 3 s."""
+    r = SSIM_RADIUS
+    rows = correlate1d(stack, window, axis=-2, mode="constant")[..., r:-r, :]
+    return correlate1d(rows, window, axis=-1, mode="constant")[..., r:-r]
+
+
 def ssim_maps(reference, estimate, data_range: float = 1.0) -> torch.Tensor:
     """SSIM maps (N, H−10, W−10) of a stack of 2D images (N, H, W) or one image (H, W)."""
-    x, y = _as_tensor(reference), _as_tensor(estimate)
+    x = np.asarray(reference, dtype=np.float64)
+    y = np.asarray(estimate, dtype=np.float64)
     if x.ndim == 2:
         x, y = x[None], y[None]
     if min(x.shape[-2:]) < 2 * SSIM_RADIUS + 1:
         raise ValueError(f"SSIM needs images of at least {2 * SSIM_RADIUS + 1}×{2 * SSIM_RADIUS + 1} pixels")
-    window = gaussian_window()
-    rows, cols = window.view(1, 1, -1, 1), window.view(1, 1, 1, -1)
-
-    def blur(image: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(F.conv2d(image[:, None], rows), cols)[:, 0]
-
+    window = gaussian_window().numpy()
     c1, c2 = (K1 * data_range) ** 2, (K2 * data_range) ** 2
-    mean_x, mean_y = blur(x), blur(y)
-    var_x = blur(x * x) - mean_x * mean_x
-    var_y = blur(y * y) - mean_y * mean_y
-    cov = blur(x * y) - mean_x * mean_y
-    numerator = (2 * mean_x * mean_y + c1) * (2 * cov + c2)
-    denominator = (mean_x * mean_x + mean_y * mean_y + c1) * (var_x + var_y + c2)
-    return numerator / denominator  # c1, c2 > 0 keep the denominator positive
+    mean_x, mean_y = _valid_blur(x, window), _valid_blur(y, window)
+    mean_xy = mean_x * mean_y
+    mean_sq = mean_x * mean_x + mean_y * mean_y
+    cov = _valid_blur(x * y, window) - mean_xy
+    var_sum = _valid_blur(x * x + y * y, window) - mean_sq  # var_x + var_y in one blur: it is linear
+    # c1, c2 > 0 keep the denominator positive.
+    return torch.from_numpy((2 * mean_xy + c1) * (2 * cov + c2) / ((mean_sq + c1) * (var_sum + c2)))
 
 
 def _crop_mask(mask, shape) -> torch.Tensor:
@@ -89,6 +94,13 @@ def _crop_mask(mask, shape) -> torch.Tensor:
     return mask[:, r : mask.shape[1] - r, r : mask.shape[2] - r].expand(shape)
 
 
+def _masked_mean(maps: torch.Tensor, mask) -> float:
+    inside = _crop_mask(mask, maps.shape)
+    if not bool(inside.any()):
+        return float("nan")
+    return float(maps[inside].mean())
+
+
 def ssim(reference, estimate, mask=None, data_range: float = 1.0) -> float:
     """Mean SSIM over the images of a stack (each image's own mean, then their mean).
 
@@ -97,10 +109,13 @@ def ssim(reference, estimate, mask=None, data_range: float = 1.0) -> float:
     maps = ssim_maps(reference, estimate, data_range)
     if mask is None:
         return float(maps.mean(dim=(-2, -1)).mean())
-    inside = _crop_mask(mask, maps.shape)
-    if not bool(inside.any()):
-        return float("nan")
-    return float(maps[inside].mean())
+    return _masked_mean(maps, mask)
+
+
+def ssim_and_masked(reference, estimate, mask, data_range: float = 1.0) -> tuple[float, float]:
+    """``ssim(reference, estimate)`` and ``ssim(reference, estimate, mask)`` from one set of maps."""
+    maps = ssim_maps(reference, estimate, data_range)
+    return float(maps.mean(dim=(-2, -1)).mean()), _masked_mean(maps, mask)
 
 
 def volume_metrics(reference: np.ndarray, estimate: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
@@ -155,6 +170,5 @@ def image_metrics(reference: np.ndarray, estimate: np.ndarray) -> dict[str, floa
     )
     result["mse_foreground"] = float(np.mean(with_foreground)) if with_foreground else float("nan")
     if min(reference.shape[1:]) >= 2 * SSIM_RADIUS + 1:
-        result["ssim"] = ssim(reference, estimate)
-        result["ssim_foreground"] = ssim(reference, estimate, foreground)
+        result["ssim"], result["ssim_foreground"] = ssim_and_masked(reference, estimate, foreground)
     return result

@@ -20,7 +20,7 @@ import torch
 from cubecloud_cli.cunerf.data import TrainingVoxels, voxel_centres
 from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
-from cubecloud_cli.metrics import psnr, ssim
+from cubecloud_cli.metrics import psnr, ssim_and_masked
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_SEED = 1234
@@ -112,8 +112,7 @@ class Trainer:
         body = reference > 0
         result = {"val_psnr": psnr(reference, prediction), "val_psnr_body": psnr(reference, prediction, body)}
         if size >= 11:
-            result["val_ssim"] = ssim(reference, prediction)
-            result["val_ssim_body"] = ssim(reference, prediction, body)
+            result["val_ssim"], result["val_ssim_body"] = ssim_and_masked(reference, prediction, body)
         return result
 
     # -- checkpoints -------------------------------------------------------------------------

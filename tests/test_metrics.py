@@ -1,0 +1,86 @@
+"""SSIM and the volume metrics against scikit-image, including flat and saturated images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from skimage.metrics import structural_similarity
+
+from cubecloud_cli.metrics import SSIM_RADIUS, ssim, ssim_and_masked, ssim_maps, volume_metrics
+
+
+def skimage_map(reference: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+    """skimage's SSIM map with the settings metrics.py documents, cropped to where the window fits."""
+    _, full = structural_similarity(
+        reference, estimate, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, full=True
+    )
+    r = SSIM_RADIUS
+    return full[r:-r, r:-r]
+
+
+@st.composite
+def image_pairs(draw) -> tuple[np.ndarray, np.ndarray]:
+    height, width = draw(st.integers(11, 24)), draw(st.integers(11, 24))
+    seed = draw(st.integers(0, 2**32 - 1))
+    kind = draw(st.sampled_from(["noise", "flat", "saturated", "sparse"]))
+    rng = np.random.default_rng(seed)
+    reference = rng.random((height, width))
+    if kind == "flat":
+        reference[:] = draw(st.sampled_from([0.0, 1.0, 0.5]))
+    elif kind == "saturated":
+        reference = (reference > 0.5).astype(np.float64)
+    elif kind == "sparse":
+        reference[reference < 0.9] = 0.0
+    noise = draw(st.sampled_from([0.0, 1e-12, 1e-3, 0.3]))
+    estimate = np.clip(reference + noise * rng.standard_normal(reference.shape), 0.0, 1.0)
+    return reference, estimate
+
+
+@settings(max_examples=60, deadline=None)
+@given(image_pairs())
+@example((np.zeros((11, 11)), np.zeros((11, 11))))
+@example((np.ones((11, 11)), np.zeros((11, 11))))
+def test_the_ssim_map_is_skimages_inside_the_border(pair):
+    reference, estimate = pair
+    ours = ssim_maps(reference, estimate).numpy()[0]
+    assert np.all(np.isfinite(ours))
+    np.testing.assert_allclose(ours, skimage_map(reference, estimate), rtol=0, atol=1e-9)
+
+
+def test_the_pair_of_means_is_the_two_single_calls():
+    rng = np.random.default_rng(3)
+    reference = rng.random((4, 20, 17))
+    reference[reference < 0.4] = 0.0
+    estimate = np.clip(reference + 0.05 * rng.standard_normal(reference.shape), 0, 1)
+    mask = reference > 0
+    assert ssim_and_masked(reference, estimate, mask) == (ssim(reference, estimate), ssim(reference, estimate, mask))
+    whole, inside = ssim_and_masked(reference, estimate, np.zeros_like(mask))
+    assert math.isfinite(whole) and math.isnan(inside)
+
+
+def test_volume_ssim_is_the_mean_over_the_slices_of_all_three_axes():
+    rng = np.random.default_rng(5)
+    reference = rng.random((13, 16, 12)).astype(np.float32)
+    estimate = np.clip(reference + 0.1 * rng.standard_normal(reference.shape), 0, 1).astype(np.float32)
+    per_slice = [
+        structural_similarity(
+            np.take(reference, k, axis).astype(np.float64),
+            np.take(estimate, k, axis).astype(np.float64),
+            gaussian_weights=True,
+            sigma=1.5,
+            use_sample_covariance=False,
+            data_range=1.0,
+        )
+        for axis in range(3)
+        for k in range(reference.shape[axis])
+    ]
+    assert volume_metrics(reference, estimate)["ssim"] == pytest.approx(np.mean(per_slice), abs=1e-9)
+
+
+def test_ssim_refuses_images_smaller_than_its_window():
+    with pytest.raises(ValueError, match="11×11"):
+        ssim_maps(np.zeros((10, 30)), np.zeros((10, 30)))
