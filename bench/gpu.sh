@@ -4,6 +4,7 @@
 # rasterizers get measured:
 #
 #   bash bench/gpu.sh OUT [GSPLAT_SITE] [SECONDS]
+#   STEPS="gsplat-tests fast paper-splat" bash bench/gpu.sh OUT GSPLAT_SITE   # only these steps
 #
 # 1. gsplat's CUDA kernels compile at its first import (a JIT build): started first, in the
 #    background, on 12 cores;
@@ -11,7 +12,12 @@
 # 3. once gsplat has built: `pytest -m cuda` again, with gsplat;
 # 4. `bench/pipeline.py` (`cubecloud run --device cuda`, cold numba cache) for `fast` and
 #    `balanced`, with gsplat, then `fast` with the PyTorch rasterizer;
-# 5. the paper's CuNeRF on the GPU: seconds per iteration at 512³.
+# 5. the paper's CuNeRF on the GPU: seconds per iteration at 512³;
+# 6. the paper's splat stage (30 000 iterations at 512²) on a paper-preset scene, prepared while
+#    gsplat builds (its CuNeRF trained 2000 iterations only: the splat's speed is the figure).
+#
+# STEPS picks among torch-tests, gsplat-tests, fast, balanced, paper-cunerf, paper-splat and
+# fast-torch (default: all of them).
 #
 # Every step has a share of SECONDS (default 560) and is cut at the deadline; OUT/log.txt holds
 # each step's output and time.
@@ -20,6 +26,8 @@ OUT=${1:?usage: bench/gpu.sh OUT [GSPLAT_SITE] [SECONDS]}
 GSPLAT_SITE=${2:-}
 DEADLINE=$(($(date +%s) + ${3:-560}))
 PLAIN_PATH=${PYTHONPATH:-}
+STEPS=" ${STEPS:-torch-tests gsplat-tests fast balanced paper-cunerf paper-splat fast-torch} "
+wanted() { [[ $STEPS == *" $1 "* ]]; }
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 
@@ -57,7 +65,14 @@ if [[ -n $GSPLAT_SITE ]]; then
 	builder=$!
 fi
 
-step "pytest -m cuda, PyTorch rasterizer" 200 python3 -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider
+PAPER=/tmp/gpu-paper
+paper_scene() { # the paper preset's scene: 512³, CuNeRF's MLP for 2000 of its 200 000 iterations, 60 slices at 512²
+	rm -rf "$PAPER" && cubecloud preprocess -o "$PAPER" --preset paper -q &&
+		cubecloud cunerf "$PAPER" --preset paper --iterations 2000 --device cuda -q &&
+		cubecloud export "$PAPER" --preset paper --device cuda -q
+}
+wanted paper-splat && step "paper scene (while gsplat builds; not timed)" 200 bash -c "$(declare -f paper_scene); PAPER=$PAPER paper_scene"
+wanted torch-tests && step "pytest -m cuda, PyTorch rasterizer" 200 python3 -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider
 
 if [[ -n $GSPLAT_SITE ]]; then
 	left=$((DEADLINE - $(date +%s) - 200))
@@ -66,7 +81,7 @@ if [[ -n $GSPLAT_SITE ]]; then
 	if grep -q "gsplat built" "$OUT/gsplat_build.txt"; then
 		built=yes
 		export PYTHONPATH="$GSPLAT_SITE:$PLAIN_PATH"
-		step "pytest -m cuda, gsplat" 150 python3 -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider
+		wanted gsplat-tests && step "pytest -m cuda, gsplat" 150 python3 -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider
 	fi
 fi
 
@@ -89,11 +104,19 @@ pipeline() { # pipeline NAME MAX_SECONDS PRESET: one cold `cubecloud run --devic
 	stages "/tmp/gpu-$3"
 }
 
-pipeline "fast, --device cuda ($([[ $built == yes ]] && echo gsplat || echo PyTorch) rasterizer)" 200 fast
-pipeline "balanced, --device cuda" 240 balanced
-step "paper CuNeRF at 512³, 60 s of training" 170 \
+wanted fast && pipeline "fast, --device cuda ($([[ $built == yes ]] && echo gsplat || echo PyTorch) rasterizer)" 200 fast
+wanted balanced && pipeline "balanced, --device cuda" 240 balanced
+wanted paper-cunerf && step "paper CuNeRF at 512³, 60 s of training" 170 \
 	python3 bench/cunerf.py --models cunerf --preset paper --size 512 --seconds 60 --eval-every 30 --device cuda
-if [[ $built == yes ]]; then
+if wanted paper-splat && [[ -f $PAPER/export/manifest.json ]]; then
+	# Progress is drawn only on a terminal: script(1) gives it one, and the log keeps the rate.
+	export COLUMNS=200
+	step "paper splat, 30 000 iterations at 512²" 300 \
+		script -qfec "cubecloud splat $PAPER --preset paper --device cuda" "$OUT/paper_splat.tty"
+	tr '\r' '\n' <"$OUT/paper_splat.tty" | sed 's/\x1b\[[0-9;]*[A-Za-z]//g' | grep -a "it/s" | awk 'NR % 50 == 0' | tail -n 40
+	stages "$PAPER"
+fi
+if wanted fast-torch && [[ $built == yes ]]; then
 	export PYTHONPATH=$PLAIN_PATH
 	pipeline "fast, --device cuda (PyTorch rasterizer)" 200 fast
 fi
