@@ -1,6 +1,6 @@
 """The terminal progress display every command draws through."""
 
-from cubecloud_cli.cli.progress import PipelineProgress, ProgressBar, stage_progress
+from cubecloud_cli.cli.progress import PipelineProgress, ProgressBar, stage_bar, stage_progress
 
 
 def test_progress_bar_draws_and_ignores_when_disabled(capsys):
@@ -44,3 +44,14 @@ def test_a_stage_bar_restarts_its_count_when_a_phase_counts_to_another_total(cap
             on_progress("reconstruct", 0.5, 1.0, {})
             task = display._progress.tasks[1]
             assert (task.completed, task.total, task.description) == (0.5, 1.0, "cunerf: reconstruct")
+
+
+def test_stage_bars_join_an_open_pipeline_display_without_being_told(capsys):
+    # While rich draws, sys.stderr is its proxy and no terminal, so a bar that checked for one
+    # itself never showed inside `cubecloud run`.
+    with PipelineProgress(1, "run", enabled=True) as display:
+        with stage_bar("splat") as on_progress:
+            on_progress("train", 3, 10, {"loss": 0.5})
+            assert [task.description for task in display._progress.tasks] == ["run", "splat: train"]
+    with ProgressBar(2, "alone") as bar:  # no display open, no terminal: nothing drawn
+        assert bar._progress is None

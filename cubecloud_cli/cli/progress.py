@@ -93,7 +93,9 @@ class ProgressBar:
 
     def __init__(self, total: float, description: str, unit: str | None = "it", enabled: bool | None = None):
         """``unit=None`` hides the rate and the M/N count (for bars in arbitrary work units)."""
-        self.enabled = terminal_wants_progress() if enabled is None else enabled
+        # Inside a pipeline's display, stderr is rich's proxy, which is no terminal: the display
+        # being open already says that the terminal wants progress.
+        self.enabled = (_shared is not None or terminal_wants_progress()) if enabled is None else enabled
         self.total = total
         self.description = description
         self.unit = unit
