@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, ContextManager, Iterator
@@ -25,6 +25,7 @@ from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.preprocess import stage as preprocess_stage
 from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.runtime import Runtime
+from cubecloud_cli.side_by_side import SplatJob, available_cores, run_side_by_side, threads_each
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
@@ -93,6 +94,7 @@ class PipelineStage:
     is_current: Callable[[], bool]
     run: Callable[[bool, bool, ProgressCallback], dict]  # (force, resume, on_progress) -> manifest
     checkpoint: Path | None = None  # saved work of an interrupted run, resumed when present
+    side_by_side: SplatJob | None = None  # set on the splat runs that train side by side when both run
     resumed: Callable[[dict], bool] = lambda manifest: False  # whether the run reused saved work anyway
 
 
@@ -152,6 +154,7 @@ def stage_table(
     runs = [("splat", None, splat)] + (
         [(f"splat-{BASELINE_NAME}", BASELINE_NAME, replace(splat, init="random"))] if baseline else []
     )
+    threads = threads_each(runtime, splat, len(runs), available_cores())
     for folder, name, settings in runs:
         stages.append(
             PipelineStage(
@@ -166,6 +169,9 @@ def stage_table(
                     work, settings, force=force, resume=resume, runtime=runtime, name=name, on_progress=on_progress
                 ),
                 checkpoint=checkpoint(folder, splat_stage.CHECKPOINT_FILE),
+                side_by_side=None
+                if threads is None
+                else SplatJob(work, settings, replace(runtime, threads=threads), name),
             )
         )
     # eval is cheap and holds no choices worth protecting: one made with other settings or of
@@ -196,23 +202,66 @@ def run_stages(
     progress: Callable[[str], ContextManager[ProgressCallback]] = _silent,
     on_stage: Callable[[StageOutcome], None] = lambda outcome: None,
 ) -> list[StageOutcome]:
-    """Each stage in order: skipped if current, resumed if interrupted, run otherwise.
+    """Each stage in order: skipped if current, resumed if interrupted, run otherwise; splat runs
+    marked ``side_by_side`` train together when more than one of them has to run.
     ``progress(folder)`` gives the callback a stage reports to (a bar on the terminal)."""
     outcomes: dict[str, StageOutcome] = {}
-    for stage in stages:
-        start = time.perf_counter()
-        # An upstream stage not in this run (a single --stage) was checked to be current.
-        upstream_ran = force or any(name in outcomes and outcomes[name].status != "skipped" for name in stage.upstream)
-        if not upstream_ran and stage.is_current():
-            outcomes[stage.folder] = StageOutcome(stage.folder, "skipped", 0.0)
-        else:
-            resume = not upstream_ran and stage.checkpoint is not None and stage.checkpoint.is_file()
+    index = 0
+    while index < len(stages):
+        group = [stages[index]]
+        while group[-1].side_by_side is not None and index + len(group) < len(stages):
+            if stages[index + len(group)].side_by_side is None:
+                break
+            group.append(stages[index + len(group)])
+        index += len(group)
+        plans = {stage.folder: _plan(stage, outcomes, work, force) for stage in group}
+        for stage in group:
+            if plans[stage.folder] is None:
+                outcomes[stage.folder] = StageOutcome(stage.folder, "skipped", 0.0)
+                on_stage(outcomes[stage.folder])
+        to_run = [stage for stage in group if plans[stage.folder] is not None]
+        if len(to_run) > 1:
+            _run_together(to_run, plans, progress, outcomes, on_stage)
+            continue
+        for stage in to_run:
+            start = time.perf_counter()
+            stage_force, resume = plans[stage.folder]
             with progress(stage.folder) as on_progress:
-                manifest = stage.run(upstream_ran or (Path(work) / stage.folder).exists(), resume, on_progress)
+                manifest = stage.run(stage_force, resume, on_progress)
             status = "resumed" if resume or stage.resumed(manifest) else "ran"
             outcomes[stage.folder] = StageOutcome(stage.folder, status, time.perf_counter() - start)
-        on_stage(outcomes[stage.folder])
+            on_stage(outcomes[stage.folder])
     return list(outcomes.values())
+
+
+def _plan(stage: PipelineStage, outcomes: dict[str, StageOutcome], work: Path, force: bool) -> tuple[bool, bool] | None:
+    """None when ``stage`` is current (skip it), else the (force, resume) to run it with."""
+    # An upstream stage not in this run (a single --stage) was checked to be current.
+    upstream_ran = force or any(name in outcomes and outcomes[name].status != "skipped" for name in stage.upstream)
+    if not upstream_ran and stage.is_current():
+        return None
+    resume = not upstream_ran and stage.checkpoint is not None and stage.checkpoint.is_file()
+    return upstream_ran or (Path(work) / stage.folder).exists(), resume
+
+
+def _run_together(
+    stages: list[PipelineStage],
+    plans: dict[str, tuple[bool, bool]],
+    progress: Callable[[str], ContextManager[ProgressCallback]],
+    outcomes: dict[str, StageOutcome],
+    on_stage: Callable[[StageOutcome], None],
+) -> None:
+    with ExitStack() as bars:
+        jobs = [
+            (stage.folder, stage.side_by_side, *plans[stage.folder], bars.enter_context(progress(stage.folder)))
+            for stage in stages
+        ]
+        results = run_side_by_side(jobs)
+    for stage in stages:
+        manifest, seconds = results[stage.folder]
+        status = "resumed" if plans[stage.folder][1] or stage.resumed(manifest) else "ran"
+        outcomes[stage.folder] = StageOutcome(stage.folder, status, seconds)
+        on_stage(outcomes[stage.folder])
 
 
 def only_stage(stages: list[PipelineStage], folder: str) -> list[PipelineStage]:

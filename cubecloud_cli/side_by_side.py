@@ -1,0 +1,208 @@
+"""Splat runs of one scene trained side by side, each in a process of its own, on its share of
+the cores.
+
+On a 2-core CPU one run on both cores does not train twice as fast as on one: part of each
+iteration (Python, autograd, the optimiser's small tensors) is serial. Two runs, one core each,
+finish the pair 10–25 % sooner (docs/results.md, "The two splat runs side by side").
+
+The second run starts once the first has taken a training step: by then the first has compiled
+every rasterizer kernel into numba's cache, so the second loads them instead of compiling them
+again on the same cores. A run's bits depend on its thread count, and only on it: a run trained
+here repeats bit for bit with `cubecloud splat --threads N` (N = the threads it had here).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import time
+import traceback
+from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.progress import ProgressCallback
+from cubecloud_cli.runtime import Runtime, resolve_device
+from cubecloud_cli.splat.settings import SplatSettings
+
+# Starting a process (importing torch, loading the scene) costs a few seconds; shorter runs are
+# trained in turn. A test's 3-iteration run is one of them.
+MIN_ITERATIONS = 300
+WIDEN = "SIGUSR1"
+
+
+@dataclass(frozen=True)
+class SplatJob:
+    """What a child process needs to train one splat run: picklable, unlike a stage's closure."""
+
+    work: Path
+    settings: SplatSettings
+    runtime: Runtime
+    name: str | None
+
+
+def available_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def threads_each(runtime: Runtime, settings: SplatSettings, runs: int, cores: int) -> int | None:
+    """Threads for each of ``runs`` splat runs trained side by side, or None to train them in
+    turn: on a GPU, when the user chose --threads, with fewer cores than runs, or for short runs."""
+    if runs < 2 or cores < runs or runtime.threads is not None or settings.iterations < MIN_ITERATIONS:
+        return None
+    if resolve_device(runtime.device).type != "cpu":
+        return None
+    return cores // runs
+
+
+def _widen_kernels_on_signal() -> None:
+    """When the other run ends, the parent sends WIDEN: the rasterizer's kernels then take every
+    core. Their results do not depend on their thread count (torch's do, and torch keeps its one
+    thread), so the run's bits stay those of `cubecloud splat --threads 1`."""
+    if not hasattr(signal, WIDEN):
+        return
+
+    def widen(signum, frame) -> None:
+        import numba
+
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+
+    signal.signal(getattr(signal, WIDEN), widen)
+
+
+def _child(connection: Connection, job: SplatJob, force: bool, resume: bool, log_level: int) -> None:
+    """A child's whole life: train, and say how it ended through ``connection``."""
+    from cubecloud_cli.splat.stage import train_splat
+
+    _widen_kernels_on_signal()
+    logger = logging.getLogger("cubecloud")
+    logger.setLevel(log_level)
+    logger.addHandler(logging.StreamHandler())
+    logger.propagate = False
+
+    def report(phase: str, done: float, total: float, fields) -> None:
+        connection.send(("progress", (phase, done, total, dict(fields))))
+
+    try:
+        manifest = train_splat(
+            job.work, job.settings, force=force, resume=resume, runtime=job.runtime, name=job.name, on_progress=report
+        )
+        connection.send(("done", manifest))
+    except CubecloudError as exc:
+        connection.send(("error", str(exc)))
+    except KeyboardInterrupt as exc:  # the stage's own message says how far it got and how to go on
+        connection.send(("interrupted", str(exc)))
+    except MemoryError:
+        connection.send(("memory", ""))
+    except BaseException:  # a bug: the parent shows its traceback
+        connection.send(("crash", traceback.format_exc()))
+    finally:
+        connection.close()
+
+
+@dataclass
+class _Running:
+    folder: str
+    process: multiprocessing.process.BaseProcess
+    connection: Connection
+    on_progress: ProgressCallback
+    started: float
+    stepped: bool = False
+    signalled: bool = False  # a second SIGINT would cut its checkpoint short
+    widened: bool = False
+    ending: tuple[str, object] | None = None
+    seconds: float = 0.0
+
+
+def run_side_by_side(jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallback]]) -> dict[str, tuple[dict, float]]:
+    """Train each (folder, job, force, resume, on_progress) in a child process, with the
+    threads of its job's runtime; returns each folder's manifest and seconds. The first job starts at once, the others
+    one by one, each after the one before has taken a training step."""
+    context = multiprocessing.get_context("spawn")  # a fork would copy torch's and numba's thread pools
+    waiting = list(jobs)
+    running: list[_Running] = []
+    interrupted = False
+
+    def start_next() -> None:
+        folder, job, force, resume, on_progress = waiting.pop(0)
+        ours, theirs = context.Pipe(duplex=False)
+        process = context.Process(
+            target=_child,
+            args=(theirs, job, force, resume, logging.getLogger("cubecloud").getEffectiveLevel()),
+            name=f"cubecloud {folder}",
+        )
+        process.start()
+        theirs.close()
+        running.append(_Running(folder, process, ours, on_progress, time.perf_counter()))
+
+    def stop_all() -> None:
+        waiting.clear()
+        for run in running:  # Ctrl-C on a terminal reached them too; a signal to us alone did not
+            if run.ending is None and not run.signalled and run.process.is_alive():
+                run.signalled = True
+                os.kill(run.process.pid, signal.SIGINT)
+
+    start_next()
+    while any(run.ending is None for run in running):
+        try:
+            _collect(running)
+        except KeyboardInterrupt:
+            interrupted = True
+            stop_all()
+            continue
+        if any(run.ending and run.ending[0] in ("error", "memory", "crash") for run in running):
+            stop_all()  # the pair cannot complete: the others save their work and stop too
+        if waiting and all(run.stepped or run.ending for run in running):
+            start_next()
+        elif not waiting and not interrupted:
+            _widen_the_last(running)
+    for run in running:
+        run.process.join()
+    return _outcomes(running, interrupted)
+
+
+def _widen_the_last(running: list[_Running]) -> None:
+    """Once one run is left, it gets the cores the others had."""
+    alive = [run for run in running if run.ending is None]
+    # Only once it has stepped: by then it has its handler (the signal's default would end it).
+    if len(alive) == 1 and alive[0].stepped and not alive[0].widened and hasattr(signal, WIDEN):
+        alive[0].widened = True
+        os.kill(alive[0].process.pid, getattr(signal, WIDEN))
+
+
+def _collect(running: list[_Running]) -> None:
+    """Handle every message ready from the children (blocking until one is)."""
+    by_connection = {run.connection: run for run in running if run.ending is None}
+    for connection in wait(list(by_connection)):
+        run = by_connection[connection]
+        try:
+            kind, payload = connection.recv()
+        except EOFError:  # died without a word (killed)
+            run.ending = ("crash", f"the process training {run.folder} ended with exit code {run.process.exitcode}")
+            continue
+        if kind == "progress":
+            phase, done, total, fields = payload
+            run.stepped = run.stepped or (phase == "train" and done >= 1)
+            run.on_progress(phase, done, total, fields)
+        else:
+            run.ending = (kind, payload)
+            run.seconds = time.perf_counter() - run.started
+
+
+def _outcomes(running: list[_Running], interrupted: bool) -> dict[str, tuple[dict, float]]:
+    endings = {run.folder: run.ending for run in running}
+    for folder, (kind, payload) in endings.items():
+        if kind == "crash":
+            raise RuntimeError(f"{folder}: {payload}")
+        if kind == "memory":
+            raise MemoryError
+    errors = [f"{folder}: {payload}" for folder, (kind, payload) in endings.items() if kind == "error"]
+    if errors:
+        raise CubecloudError("; ".join(errors))
+    stopped = [f"{folder}: {payload}" for folder, (kind, payload) in endings.items() if kind == "interrupted"]
+    if stopped or interrupted:
+        raise KeyboardInterrupt("; ".join(stopped) or "interrupted before the splat runs started")
+    return {run.folder: (run.ending[1], run.seconds) for run in running}

@@ -1,0 +1,114 @@
+"""The two splat runs of `cubecloud run` trained side by side, each in a process of its own."""
+
+from __future__ import annotations
+
+import shutil
+
+import numba
+import pytest
+from cli_helpers import invoke
+
+from cubecloud_cli import side_by_side
+from cubecloud_cli.cli.fields import build_settings
+from cubecloud_cli.cunerf import CunerfSettings
+from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.eval import EvalSettings
+from cubecloud_cli.export import ExportSettings
+from cubecloud_cli.pipeline import run_stages, stage_table
+from cubecloud_cli.preprocess import PreprocessSettings
+from cubecloud_cli.runtime import Runtime
+from cubecloud_cli.side_by_side import threads_each
+from cubecloud_cli.splat import stage as splat_stage
+from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.stage import train_splat
+
+ITERATIONS = 60
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A 32³ work directory up to its exported scene."""
+    work = tmp_path_factory.mktemp("side-by-side") / "work"
+    commands = [
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", "40", "--batch-size", "1024"],
+        ["export", work, "--resolution", "32", "--views", "8", "--cube", "8", "--points-per-cube", "64",
+         "--max-points", "800", "--novel-directions", "0"],
+    ]  # fmt: skip
+    for args in commands:
+        result = invoke(*args, "-q")
+        assert result.exit_code == 0, result.output
+    return work
+
+
+@pytest.fixture
+def work(exported, tmp_path):
+    copy = tmp_path / "work"
+    shutil.copytree(exported, copy)
+    return copy
+
+
+def splat_settings() -> SplatSettings:
+    return build_settings(SplatSettings, "fast", {"iterations": ITERATIONS, "eval_every": 30})
+
+
+def splat_stages(work, monkeypatch):
+    """The stage table's two splat runs, marked to train side by side (short as they are)."""
+    monkeypatch.setattr(side_by_side, "MIN_ITERATIONS", 1)
+    stages = stage_table(
+        work / "scan.nii.gz",
+        work,
+        PreprocessSettings(),
+        CunerfSettings(),
+        ExportSettings(),
+        splat_settings(),
+        EvalSettings(),
+        Runtime(device="cpu"),
+    )
+    runs = [stage for stage in stages if stage.folder.startswith("splat")]
+    assert [stage.side_by_side is not None for stage in runs] == [True, True]
+    return runs
+
+
+def test_runs_train_side_by_side_only_where_it_pays():
+    long, short = SplatSettings(iterations=1500), SplatSettings(iterations=100)
+    cpu = Runtime(device="cpu")
+    assert threads_each(cpu, long, runs=2, cores=2) == 1
+    assert threads_each(cpu, long, runs=2, cores=16) == 8
+    assert threads_each(cpu, short, runs=2, cores=2) is None  # a process's start costs more
+    assert threads_each(Runtime(device="cpu", threads=2), long, runs=2, cores=2) is None  # the user chose
+    assert threads_each(cpu, long, runs=1, cores=2) is None
+    assert threads_each(cpu, long, runs=2, cores=1) is None
+
+
+def test_side_by_side_runs_repeat_bit_for_bit_alone_on_one_thread(work, monkeypatch):
+    outcomes = run_stages(splat_stages(work, monkeypatch), work)
+    assert [(o.stage, o.status) for o in outcomes] == [("splat", "ran"), ("splat-random", "ran")]
+    settings = splat_settings()
+    train_splat(work, settings, runtime=Runtime(device="cpu", threads=1), name="alone")
+    train_splat(
+        work, SplatSettings(**{**settings.as_dict(), "init": "random"}), runtime=Runtime(device="cpu", threads=1),
+        name="alone-random",
+    )  # fmt: skip
+    for together, alone in (("splat", "splat-alone"), ("splat-random", "splat-alone-random")):
+        assert (work / together / "point_cloud.ply").read_bytes() == (work / alone / "point_cloud.ply").read_bytes()
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="one core: the kernels cannot widen")
+def test_widening_the_kernels_changes_no_bit(work, monkeypatch):
+    """The run left alone takes every core for its kernels, and torch keeps one thread."""
+    settings = splat_settings()
+    train_splat(work, settings, runtime=Runtime(device="cpu", threads=1), name="narrow")
+    monkeypatch.setattr(splat_stage, "_bound_kernel_threads", lambda runtime, device: numba.set_num_threads(2))
+    train_splat(work, settings, runtime=Runtime(device="cpu", threads=1), name="wide")
+    assert (work / "splat-narrow" / "point_cloud.ply").read_bytes() == (
+        work / "splat-wide" / "point_cloud.ply"
+    ).read_bytes()
+
+
+def test_a_run_that_fails_stops_the_other_and_says_why_in_one_line(work, monkeypatch):
+    (work / "export" / "points3D.ply").unlink()
+    with pytest.raises(CubecloudError, match=r"^splat: .*points3D.ply is missing") as error:
+        run_stages(splat_stages(work, monkeypatch), work)
+    assert "\n" not in str(error.value)
+    assert not (work / "splat").exists()
