@@ -22,7 +22,8 @@ class Runtime:
     device: str = "auto"
     """auto (CUDA when available), cpu or cuda."""
     threads: int | None = None
-    """CPU threads for torch and for splat's numba kernels (default: all cores)."""
+    """CPU threads for torch and for splat's numba kernels (default: all cores, and `run` trains
+    its two splat runs side by side, on half of them each)."""
 
     def apply(self) -> torch.device:
         """Set torch's thread count and return the device to run on."""

@@ -3,12 +3,14 @@ the cores.
 
 On a 2-core CPU one run on both cores does not train twice as fast as on one: part of each
 iteration (Python, autograd, the optimiser's small tensors) is serial. Two runs, one core each,
-finish the pair 10–25 % sooner (docs/results.md, "The two splat runs side by side").
+finish the pair sooner, by 5–25 % in the runs measured (docs/results.md, "The two splat runs
+side by side").
 
 The second run starts once the first has taken a training step: by then the first has compiled
 every rasterizer kernel into numba's cache, so the second loads them instead of compiling them
-again on the same cores. A run's bits depend on its thread count, and only on it: a run trained
-here repeats bit for bit with `cubecloud splat --threads N` (N = the threads it had here).
+again on the same cores. A run's bits depend on torch's thread count only (never on the
+kernels'), so a run trained here repeats bit for bit with `cubecloud splat --threads N`, N being
+its share of the cores (1 on 2 cores).
 """
 
 from __future__ import annotations
@@ -118,9 +120,9 @@ class _Running:
 
 
 def run_side_by_side(jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallback]]) -> dict[str, tuple[dict, float]]:
-    """Train each (folder, job, force, resume, on_progress) in a child process, with the
-    threads of its job's runtime; returns each folder's manifest and seconds. The first job starts at once, the others
-    one by one, each after the one before has taken a training step."""
+    """Train each (folder, job, force, resume, on_progress) in a child process, with the threads
+    of its job's runtime; returns each folder's manifest and seconds. The first job starts at
+    once, the others one by one, each after the ones before have taken a training step."""
     context = multiprocessing.get_context("spawn")  # a fork would copy torch's and numba's thread pools
     waiting = list(jobs)
     running: list[_Running] = []

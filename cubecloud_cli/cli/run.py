@@ -96,7 +96,7 @@ def run_command(
 ) -> None:
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. On a CPU the two splat runs train side by side, each on its share of the cores, unless --threads is given. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
 
     Examples:
 
