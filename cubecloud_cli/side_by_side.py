@@ -19,11 +19,15 @@ import logging
 import multiprocessing
 import os
 import signal
+import sys
 import time
 import traceback
+import types
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
+from typing import Iterator
 
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.progress import ProgressCallback
@@ -73,6 +77,19 @@ def _widen_kernels_on_signal() -> None:
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
 
     signal.signal(getattr(signal, WIDEN), widen)
+
+
+@contextmanager
+def without_main_module() -> Iterator[None]:
+    """Hide the caller's ``__main__`` from spawn while a child starts. The child needs nothing of
+    it, and spawn would run the caller's script again in the child: a script that calls
+    ``run_pipeline`` without ``if __name__ == "__main__":`` would start a second pipeline there."""
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
 
 
 def _child(connection: Connection, job: SplatJob, force: bool, resume: bool, log_level: int) -> None:
@@ -136,7 +153,8 @@ def run_side_by_side(jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallbac
             args=(theirs, job, force, resume, logging.getLogger("cubecloud").getEffectiveLevel()),
             name=f"cubecloud {folder}",
         )
-        process.start()
+        with without_main_module():
+            process.start()
         theirs.close()
         running.append(_Running(folder, process, ours, on_progress, time.perf_counter()))
 

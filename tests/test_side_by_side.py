@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing.spawn
 import shutil
 
 import numba
@@ -17,7 +18,7 @@ from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.pipeline import run_stages, stage_table
 from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.runtime import Runtime
-from cubecloud_cli.side_by_side import threads_each
+from cubecloud_cli.side_by_side import threads_each, without_main_module
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
@@ -112,3 +113,11 @@ def test_a_run_that_fails_stops_the_other_and_says_why_in_one_line(work, monkeyp
         run_stages(splat_stages(work, monkeypatch), work)
     assert "\n" not in str(error.value)
     assert not (work / "splat").exists()
+
+
+def test_a_child_does_not_run_the_callers_script_again():
+    # pytest's own __main__ stands for a user's script here: spawn would import it in the child.
+    assert {"init_main_from_path", "init_main_from_name"} & set(multiprocessing.spawn.get_preparation_data("x"))
+    with without_main_module():
+        data = multiprocessing.spawn.get_preparation_data("x")
+    assert not {"init_main_from_path", "init_main_from_name"} & set(data)
