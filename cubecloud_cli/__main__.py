@@ -1,4 +1,4 @@
 from cubecloud_cli.cli import main
 
-if __name__ == "__main__":  # a spawned child (cubecloud_cli/side_by_side.py) imports this module too
+if __name__ == "__main__":  # `python -m cubecloud_cli`; importing the module runs nothing
     main()

@@ -10,6 +10,7 @@ import json
 import time
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, replace
+from itertools import groupby
 from pathlib import Path
 from typing import Callable, ContextManager, Iterator
 
@@ -206,14 +207,7 @@ def run_stages(
     marked ``side_by_side`` train together when more than one of them has to run.
     ``progress(folder)`` gives the callback a stage reports to (a bar on the terminal)."""
     outcomes: dict[str, StageOutcome] = {}
-    index = 0
-    while index < len(stages):
-        group = [stages[index]]
-        while group[-1].side_by_side is not None and index + len(group) < len(stages):
-            if stages[index + len(group)].side_by_side is None:
-                break
-            group.append(stages[index + len(group)])
-        index += len(group)
+    for group in _groups(stages):
         plans = {stage.folder: _plan(stage, outcomes, work, force) for stage in group}
         for stage in group:
             if plans[stage.folder] is None:
@@ -232,6 +226,12 @@ def run_stages(
             outcomes[stage.folder] = StageOutcome(stage.folder, status, time.perf_counter() - start)
             on_stage(outcomes[stage.folder])
     return list(outcomes.values())
+
+
+def _groups(stages: list[PipelineStage]) -> Iterator[list[PipelineStage]]:
+    """Consecutive side-by-side stages together, every other stage alone."""
+    for together, run in groupby(stages, key=lambda stage: stage.side_by_side is not None):
+        yield from [list(run)] if together else ([stage] for stage in run)
 
 
 def _plan(stage: PipelineStage, outcomes: dict[str, StageOutcome], work: Path, force: bool) -> tuple[bool, bool] | None:

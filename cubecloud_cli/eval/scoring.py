@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from cubecloud_cli.metrics import SSIM_RADIUS, mse, psnr_from_mse, ssim, ssim_and_masked
+from cubecloud_cli.metrics import SSIM_RADIUS, mse, psnr_from_mse, ssim_and_masked
 
 METRICS = ("psnr", "ssim", "mse", "psnr_foreground", "ssim_foreground", "mse_foreground")
 
@@ -42,10 +42,8 @@ def score_view(reference: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
         "ssim_foreground": math.nan,
     }
     if min(reference.shape) >= 2 * SSIM_RADIUS + 1:
-        if has_foreground:
-            scores["ssim"], scores["ssim_foreground"] = ssim_and_masked(reference, estimate, foreground)
-        else:
-            scores["ssim"] = ssim(reference, estimate)
+        # No foreground: the masked mean is NaN, as the default above.
+        scores["ssim"], scores["ssim_foreground"] = ssim_and_masked(reference, estimate, foreground)
     return scores
 
 
