@@ -50,7 +50,7 @@ model = CubeModel(settings.field_config(size), settings.render_config(size)).to(
 held = holdout_slices(volume, settings.holdout, train_scale)
 voxels = TrainingVoxels(torch.from_numpy(volume).to(device), train_scale, held, settings.body_fraction)
 if settings.grid_init == "volume":
-    initialise_from_volume(model.coarse, voxels)
+    initialise_from_volume(model, voxels)
 trainer = Trainer(model, voxels, settings, torch.Generator(device=device).manual_seed(0))
 rng = np.random.default_rng(0)
 sample = rng.integers(0, size, (int(points), 3))

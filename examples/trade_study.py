@@ -6,16 +6,17 @@ each run through the whole pipeline, with every stage's wall time and the held-o
     python examples/trade_study.py --knobs iterations,budget --out quick   # only the splat knobs
     cubecloud run -o trade/balanced --preset balanced && python examples/trade_study.py --out trade --include balanced=trade/balanced
     cubecloud run -o work-bal --preset balanced && python examples/trade_study.py --preset balanced --base work-bal --out trade-bal
-    python examples/trade_study.py --knobs iterations --values iterations=500,1000 \
-        --stage-options "cunerf=--iterations 1000" --out smoke             # a quick look
+    python examples/trade_study.py --knobs iterations --values iterations=500,1000 --out smoke   # a quick look
 
 Knobs (each varied alone around the preset; ``--preset`` fast by default). Unless ``--values``
 says otherwise, a numeric knob takes values relative to the preset's own: volume ×0.75 and ×1.5,
-CuNeRF iterations ×0.125, ×0.25 and ×0.5, CuNeRF batch ×0.5 and ×2, views ×0.5 and ×2, points
+CuNeRF iterations ×0.125, ×0.25 and ×0.5 (none for a preset that trains none), CuNeRF batch ×0.5 and ×2, views ×0.5 and ×2, points
 per cube ×0.25 and ×4, iterations ×0.5 and ×2, budget ×1/8 and ×1/4; a choice takes every value
 but the preset's.
 
     volume             preprocess --size
+    cunerf_start       cunerf: the fitted start alone (volume: --grid-init volume --iterations 0), or
+                       random features trained 3000 iterations (random), the fast preset before
     cunerf_iterations  cunerf --iterations
     cunerf_batch       cunerf --batch-size
     cameras            export --cameras (orbit, sphere)
@@ -62,8 +63,12 @@ class Knob:
     option: str  # for an on/off knob, the flag that turns it on ("--no-" + name turns it off)
     factors: tuple[float, ...] = ()  # default values as multiples of the preset's own
     choices: tuple[str, ...] = ()  # or: the values of a choice
+    with_choice: tuple[tuple[str, tuple[str, ...]], ...] = ()  # more options a choice brings along
 
     def arguments(self, value) -> list[str]:
+        more = list(dict(self.with_choice).get(value, ()))
+        if more:
+            return [self.option, str(value), *more]
         if self.choices == ("on", "off"):
             return [self.option if value == "on" else self.option.replace("--", "--no-", 1)]
         return [self.option, str(value)]
@@ -74,7 +79,13 @@ class Knob:
 
 KNOBS = {
     "volume": Knob("preprocess", "--size", (0.75, 1.5)),  # fast: 96, 192
-    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # fast: 375, 750, 1500
+    "cunerf_start": Knob(
+        "cunerf",
+        "--grid-init",
+        choices=("volume", "random"),
+        with_choice=(("volume", ("--iterations", "0")), ("random", ("--iterations", "3000"))),
+    ),
+    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # balanced: 625, 1250, 2500
     "cunerf_batch": Knob("cunerf", "--batch-size", (0.5, 2.0)),  # fast: 1024, 4096
     "cameras": Knob("export", "--cameras", choices=("orbit", "sphere")),
     "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 60, 240
@@ -93,8 +104,10 @@ def preset_values(preset: str, extra: dict[str, list[str]]) -> dict:
     values = {
         "volume": PRESETS["preprocess"][preset]["size"],
         "views": PRESETS["export"][preset]["views"],
+        "cunerf_start": cunerf["grid_init"],
         "cunerf_iterations": cunerf["iterations"],
-        "cunerf_batch": cunerf["batch_size"],
+        # A preset that trains no iteration has no batch to vary.
+        "cunerf_batch": cunerf["batch_size"] if cunerf["iterations"] else None,
         "cameras": PRESETS["export"][preset]["cameras"],
         "points_per_cube": PRESETS["export"][preset]["points_per_cube"],
         "iterations": PRESETS["splat"][preset]["iterations"],
@@ -148,10 +161,10 @@ def stage_commands(
 
 def default_values(knob: str, base) -> list:
     """The knob's values around the preset's ``base``: every other choice, or multiples of a number
-    (none for a budget the preset leaves open)."""
+    (none for a budget the preset leaves open, nor multiples of 0)."""
     if KNOBS[knob].choices:
         return [choice for choice in KNOBS[knob].choices if choice != base]
-    if base is None:
+    if not base:  # a budget the preset leaves open, or CuNeRF's iterations where it trains none
         return []
     return [max(1, round(base * factor)) for factor in KNOBS[knob].factors]
 

@@ -17,7 +17,8 @@ from cli_helpers import assert_one_line_error, invoke
 
 from cubecloud_cli.cunerf import CunerfField
 
-FAST = ["--iterations", "40", "--batch-size", "1024", "--val-every", "20", "--holdout", "2"]
+# Random features: these tests train the field (the fast preset's volume start trains nothing).
+FAST = ["--iterations", "40", "--batch-size", "1024", "--val-every", "20", "--holdout", "2", "--grid-init", "random"]
 
 
 @pytest.fixture(scope="module")
@@ -128,12 +129,27 @@ def test_super_resolution_mode_exports_at_a_finer_scale(preprocessed, tmp_path):
 
 def test_a_volume_start_records_itself_and_beats_random_features_at_equal_iterations(trained, tmp_path):
     work = _copy_preprocess(trained, tmp_path)
-    result = invoke(*["cunerf", str(work), *FAST, "--grid-init", "volume", "--name", "volume", "-q"])
+    result = invoke(*["cunerf", str(work), *FAST[:-2], "--grid-init", "volume", "--name", "volume", "-q"])
     assert result.exit_code == 0, result.output
     started = json.loads((work / "cunerf-volume" / "manifest.json").read_text())
     random = json.loads((trained / "cunerf" / "manifest.json").read_text())
     assert started["params"]["grid_init"] == "volume" and random["params"]["grid_init"] == "random"
     assert started["metrics"]["psnr_3d"] > random["metrics"]["psnr_3d"] + 3.0
+    assert started["timings_s"]["fit"] > 0 and 0 <= started["metrics"]["volume_fit_rms"] < 0.01
+
+
+def test_the_fitted_start_alone_is_a_complete_stage_and_a_random_one_is_refused(preprocessed, tmp_path):
+    work = _copy_preprocess(preprocessed, tmp_path)
+    result = invoke(*["cunerf", str(work), "--iterations", "0", "--grid-init", "volume", "--holdout", "2", "-q"])
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "cunerf" / "manifest.json").read_text())
+    assert manifest["metrics"]["iterations"] == 0 and manifest["metrics"]["train_seconds"] == 0.0
+    # The training voxels come back to within float32 and the logit's clipping (~60 dB).
+    assert manifest["metrics"]["psnr_3d"] > 35.0 and manifest["metrics"]["val_psnr"] > 20.0
+    assert (work / "cunerf" / "log.csv").read_text().splitlines()[1].startswith("0,0,")
+    refused = invoke(*["cunerf", str(work), "--iterations", "0", "--grid-init", "random", "--force"])
+    assert refused.exit_code == 2 and "--grid-init volume" in refused.output
+    assert (work / "cunerf" / "manifest.json").is_file()  # the refused run left the stage alone
 
 
 def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monkeypatch):

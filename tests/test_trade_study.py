@@ -143,11 +143,7 @@ def test_default_knob_values_follow_the_preset():
         "preset",
         "volume=96",
         "volume=192",
-        "cunerf_iterations=375",
-        "cunerf_iterations=750",
-        "cunerf_iterations=1500",
-        "cunerf_batch=1024",  # half and twice the preset's 2048 cubes
-        "cunerf_batch=4096",
+        "cunerf_start=random",  # fast trains no CuNeRF iteration: no iterations nor batch to vary
         "cameras=orbit",
         "views=60",
         "views=240",
@@ -166,18 +162,25 @@ def test_default_knob_values_follow_the_preset():
 
 
 def test_the_camera_antialias_and_cunerf_knobs():
-    """Choices take every value but the preset's; CuNeRF's iterations go down from the preset's;
+    """Choices take every value but the preset's; CuNeRF's iterations go down from the preset's
+    (none where it trains none; the start knob then trains random features);
     a stage option given to every configuration moves the base, as on the command line."""
     study = _load_script()
     base = study.preset_values("fast", {})
-    assert (base["cameras"], base["antialias"], base["cunerf_iterations"]) == ("sphere", "on", 3000)
-    assert study.configurations(["cameras", "antialias", "cunerf_iterations"], base) == [
+    assert (base["cameras"], base["antialias"], base["cunerf_iterations"]) == ("sphere", "on", 0)
+    assert study.configurations(["cameras", "antialias", "cunerf_start", "cunerf_iterations"], base) == [
         ("preset", {}),
         ("cameras=orbit", {"export": ["--cameras", "orbit"]}),
         ("antialias=off", {"splat": ["--no-antialias"]}),
-        ("cunerf_iterations=375", {"cunerf": ["--iterations", "375"]}),
-        ("cunerf_iterations=750", {"cunerf": ["--iterations", "750"]}),
-        ("cunerf_iterations=1500", {"cunerf": ["--iterations", "1500"]}),
+        ("cunerf_start=random", {"cunerf": ["--grid-init", "random", "--iterations", "3000"]}),
+    ]
+    balanced = study.preset_values("balanced", {})
+    assert study.configurations(["cunerf_start", "cunerf_iterations"], balanced) == [
+        ("preset", {}),
+        ("cunerf_start=volume", {"cunerf": ["--grid-init", "volume", "--iterations", "0"]}),
+        ("cunerf_iterations=625", {"cunerf": ["--iterations", "625"]}),
+        ("cunerf_iterations=1250", {"cunerf": ["--iterations", "1250"]}),
+        ("cunerf_iterations=2500", {"cunerf": ["--iterations", "2500"]}),
     ]
     moved = study.preset_values("fast", {"splat": ["--antialias", "--no-antialias"], "export": ["--cameras", "orbit"]})
     assert (moved["antialias"], moved["cameras"]) == ("off", "orbit")

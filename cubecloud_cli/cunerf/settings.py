@@ -25,7 +25,7 @@ class CunerfSettings:
     """fast: multiresolution feature grid + small MLP (CPU). cunerf: the paper's 8×256 MLP with positional
     encoding, coarse + fine (GPU)."""
     iterations: int = preset_default("cunerf", "iterations")
-    """Training iterations."""
+    """Training iterations; 0 with --grid-init volume keeps the fitted start as it is."""
     batch_size: int = preset_default("cunerf", "batch_size")  # cubes per iteration (official: 1024)
     """Cubes (voxels) per iteration (the official code: 1024)."""
     lr: float = preset_default("cunerf", "lr")
@@ -59,9 +59,9 @@ class CunerfSettings:
     """fast model: features per grid vertex."""
     grid_hidden: int = 32
     """fast model: width of the MLP's hidden layer."""
-    grid_init: GridInit = "random"
-    """fast model: random (tiny random features), or volume (the finest level starts at the training voxels'
-    intensities, so training refines rather than learns them)."""
+    grid_init: GridInit = preset_default("cunerf", "grid_init")
+    """fast model: random (tiny random features), or volume (the finest level is solved so that the field renders
+    the training voxels exactly, and training only refines it)."""
     train_scale: int = 1
     """Zero-shot super-resolution: train on every s-th voxel per axis, score against all of them."""
     holdout: int = 8  # axial slices kept for validation
@@ -85,8 +85,8 @@ class CunerfSettings:
 
         if self.model not in MODELS:
             raise bad(f"--model {self.model!r} must be one of {', '.join(MODELS)}")
-        if self.iterations < 1:
-            raise bad(f"--iterations {self.iterations} must be at least 1")
+        if self.iterations < 0:
+            raise bad(f"--iterations {self.iterations} must not be negative")
         if not 1 <= self.batch_size <= 1 << 20:
             raise bad(f"--batch-size {self.batch_size} must be within 1..1048576 cubes")
         if not (0 < self.lr < 10 and 0 < self.lr_final <= self.lr):
@@ -107,6 +107,8 @@ class CunerfSettings:
             raise bad("--grid-levels must be 1..8, --grid-base at least 2, --grid-features 1..16")
         if self.grid_init not in get_args(GridInit):
             raise bad(f"--grid-init {self.grid_init!r} must be random or volume")
+        if self.iterations == 0 and self.grid_init != "volume":
+            raise bad("--iterations 0 needs --grid-init volume: untrained random features render noise")
         if self.grid_init == "volume" and self.model != "fast":
             raise bad("--grid-init volume needs --model fast (a feature grid to start from)")
         if self.grid_init == "volume" and self.grid_hidden < 2:

@@ -126,7 +126,7 @@ def train_cunerf(
 ) -> dict:
     """Run the stage; returns the manifest written to WORK/cunerf/manifest.json.
 
-    ``on_progress(phase, done, total, fields)`` reports "train" iterations (with loss and the
+    ``on_progress(phase, done, total, fields)`` reports the "fit" of a volume start, "train" iterations (with loss and the
     latest validation PSNR in ``fields``) and then the "reconstruct" and "write" phases.
     """
     work = Path(work)
@@ -160,6 +160,12 @@ def train_cunerf(
                     trainer, voxels, volume_np, held_out = _prepare(
                         writer, volume_path, settings, size, device, state, context
                     )
+                if settings.grid_init == "volume" and state is None:
+                    with writer.phase("fit"):
+                        on_progress("fit", 0, 1, {})
+                        remaining = initialise_from_volume(trainer.model, voxels)
+                        if remaining is not None:
+                            writer.metrics["volume_fit_rms"] = remaining
                 phase = "train"
                 with writer.phase("train"):
                     _train(trainer, checkpoint, on_progress)
@@ -239,8 +245,6 @@ def _prepare(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(settings.seed)
         model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
-    if settings.grid_init == "volume" and state is None:
-        initialise_from_volume(model.coarse, voxels)
     generator = torch.Generator(device=device).manual_seed(settings.seed)
     trainer = Trainer(model, voxels, settings, generator, context=context)
     if state is not None:
@@ -311,6 +315,9 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
     total = settings.iterations
     log_every = max(1, total // 200)
     latest: dict = {}
+    if total == 0:  # the fitted start alone: validated once, as training's last step would be
+        trainer.history.append({"iteration": 0, "seconds": 0.0, "loss": None, "lr": None, **trainer.validate()})
+        return
     with checkpointed_loop(checkpoint, "lower --lr and pass --force to start again") as interrupt:
         while trainer.iteration < total:
             trainer.step()

@@ -32,7 +32,7 @@ def learning_rate(step: int, settings: CunerfSettings) -> float:
     warm = 1.0
     if settings.warmup > 0:
         warm = 0.01 + 0.99 * math.sin(0.5 * math.pi * min(max(step / settings.warmup, 0.0), 1.0))
-    tau = min(max(step / settings.iterations, 0.0), 1.0)
+    tau = min(max(step / max(settings.iterations, 1), 0.0), 1.0)
     return warm * math.exp((1.0 - tau) * math.log(settings.lr) + tau * math.log(settings.lr_final))
 
 
