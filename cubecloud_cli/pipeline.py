@@ -25,11 +25,12 @@ from cubecloud_cli.export import stage as export_stage
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.preprocess import stage as preprocess_stage
 from cubecloud_cli.progress import ProgressCallback, no_progress
-from cubecloud_cli.runtime import Runtime
+from cubecloud_cli.runtime import Runtime, resolve_device
 from cubecloud_cli.side_by_side import SplatJob, available_cores, run_side_by_side, threads_each
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
+from cubecloud_cli.warmup import Warmup, WarmupJob
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,7 @@ class PipelineStage:
     run: Callable[[bool, bool, ProgressCallback], dict]  # (force, resume, on_progress) -> manifest
     checkpoint: Path | None = None  # saved work of an interrupted run, resumed when present
     side_by_side: SplatJob | None = None  # set on the splat runs that train side by side when both run
+    compiles: WarmupJob | None = None  # the numba kernels it calls on a CPU, compiled ahead by `run_stages`
     resumed: Callable[[dict], bool] = lambda manifest: False  # whether the run reused saved work anyway
 
 
@@ -117,6 +119,10 @@ def stage_table(
 
     Long on purpose: one row per stage, so the whole pipeline and its dependencies read in one place."""
     work = Path(work)
+    on_cpu = resolve_device(runtime.device).type == "cpu"
+
+    def compiles(**settings) -> WarmupJob | None:
+        return WarmupJob(**settings) if on_cpu else None
 
     def current(folder: str, params: dict, inputs: list[Path]) -> Callable[[], bool]:
         return lambda: stage_is_current(work / folder, params, inputs)
@@ -173,6 +179,7 @@ def stage_table(
                 side_by_side=None
                 if threads is None
                 else SplatJob(work, settings, replace(runtime, threads=threads), name),
+                compiles=compiles(splat=settings),
             )
         )
     # eval is cheap and holds no choices worth protecting: one made with other settings or of
@@ -205,27 +212,62 @@ def run_stages(
 ) -> list[StageOutcome]:
     """Each stage in order: skipped if current, resumed if interrupted, run otherwise; splat runs
     marked ``side_by_side`` train together when more than one of them has to run.
-    ``progress(folder)`` gives the callback a stage reports to (a bar on the terminal)."""
+    ``progress(folder)`` gives the callback a stage reports to (a bar on the terminal).
+
+    With more than one stage to run, the numba kernels of those that will run are compiled ahead
+    in a helper at the lowest priority (``cubecloud_cli/warmup.py``); a splat stage waits for it."""
     outcomes: dict[str, StageOutcome] = {}
-    for group in _groups(stages):
-        plans = {stage.folder: _plan(stage, outcomes, work, force) for stage in group}
-        for stage in group:
-            if plans[stage.folder] is None:
-                outcomes[stage.folder] = StageOutcome(stage.folder, "skipped", 0.0)
+    ahead = _kernels_ahead(stages, force)
+    warmup = Warmup.start(ahead) if ahead is not None else Warmup(None)
+    try:
+        for group in _groups(stages):
+            plans = {stage.folder: _plan(stage, outcomes, work, force) for stage in group}
+            for stage in group:
+                if plans[stage.folder] is None:
+                    outcomes[stage.folder] = StageOutcome(stage.folder, "skipped", 0.0)
+                    on_stage(outcomes[stage.folder])
+            to_run = [stage for stage in group if plans[stage.folder] is not None]
+            kernels_ready = False
+            if any(stage.compiles is not None and stage.compiles.splat is not None for stage in to_run):
+                kernels_ready = warmup.wait()
+            if len(to_run) > 1:
+                _run_together(to_run, plans, progress, outcomes, on_stage, staggered=not kernels_ready)
+                continue
+            for stage in to_run:
+                start = time.perf_counter()
+                stage_force, resume = plans[stage.folder]
+                with progress(stage.folder) as on_progress:
+                    manifest = stage.run(stage_force, resume, on_progress)
+                status = "resumed" if resume or stage.resumed(manifest) else "ran"
+                outcomes[stage.folder] = StageOutcome(stage.folder, status, time.perf_counter() - start)
                 on_stage(outcomes[stage.folder])
-        to_run = [stage for stage in group if plans[stage.folder] is not None]
-        if len(to_run) > 1:
-            _run_together(to_run, plans, progress, outcomes, on_stage)
-            continue
-        for stage in to_run:
-            start = time.perf_counter()
-            stage_force, resume = plans[stage.folder]
-            with progress(stage.folder) as on_progress:
-                manifest = stage.run(stage_force, resume, on_progress)
-            status = "resumed" if resume or stage.resumed(manifest) else "ran"
-            outcomes[stage.folder] = StageOutcome(stage.folder, status, time.perf_counter() - start)
-            on_stage(outcomes[stage.folder])
+    finally:
+        warmup.stop()
     return list(outcomes.values())
+
+
+def _kernels_ahead(stages: list[PipelineStage], force: bool) -> WarmupJob | None:
+    """The kernels of the stages that will run, when there is a stage before them to hide their
+    compilation behind (a single stage, as a workflow engine runs them, compiles its own)."""
+    running: set[str] = set()
+    settings: dict = {}
+    for stage in stages:
+        if force or any(name in running for name in stage.upstream) or not _is_current_as_far_as_known(stage):
+            running.add(stage.folder)
+            for key, value in vars(stage.compiles or WarmupJob()).items():
+                if value is not None:
+                    settings.setdefault(key, value)
+    job = WarmupJob(**settings)
+    return None if len(running) < 2 or job.is_empty() else job
+
+
+def _is_current_as_far_as_known(stage: PipelineStage) -> bool:
+    """``stage.is_current()``, where a stage made with other settings counts as not current: the
+    stage loop raises that in its turn, after the stages before it."""
+    try:
+        return stage.is_current()
+    except CubecloudError:
+        return False
 
 
 def _groups(stages: list[PipelineStage]) -> Iterator[list[PipelineStage]]:
@@ -250,13 +292,14 @@ def _run_together(
     progress: Callable[[str], ContextManager[ProgressCallback]],
     outcomes: dict[str, StageOutcome],
     on_stage: Callable[[StageOutcome], None],
+    staggered: bool = True,
 ) -> None:
     with ExitStack() as bars:
         jobs = [
             (stage.folder, stage.side_by_side, *plans[stage.folder], bars.enter_context(progress(stage.folder)))
             for stage in stages
         ]
-        results = run_side_by_side(jobs)
+        results = run_side_by_side(jobs, staggered)
     for stage in stages:
         manifest, seconds = results[stage.folder]
         status = "resumed" if plans[stage.folder][1] or stage.resumed(manifest) else "ran"

@@ -8,7 +8,8 @@ side by side").
 
 The second run starts once the first has taken a training step: by then the first has compiled
 every rasterizer kernel into numba's cache, so the second loads them instead of compiling them
-again on the same cores. A run's bits depend on torch's thread count only (never on the
+again on the same cores. When `run` compiled them ahead (``cubecloud_cli/warmup.py``), both start
+at once. A run's bits depend on torch's thread count only (never on the
 kernels'), so a run trained here repeats bit for bit with `cubecloud splat --threads N`, N being
 its share of the cores (1 on 2 cores).
 """
@@ -20,6 +21,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 import types
@@ -92,6 +94,21 @@ def without_main_module() -> Iterator[None]:
         sys.modules["__main__"] = main
 
 
+@contextmanager
+def _start_ignoring_ctrl_c() -> Iterator[None]:
+    """A child started now inherits SIGINT ignored, until its own handler is in place: a Ctrl-C
+    while it is still importing would end it with a traceback and nothing saved. The parent
+    stops such a child itself (``run_side_by_side``)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # only the main thread may set handlers; spawn's children then start as usual
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _child(connection: Connection, job: SplatJob, force: bool, resume: bool, log_level: int) -> None:
     """A child's whole life: train, and say how it ended through ``connection``."""
     from cubecloud_cli.splat.stage import train_splat
@@ -105,7 +122,10 @@ def _child(connection: Connection, job: SplatJob, force: bool, resume: bool, log
     def report(phase: str, done: float, total: float, fields) -> None:
         connection.send(("progress", (phase, done, total, dict(fields))))
 
+    # Started with Ctrl-C ignored (see _start_ignoring_ctrl_c); from here on it saves and stops.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
+        connection.send(("ready", None))
         manifest = train_splat(
             job.work, job.settings, force=force, resume=resume, runtime=job.runtime, name=job.name, on_progress=report
         )
@@ -129,6 +149,7 @@ class _Running:
     connection: Connection
     on_progress: ProgressCallback
     started: float
+    ready: bool = False  # its Ctrl-C handler is in place: SIGINT makes it save and stop
     stepped: bool = False
     signalled: bool = False  # a second SIGINT would cut its checkpoint short
     widened: bool = False
@@ -136,10 +157,13 @@ class _Running:
     seconds: float = 0.0
 
 
-def run_side_by_side(jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallback]]) -> dict[str, tuple[dict, float]]:
+def run_side_by_side(
+    jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallback]], staggered: bool = True
+) -> dict[str, tuple[dict, float]]:
     """Train each (folder, job, force, resume, on_progress) in a child process, with the threads
     of its job's runtime; returns each folder's manifest and seconds. The first job starts at
-    once, the others one by one, each after the ones before have taken a training step."""
+    once, the others one by one, each after the ones before have taken a training step; or,
+    when not ``staggered`` (numba's cache holds the kernels already), all at once."""
     context = multiprocessing.get_context("spawn")  # a fork would copy torch's and numba's thread pools
     waiting = list(jobs)
     running: list[_Running] = []
@@ -153,7 +177,7 @@ def run_side_by_side(jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallbac
             args=(theirs, job, force, resume, logging.getLogger("cubecloud").getEffectiveLevel()),
             name=f"cubecloud {folder}",
         )
-        with without_main_module():
+        with without_main_module(), _start_ignoring_ctrl_c():
             process.start()
         theirs.close()
         running.append(_Running(folder, process, ours, on_progress, time.perf_counter()))
@@ -163,9 +187,14 @@ def run_side_by_side(jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallbac
         for run in running:  # Ctrl-C on a terminal reached them too; a signal to us alone did not
             if run.ending is None and not run.signalled and run.process.is_alive():
                 run.signalled = True
-                os.kill(run.process.pid, signal.SIGINT)
+                if run.ready:
+                    os.kill(run.process.pid, signal.SIGINT)
+                else:  # still starting, with nothing to save: it ignores SIGINT until ready
+                    run.process.terminate()
 
     start_next()
+    while waiting and not staggered:
+        start_next()
     while any(run.ending is None for run in running):
         try:
             _collect(running)
@@ -200,10 +229,15 @@ def _collect(running: list[_Running]) -> None:
         run = by_connection[connection]
         try:
             kind, payload = connection.recv()
-        except EOFError:  # died without a word (killed)
-            run.ending = ("crash", f"the process training {run.folder} ended with exit code {run.process.exitcode}")
+        except EOFError:  # died without a word: stopped by us while starting, or killed
+            if run.signalled and not run.ready:
+                run.ending = ("interrupted", f"{run.folder} was stopped before it started training")
+            else:
+                run.ending = ("crash", f"the process training {run.folder} ended with exit code {run.process.exitcode}")
             continue
-        if kind == "progress":
+        if kind == "ready":
+            run.ready = True
+        elif kind == "progress":
             phase, done, total, fields = payload
             run.stepped = run.stepped or (phase == "train" and done >= 1)
             run.on_progress(phase, done, total, fields)
