@@ -30,6 +30,7 @@ from cubecloud_cli.side_by_side import SplatJob, available_cores, run_side_by_si
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
+from cubecloud_cli.warmup import MIN_ITERATIONS as WARMUP_MIN_ITERATIONS
 from cubecloud_cli.warmup import Warmup, WarmupJob
 
 
@@ -179,7 +180,7 @@ def stage_table(
                 side_by_side=None
                 if threads is None
                 else SplatJob(work, settings, replace(runtime, threads=threads), name),
-                compiles=compiles(splat=settings),
+                compiles=compiles(splat=settings) if settings.iterations >= WARMUP_MIN_ITERATIONS else None,
             )
         )
     # eval is cheap and holds no choices worth protecting: one made with other settings or of

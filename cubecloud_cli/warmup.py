@@ -13,7 +13,8 @@ The splat runs wait for the helper before they start: the rasterizer is the larg
 and a trainer starting beside the helper would compile the same kernels again. Its forward side
 compiles in the helper and its backward side in the helper's own backward helper
 (``raster/cpu_warmup.py``), on both cores, as a trainer's first step would. With a warm cache the
-helper only loads the kernels and exits within seconds.
+helper only loads the kernels and exits within seconds. Runs shorter than ``MIN_ITERATIONS`` and
+a single stage compile their own, as before.
 
 The kernels see inputs of the stages' own dtypes and layouts, so they compile the signatures the
 stages call. A kernel the stages call with other types is compiled by its stage as before: the
@@ -32,6 +33,9 @@ from pathlib import Path
 # Longer than any first compilation measured (about 40 s on the slower host); a helper still
 # running then is stopped, and the stages compile what is left themselves.
 WAIT_SECONDS = 300.0
+# The helper's own start (a process importing torch, then loading or compiling) costs a few
+# seconds of CPU; below this many iterations (a test's, a quick look) the splat stage compiles its own.
+MIN_ITERATIONS = 300
 TINY_VOLUME = 8  # voxels per axis: every array keeps more than one element per axis, so its layout
 TINY_IMAGE = 16  # (C-contiguous or not) is the one the stage's full-size arrays have
 

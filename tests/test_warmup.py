@@ -24,7 +24,7 @@ from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.runtime import Runtime
 from cubecloud_cli.sample_data import sample_ct_path
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.warmup import Warmup, warm_up
+from cubecloud_cli.warmup import Warmup, WarmupJob, warm_up
 
 def signatures():
     found = {}
@@ -41,7 +41,8 @@ stages = pipeline.stage_table(
     CunerfSettings(holdout=2), ExportSettings(resolution=32, views=4, max_points=300, novel_directions=2),
     splat, EvalSettings(turntable_frames=0), Runtime(device="cpu"), baseline=False,
 )
-warm_up(stages[-2].compiles)
+assert stages[-2].compiles is None  # too short a run to compile ahead: the helper is called here
+warm_up(WarmupJob(splat=splat))
 ahead = signatures()
 pipeline.Warmup.start = classmethod(lambda cls, job: Warmup(None))  # this process compiled them
 pipeline.run_stages(stages, Path(sys.argv[1]))
@@ -80,6 +81,26 @@ def test_the_helper_takes_the_kernels_of_the_stages_that_will_run_and_only_behin
     assert _kernels_ahead(everything_current, force=True) == splat
     assert _kernels_ahead([table[-1]], force=True) is None  # one stage: it compiles its own
     assert _kernels_ahead(table[:3], force=True) is None  # no kernels to compile ahead (or on a GPU)
+
+
+def test_only_runs_long_enough_to_repay_the_helper_compile_ahead(tmp_path):
+    from cubecloud_cli.cunerf import CunerfSettings
+    from cubecloud_cli.eval import EvalSettings
+    from cubecloud_cli.export import ExportSettings
+    from cubecloud_cli.pipeline import stage_table
+    from cubecloud_cli.preprocess import PreprocessSettings
+    from cubecloud_cli.runtime import Runtime
+    from cubecloud_cli.warmup import MIN_ITERATIONS
+
+    def splat_compiles(iterations: int):
+        stages = stage_table(
+            tmp_path / "scan.nii.gz", tmp_path, PreprocessSettings(), CunerfSettings(), ExportSettings(),
+            SplatSettings(iterations=iterations), EvalSettings(), Runtime(device="cpu"),
+        )  # fmt: skip
+        return [stage.compiles for stage in stages if stage.folder.startswith("splat")]
+
+    assert all(job is not None and job.splat.iterations == MIN_ITERATIONS for job in splat_compiles(MIN_ITERATIONS))
+    assert splat_compiles(MIN_ITERATIONS - 1) == [None, None]
 
 
 def test_a_stopped_helper_reports_nothing_compiled(tmp_path):
