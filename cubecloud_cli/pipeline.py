@@ -98,7 +98,7 @@ class PipelineStage:
     run: Callable[[bool, bool, ProgressCallback], dict]  # (force, resume, on_progress) -> manifest
     checkpoint: Path | None = None  # saved work of an interrupted run, resumed when present
     side_by_side: SplatJob | None = None  # set on the splat runs that train side by side when both run
-    compiles: WarmupJob | None = None  # the numba kernels it calls on a CPU, compiled ahead by `run_stages`
+    compiles: WarmupJob | None = None  # its numba kernels, compiled ahead by `run_stages` (long CPU splat runs)
     resumed: Callable[[dict], bool] = lambda manifest: False  # whether the run reused saved work anyway
 
 
@@ -122,8 +122,9 @@ def stage_table(
     work = Path(work)
     on_cpu = resolve_device(runtime.device).type == "cpu"
 
-    def compiles(**settings) -> WarmupJob | None:
-        return WarmupJob(**settings) if on_cpu else None
+    def compiles(settings: SplatSettings) -> WarmupJob | None:
+        """The rasterizer's kernels, for a CPU run long enough to repay a helper process."""
+        return WarmupJob(splat=settings) if on_cpu and settings.iterations >= WARMUP_MIN_ITERATIONS else None
 
     def current(folder: str, params: dict, inputs: list[Path]) -> Callable[[], bool]:
         return lambda: stage_is_current(work / folder, params, inputs)
@@ -180,7 +181,7 @@ def stage_table(
                 side_by_side=None
                 if threads is None
                 else SplatJob(work, settings, replace(runtime, threads=threads), name),
-                compiles=compiles(splat=settings) if settings.iterations >= WARMUP_MIN_ITERATIONS else None,
+                compiles=compiles(settings),
             )
         )
     # eval is cheap and holds no choices worth protecting: one made with other settings or of
@@ -218,8 +219,7 @@ def run_stages(
     With more than one stage to run, the numba kernels of those that will run are compiled ahead
     in a helper at the lowest priority (``cubecloud_cli/warmup.py``); a splat stage waits for it."""
     outcomes: dict[str, StageOutcome] = {}
-    ahead = _kernels_ahead(stages, force)
-    warmup = Warmup.start(ahead) if ahead is not None else Warmup(None)
+    warmup = Warmup.start(_kernels_ahead(stages, force))
     try:
         for group in _groups(stages):
             plans = {stage.folder: _plan(stage, outcomes, work, force) for stage in group}
@@ -229,7 +229,7 @@ def run_stages(
                     on_stage(outcomes[stage.folder])
             to_run = [stage for stage in group if plans[stage.folder] is not None]
             kernels_ready = False
-            if any(stage.compiles is not None and stage.compiles.splat is not None for stage in to_run):
+            if any(stage.compiles is not None for stage in to_run):
                 kernels_ready = warmup.wait()
             if len(to_run) > 1:
                 _run_together(to_run, plans, progress, outcomes, on_stage, staggered=not kernels_ready)
@@ -251,15 +251,12 @@ def _kernels_ahead(stages: list[PipelineStage], force: bool) -> WarmupJob | None
     """The kernels of the stages that will run, when there is a stage before them to hide their
     compilation behind (a single stage, as a workflow engine runs them, compiles its own)."""
     running: set[str] = set()
-    settings: dict = {}
+    job = None
     for stage in stages:
         if force or any(name in running for name in stage.upstream) or not _is_current_as_far_as_known(stage):
             running.add(stage.folder)
-            for key, value in vars(stage.compiles or WarmupJob()).items():
-                if value is not None:
-                    settings.setdefault(key, value)
-    job = WarmupJob(**settings)
-    return None if len(running) < 2 or job.is_empty() else job
+            job = job or stage.compiles  # the splat runs differ in their start only: one job serves all
+    return job if len(running) > 1 else None
 
 
 def _is_current_as_far_as_known(stage: PipelineStage) -> bool:

@@ -1,23 +1,19 @@
-"""The pipeline's first compilation, ahead of the stages that need it (`cubecloud run` on a CPU).
+"""The rasterizer's first compilation, ahead of the splat stages (`cubecloud run` on a CPU).
 
-A new user's first run compiles about a minute of numba kernels (CuNeRF's grid field, export's
-march, the rasterizer's forward and backward), each on one core, inside the stage that first
-calls it. The stages before splat leave one of the two cores idle for much of their time:
-importing, reading the scan, numpy passes, a compilation on the other core. So `run` starts one
-helper process at the lowest priority (nice 19) that calls each stage's kernels once, through
-the stages' own code on tiny inputs, in the order the stages need them. numba writes what it
-compiles to its cache, and each stage loads it from there. At nice 19 the helper takes only the
-cycles the stages leave.
+A new user's first splat run compiled the rasterizer's kernels at its first step: about 22 s on
+both cores (the forward side in the trainer, the backward side in its helper,
+``raster/cpu_warmup.py``). The stages before splat leave cycles idle: importing, reading the
+scan, numpy passes, compilations on one core. So `run` starts one helper process at the lowest
+priority (nice 19) that takes one training step of a tiny scene through the trainer's own code;
+numba writes what it compiles to its cache, and the splat runs load it from there. At nice 19
+the helper takes only the cycles the stages leave. The splat runs wait for it (a trainer
+starting beside it would compile the same kernels again), then start together. With a warm
+cache the helper only loads the kernels and exits within seconds. Runs shorter than
+``MIN_ITERATIONS`` and a single stage compile their own, as before. (Compiling cunerf's and the
+march's kernels ahead too gained nothing: those stages reached them before the helper did.)
 
-The splat runs wait for the helper before they start: the rasterizer is the largest compilation,
-and a trainer starting beside the helper would compile the same kernels again. Its forward side
-compiles in the helper and its backward side in the helper's own backward helper
-(``raster/cpu_warmup.py``), on both cores, as a trainer's first step would. With a warm cache the
-helper only loads the kernels and exits within seconds. Runs shorter than ``MIN_ITERATIONS`` and
-a single stage compile their own, as before.
-
-The kernels see inputs of the stages' own dtypes and layouts, so they compile the signatures the
-stages call. A kernel the stages call with other types is compiled by its stage as before: the
+The kernels see inputs of the trainer's own dtypes and layouts, so they compile the signatures
+training calls. A kernel called with other types is compiled by its stage as before: the
 helper can save time but never change a result (a kernel compiled in the process and one loaded
 from the cache give the same bits, ``cubecloud_cli/jit.py``).
 """
@@ -27,70 +23,30 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
-# Longer than any first compilation measured (about 40 s on the slower host); a helper still
+from cubecloud_cli.splat.settings import SplatSettings
+
+# Longer than any first compilation measured (about 30 s on the slower host); a helper still
 # running then is stopped, and the stages compile what is left themselves.
 WAIT_SECONDS = 300.0
 # The helper's own start (a process importing torch, then loading or compiling) costs a few
 # seconds of CPU; below this many iterations (a test's, a quick look) the splat stage compiles its own.
 MIN_ITERATIONS = 300
-TINY_VOLUME = 8  # voxels per axis: every array keeps more than one element per axis, so its layout
-TINY_IMAGE = 16  # (C-contiguous or not) is the one the stage's full-size arrays have
+# Pixels per side of the tiny scene: every array keeps more than one element per axis, so its
+# layout (C-contiguous or not) is the one full-size training arrays have.
+TINY_IMAGE = 16
 
 
 @dataclass(frozen=True)
 class WarmupJob:
-    """The settings of the stages whose kernels to compile (None: a stage not in this run)."""
+    """What to compile ahead: the rasterizer's kernels for these splat settings (None: nothing)."""
 
-    cunerf: object | None = None  # CunerfSettings
-    export: object | None = None  # ExportSettings
-    splat: object | None = None  # SplatSettings
+    splat: SplatSettings | None = None
 
     def is_empty(self) -> bool:
-        return self.cunerf is None and self.export is None and self.splat is None
-
-
-def compile_cunerf_kernels(settings) -> None:
-    """The grid field's kernels as the cunerf stage and export call them: a training step (when
-    the stage trains), test renders of cubes, and the field at points."""
-    import numpy as np
-    import torch
-
-    from cubecloud_cli.cunerf.api import CunerfField, grid_centres
-    from cubecloud_cli.cunerf.data import TrainingVoxels
-    from cubecloud_cli.cunerf.model import CubeModel
-    from cubecloud_cli.cunerf.training import Trainer
-
-    if settings.model != "fast":
-        return  # the paper's MLP runs in torch: nothing to compile
-    size = TINY_VOLUME
-    volume = torch.rand((size,) * 3, generator=torch.Generator().manual_seed(0))
-    voxels = TrainingVoxels(volume, 1, [], settings.body_fraction)
-    model = CubeModel(settings.field_config(size), settings.render_config(size))
-    if settings.iterations > 0:
-        Trainer(model, voxels, replace(settings, batch_size=16), torch.Generator().manual_seed(0)).step()
-    field = CunerfField(model, size, np.eye(4), voxels.occupancy() if settings.skip_air else None, settings.as_dict())
-    field.bake(size)
-    centres = grid_centres(size, torch.device("cpu"))
-    field.cube_values(centres)
-    field.point_density(centres)
-
-
-def compile_march_kernel(settings) -> None:
-    """The export's ray march over a voxel grid, for its image model."""
-    import torch
-
-    from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-    from cubecloud_cli.render import GridField, ImageModel, render_view
-
-    if settings.view != "dvr":
-        return  # only dvr marches a grid in numba
-    volume = torch.rand((TINY_VOLUME,) * 3, generator=torch.Generator().manual_seed(0)).numpy()
-    cameras = orbit_cameras(OrbitSpec(views=2, resolution=TINY_IMAGE))
-    model = ImageModel(settings.view, step=2.0 / TINY_VOLUME)
-    render_view(GridField(volume, torch.device("cpu")), cameras, 0, model)
+        return self.splat is None
 
 
 def compile_splat_kernels(settings) -> None:
@@ -120,26 +76,20 @@ def compile_splat_kernels(settings) -> None:
 
 
 def warm_up(job: WarmupJob) -> None:
-    """Compile every kernel of ``job``'s stages into numba's cache, in the stages' order."""
-    if job.cunerf is not None:
-        compile_cunerf_kernels(job.cunerf)
-    if job.export is not None:
-        compile_march_kernel(job.export)
+    """Compile the kernels of ``job`` into numba's cache."""
     if job.splat is not None:
         compile_splat_kernels(job.splat)
 
 
 def _helper(job: WarmupJob) -> None:
-    # A group of its own, so that stopping it stops its backward helper too.
+    # A process group of its own, so that stopping it stops its backward helper too (and a Ctrl-C
+    # on the terminal reaches only the stages, which stop it).
     os.setpgrp()
     os.nice(19)
     import torch
 
     torch.set_num_threads(1)  # compiling is serial; the stages have the cores
-    try:
-        warm_up(job)
-    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the run reports it
-        pass
+    warm_up(job)
 
 
 class Warmup:
@@ -149,10 +99,10 @@ class Warmup:
         self.process = process
 
     @classmethod
-    def start(cls, job: WarmupJob) -> "Warmup":
+    def start(cls, job: WarmupJob | None) -> "Warmup":
         from cubecloud_cli.side_by_side import without_main_module
 
-        if job.is_empty():
+        if job is None or job.is_empty():
             return cls(None)
         context = multiprocessing.get_context("spawn")  # a fork would copy torch's thread pools
         process = context.Process(target=_helper, args=(job,), name="cubecloud-warmup", daemon=False)
