@@ -169,3 +169,17 @@ def test_splat_and_eval_on_cuda_score_as_on_the_cpu(works):
     print(f"splat held-out PSNR cpu {held_out[0]:.2f} / cuda ({expected}) {held_out[1]:.2f} dB; "
           f"eval PSNR {scores[0]:.2f} / {scores[1]:.2f} dB")  # fmt: skip
     assert abs(held_out[1] - held_out[0]) < 1.5 and abs(scores[1] - scores[0]) < 1.5
+
+
+def test_volume_ssim_on_cuda_is_the_cpu_one():
+    from cubecloud_cli.metrics import volume_metrics
+
+    rng = np.random.default_rng(11)
+    reference = rng.random((70, 40, 33)).astype(np.float32)  # 70 slices: more than one pass on the device
+    reference[reference < 0.3] = 0.0
+    estimate = np.clip(reference + 0.1 * rng.standard_normal(reference.shape), 0, 1).astype(np.float32)
+    on_cpu = volume_metrics(reference, estimate)
+    on_gpu = volume_metrics(reference, estimate, device=torch.device("cuda"))
+    worst = max(abs(on_gpu[key] - on_cpu[key]) for key in on_cpu)
+    print(f"volume metrics cuda vs scipy: largest difference {worst:.2e}")
+    assert worst < 1e-9

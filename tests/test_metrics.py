@@ -6,10 +6,12 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from skimage.metrics import structural_similarity
 
+from cubecloud_cli import metrics as metrics_module
 from cubecloud_cli.metrics import SSIM_RADIUS, ssim, ssim_and_masked, ssim_maps, volume_metrics
 
 
@@ -79,6 +81,31 @@ def test_volume_ssim_is_the_mean_over_the_slices_of_all_three_axes():
         for k in range(reference.shape[axis])
     ]
     assert volume_metrics(reference, estimate)["ssim"] == pytest.approx(np.mean(per_slice), abs=1e-9)
+
+
+@settings(max_examples=30, deadline=None)
+@given(image_pairs())
+@example((np.zeros((11, 11)), np.zeros((11, 11))))
+@example((np.ones((11, 11)), np.zeros((11, 11))))
+def test_the_device_ssim_map_is_the_cpu_one(pair):
+    reference, estimate = pair
+    on_device = ssim_maps(reference, estimate, device=torch.device("cpu"))
+    assert on_device.dtype == torch.float64 and on_device.device.type == "cpu"
+    np.testing.assert_allclose(on_device.numpy(), ssim_maps(reference, estimate).numpy(), rtol=0, atol=1e-12)
+
+
+def test_the_device_volume_metrics_cross_chunks_and_axes_as_the_cpu_ones(monkeypatch):
+    # A chunk smaller than every axis, so each axis's stack is cut unevenly into passes.
+    monkeypatch.setattr(metrics_module, "SSIM_DEVICE_CHUNK", 5)
+    rng = np.random.default_rng(7)
+    reference = rng.random((13, 16, 12)).astype(np.float32)
+    reference[reference < 0.3] = 0.0
+    estimate = np.clip(reference + 0.1 * rng.standard_normal(reference.shape), 0, 1).astype(np.float32)
+    on_cpu = volume_metrics(reference, estimate)
+    on_device = volume_metrics(reference, estimate, device=torch.device("cpu"))
+    assert on_device.keys() == on_cpu.keys()
+    for key, value in on_cpu.items():
+        assert on_device[key] == pytest.approx(value, abs=1e-12), key
 
 
 def test_ssim_refuses_images_smaller_than_its_window():

@@ -289,7 +289,8 @@ def _reconstruct_and_write(
     )
     with writer.phase("reconstruct"):
         recon = field.bake(size, on_progress=lambda f: on_progress("reconstruct", int(f * 100), 100, {}))
-        metrics = volume_metrics(volume_np, recon)
+        device = voxels.volume.device
+        metrics = volume_metrics(volume_np, recon, device=None if device.type == "cpu" else device)
         export_size = round(size * settings.export_scale)
         exported = recon if export_size == size else field.bake(export_size)
 
