@@ -230,6 +230,10 @@ def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch)
     a, b = (read_gaussians_ply(w / "splat" / "point_cloud.ply") for w in (work, reference))
     for name, value in a.parameters().items():
         torch.testing.assert_close(value, b.parameters()[name])
+    # Densified before the interrupt, yet the manifest counts what training began from.
+    counts = [json.loads((w / "splat" / "manifest.json").read_text())["metrics"] for w in (work, reference)]
+    assert counts[0]["initial_gaussians"] == counts[1]["initial_gaussians"] != counts[0]["gaussians"]
+    assert len(state["gaussians"]["means"]) != counts[1]["initial_gaussians"]
     assert_one_line_error(invoke("splat", work, *options, "--resume"), r"already complete")
 
 

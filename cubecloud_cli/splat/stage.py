@@ -139,13 +139,12 @@ def train_splat(
             with writer.phase("load"):
                 images_digest = _record_inputs(writer, scene_dir)
                 trainer = _build_trainer(scene, settings, device, state)
-                initial_count = len(trainer.gaussians)
             with writer.phase("train"):
                 _train(trainer, checkpoint, on_progress)
             with writer.phase("write"):
                 on_progress("write", 0, 1, {})
                 _write_outputs(trainer, writer.directory)
-            _record_results(writer, trainer, scene, scene_dir, work, settings, device, initial_count, images_digest)
+            _record_results(writer, trainer, scene, scene_dir, work, settings, device, images_digest)
     except (CubecloudInterrupted, NothingToResume):
         raise
     except KeyboardInterrupt:
@@ -198,7 +197,6 @@ def _record_results(
     work: Path,
     settings: SplatSettings,
     device: torch.device,
-    initial_count: int,
     images_digest: str | None,
 ) -> None:
     """The final test scores, the schedule, the scene trained on and the runtime, into the manifest."""
@@ -209,7 +207,7 @@ def _record_results(
             "test_l1": final.get("l1"),
             "test_views": len(scene.test),
             "gaussians": len(trainer.gaussians),
-            "initial_gaussians": initial_count,
+            "initial_gaussians": trainer.initial_count,
             "iterations": trainer.iteration,
             "train_seconds": round(trainer.elapsed_s, 2),
             "iterations_per_second": round(trainer.iteration / max(trainer.elapsed_s, 1e-9), 3),

@@ -78,6 +78,8 @@ class SplatTrainer:
         for name in PARAMETERS:
             setattr(gaussians, name, getattr(gaussians, name).detach().to(device).requires_grad_(True))
         self.gaussians = gaussians
+        # What training started from; a restored checkpoint replaces the Gaussians, not this.
+        self.initial_count = len(gaussians)
         rates = {
             "means": settings.lr_means * self.extent,
             "log_scales": settings.lr_scales,
