@@ -17,8 +17,9 @@
 #    gsplat builds. Its field is the grid model for 2000 iterations: the splat's speed is the
 #    figure, and the paper's MLP spends ~10 min on the H200 reconstructing 512³ (docs/gpu.md).
 #
-# STEPS picks among torch-tests, gsplat-tests, fast, balanced, paper-cunerf, paper-splat and
-# fast-torch (default: all of them).
+# STEPS picks among cuda-metrics, torch-tests, gsplat-tests, fast, balanced, paper-cunerf, paper-splat
+# and fast-torch (default: all of them). The paper's splat gets all the time left, and is cut
+# (with its checkpoint saved) at the deadline.
 #
 # Every step has a share of SECONDS (default 560) and is cut at the deadline; OUT/log.txt holds
 # each step's output and time.
@@ -27,7 +28,7 @@ OUT=${1:?usage: bench/gpu.sh OUT [GSPLAT_SITE] [SECONDS]}
 GSPLAT_SITE=${2:-}
 DEADLINE=$(($(date +%s) + ${3:-560}))
 PLAIN_PATH=${PYTHONPATH:-}
-STEPS=" ${STEPS:-torch-tests gsplat-tests fast balanced paper-cunerf paper-splat fast-torch} "
+STEPS=" ${STEPS:-cuda-metrics torch-tests gsplat-tests fast balanced paper-cunerf paper-splat fast-torch} "
 wanted() { [[ $STEPS == *" $1 "* ]]; }
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
@@ -43,7 +44,8 @@ step() { # step NAME MAX_SECONDS COMMAND...: run within the deadline, and say ho
 	((most > left)) && most=$left
 	echo "== $name (at most ${most}s): $*"
 	start=$(date +%s%N)
-	timeout "$most" "$@"
+	# SIGINT first: a stage cut at the deadline saves its checkpoint and says how far it got.
+	timeout -s INT -k 30 "$most" "$@"
 	local status=$?
 	echo "== $name: exit $status after $((($(date +%s%N) - start) / 1000000)) ms"
 	return $status
@@ -66,13 +68,27 @@ if [[ -n $GSPLAT_SITE ]]; then
 	builder=$!
 fi
 
+stages() { # what each stage of a (possibly cut) pipeline run took and scored, from its manifests
+	python3 - "$1" <<'PY'
+import json, sys
+from pathlib import Path
+for manifest in sorted(Path(sys.argv[1]).glob("*/manifest.json"), key=lambda p: p.stat().st_mtime):
+    data = json.loads(manifest.read_text())
+    metrics = data.get("metrics") or {}
+    keep = ("psnr_3d", "train_seconds", "seconds_per_1000_iterations", "iterations_per_second", "test_psnr",
+            "gaussians", "cunerf_vs_reference_psnr", "peak_gpu_mb", "peak_rss_mb")
+    print(manifest.parent.name, data.get("timings_s", {}).get("total"), {k: metrics[k] for k in keep if k in metrics})
+PY
+}
+
 PAPER=/tmp/gpu-paper
 paper_scene() { # the paper preset's scene: 512³, the grid field for 2000 iterations, 60 slices at 512²
 	rm -rf "$PAPER" && cubecloud preprocess -o "$PAPER" --preset paper -q &&
 		cubecloud cunerf "$PAPER" --preset paper --model fast --iterations 2000 --device cuda -q &&
 		cubecloud export "$PAPER" --preset paper --device cuda -q
 }
-wanted paper-splat && step "paper scene (while gsplat builds; not timed)" 200 bash -c "$(declare -f paper_scene); PAPER=$PAPER paper_scene"
+wanted paper-splat && step "paper scene (while gsplat builds; not timed)" 240 bash -c "$(declare -f paper_scene); PAPER=$PAPER paper_scene" && stages "$PAPER"
+wanted cuda-metrics && step "pytest -m cuda, the metrics on the GPU" 60 python3 -m pytest -q -s -m cuda tests/test_cuda.py -k volume_ssim -p no:cacheprovider
 wanted torch-tests && step "pytest -m cuda, PyTorch rasterizer" 200 python3 -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider
 
 if [[ -n $GSPLAT_SITE ]]; then
@@ -86,18 +102,6 @@ if [[ -n $GSPLAT_SITE ]]; then
 	fi
 fi
 
-stages() { # what each stage of a (possibly cut) pipeline run took and scored, from its manifests
-	python3 - "$1" <<'PY'
-import json, sys
-from pathlib import Path
-for manifest in sorted(Path(sys.argv[1]).glob("*/manifest.json"), key=lambda p: p.stat().st_mtime):
-    data = json.loads(manifest.read_text())
-    metrics = data.get("metrics") or {}
-    keep = ("psnr_3d", "train_seconds", "seconds_per_1000_iterations", "iterations_per_second", "test_psnr",
-            "gaussians", "cunerf_vs_reference_psnr", "peak_gpu_mb", "peak_rss_mb")
-    print(manifest.parent.name, data.get("timings_s", {}).get("total"), {k: metrics[k] for k in keep if k in metrics})
-PY
-}
 
 pipeline() { # pipeline NAME MAX_SECONDS PRESET: one cold `cubecloud run --device cuda`, kept for its manifests
 	rm -rf "/tmp/gpu-$3"
@@ -112,8 +116,10 @@ wanted paper-cunerf && step "paper CuNeRF at 512³, 60 s of training" 170 \
 if wanted paper-splat && [[ -f $PAPER/export/manifest.json ]]; then
 	# Progress is drawn only on a terminal: script(1) gives it one, and the log keeps the rate.
 	export COLUMNS=200
-	step "paper splat, 30 000 iterations at 512²" 300 \
-		script -qfec "cubecloud splat $PAPER --preset paper --device cuda" "$OUT/paper_splat.tty"
+	# All the time left: script(1) does not pass SIGINT on, so the cut is made inside it.
+	left=$((DEADLINE - $(date +%s) - 40))
+	step "paper splat, 30 000 iterations at 512²" $((left + 30)) \
+		script -qfec "timeout -s INT -k 20 $left cubecloud splat $PAPER --preset paper --device cuda" "$OUT/paper_splat.tty"
 	tr '\r' '\n' <"$OUT/paper_splat.tty" | sed 's/\x1b\[[0-9;]*[A-Za-z]//g' | grep -a "it/s" | awk 'NR % 50 == 0' | tail -n 40
 	stages "$PAPER"
 fi
