@@ -34,19 +34,25 @@ def rows(out):
     return {row["id"]: row for row in csv.DictReader(open(out / "cohort" / "per_scan.csv"))}
 
 
-def test_three_scans_and_a_corrupt_one_run_locally_and_the_report_lists_the_failure(tmp_path):
-    scans = scans_folder(tmp_path / "scans", good=3, corrupt=True)
-    out = tmp_path / "out"
-    error = assert_one_line_error(invoke("cohort", scans, "-o", out, "--cores", "2", *TINY, "-q"),
-                                  r"1 of 4 scans failed \(broken: preprocess: cannot read .*broken\.nii\.gz")  # fmt: skip
+@pytest.fixture(scope="module")
+def local_cohort(tmp_path_factory):
+    """Two scans and a corrupt one through a local cohort: the outcome, and the folders."""
+    root = tmp_path_factory.mktemp("cohort")
+    scans, out = scans_folder(root / "scans", good=2, corrupt=True), root / "out"
+    return invoke("cohort", scans, "-o", out, "--cores", "2", *TINY, "-q"), scans, out
+
+
+def test_two_scans_and_a_corrupt_one_run_locally_and_the_report_lists_the_failure(local_cohort):
+    result, _, out = local_cohort
+    error = assert_one_line_error(result, r"1 of 3 scans failed \(broken: preprocess: cannot read .*broken\.nii\.gz")
     assert "report.md" in error
     table = rows(out)
-    assert [table[f"case{n}"]["status"] for n in range(3)] == ["done"] * 3 and table["broken"]["status"] == "failed"
-    for number in range(3):  # each scan is a normal work directory
+    assert [table[f"case{n}"]["status"] for n in range(2)] == ["done"] * 2 and table["broken"]["status"] == "failed"
+    for number in range(2):  # each scan is a normal work directory
         assert (out / f"case{number}" / "eval" / "metrics.json").is_file()
         assert float(table[f"case{number}"]["splat_novel_psnr"]) > 10.0
     report = (out / "cohort" / "report.md").read_text()
-    assert "4 scans, 3 finished." in report and "| Cube-Cloud 3DGS |" in report and "| broken |" in report
+    assert "3 scans, 2 finished." in report and "| Cube-Cloud 3DGS |" in report and "| broken |" in report
     assert not (out / "broken" / "eval").exists()
     assert not (out / "cohort" / "lock").exists()
     launcher = json.loads((out / "cohort" / "config.json").read_text())["cubecloud"]
@@ -54,8 +60,22 @@ def test_three_scans_and_a_corrupt_one_run_locally_and_the_report_lists_the_fail
     assert not Path(launcher[3]).exists()  # which stopped with the cohort
 
 
-def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(tmp_path):
-    scans = scans_folder(tmp_path / "scans", good=1)
+def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(local_cohort, tmp_path):
+    """The local cohort's first scan, its stages up to export kept: the executor submits the
+    two splat runs and eval, each job a process of its own (each pays Python's and torch's start,
+    so the scan's whole pipeline would take a minute here)."""
+    _, local_scans, local_out = local_cohort
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy2(local_scans / "case0.nii.gz", scans)  # older than the stages made from it
+    out = tmp_path / "out"
+    shutil.copytree(local_out / "case0", out / "case0")
+    for stage in ("splat", "splat-random", "eval"):
+        shutil.rmtree(out / "case0" / stage)
+    kept = {
+        stage: (out / "case0" / stage / "manifest.json").stat().st_mtime_ns
+        for stage in ("preprocess", "cunerf", "export")
+    }
     profile = tmp_path / "profile"
     profile.mkdir()
     # The submit command gets the job script last: start it in the background, print an id.
@@ -66,10 +86,16 @@ def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(tmp_pa
         "latency-wait: 5\n"
         "seconds-between-status-checks: 1\n"
     )
-    out = tmp_path / "out"
     result = invoke("cohort", scans, "-o", out, "--profile", profile, *TINY, "-q")
     assert result.exit_code == 0, result.output
     assert rows(out)["case0"]["status"] == "done"
+    assert (out / "case0" / "eval" / "metrics.json").is_file()
+    assert sorted(p.name for p in (out / "cohort" / "logs" / "case0").iterdir()) == [
+        "eval.log",
+        "splat-random.log",
+        "splat.log",
+    ]
+    assert {stage: (out / "case0" / stage / "manifest.json").stat().st_mtime_ns for stage in kept} == kept
     assert "--profile" in (out / "cohort" / "snakemake_command.txt").read_text()
     launcher = json.loads((out / "cohort" / "config.json").read_text())["cubecloud"]
     assert launcher[1:] == ["-m", "cubecloud_cli"]  # an executor may send jobs elsewhere: no job server

@@ -50,22 +50,25 @@ def test_a_toy_trade_study(tmp_path, monkeypatch, capsys):
     assert iterations == 12
     assert "<svg" in (out / "time_vs_psnr.svg").read_text() and (out / "trade.md").read_text().count("\n") == 2 + 6
     # Into the same OUT again: nothing is redone; a changed knob value runs only its new stages.
-    again = subprocess.run(command, capture_output=True, text=True)
-    assert again.returncode == 0 and "cubecloud " not in again.stdout.replace("trade", "")
-    command[command.index("iterations=12,24")] = "iterations=12,30"
-    changed = subprocess.run(command, capture_output=True, text=True)
-    assert changed.returncode == 0, changed.stderr[-2000:]
-    ran = [line for line in changed.stdout.splitlines() if ": cubecloud " in line]
+    # The script ran above as a user runs it; the runs below call its main() in this process,
+    # which spares each one Python's start and torch's import.
+    trade, options = _load_script(), command[2:]
+    code, printed, _ = _main(trade, options, monkeypatch, capsys)
+    assert code == 0 and "cubecloud " not in printed.replace("trade", "")
+    options[options.index("iterations=12,24")] = "iterations=12,30"
+    code, printed, err = _main(trade, options, monkeypatch, capsys)
+    assert code == 0, err[-2000:]
+    ran = [line for line in printed.splitlines() if ": cubecloud " in line]
     assert ran and all(line.strip().startswith("iterations=30:") for line in ran)
     # A finished work directory from elsewhere (e.g. `cubecloud run --preset balanced`) joins as a line.
-    included = subprocess.run([*command, "--include", f"other={preset}"], capture_output=True, text=True)
-    assert included.returncode == 0, included.stderr[-2000:]
+    code, _, err = _main(trade, [*options, "--include", f"other={preset}"], monkeypatch, capsys)
+    assert code == 0, err[-2000:]
     with open(out / "trade.csv", newline="") as handle:
         other = [r for r in csv.DictReader(handle) if r["config"] == "other"]
     assert [r["method"] for r in other] == ["Cube-Cloud 3DGS", "3DGS, random init"]
     assert float(other[0]["psnr"]) == float(rows[0]["psnr"])
-    refused = subprocess.run([*command, "--include", f"broken={tmp_path}"], capture_output=True, text=True)
-    assert refused.returncode == 2 and "every stage complete" in refused.stderr
+    code, _, err = _main(trade, [*options, "--include", f"broken={tmp_path}"], monkeypatch, capsys)
+    assert code == 2 and "every stage complete" in err
     _a_finished_run_seeds_the_base(preset, tmp_path, monkeypatch, capsys)
 
 
@@ -82,18 +85,16 @@ def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys
         "--out",
         str(tmp_path / "b"),
     ]
-    with_options = subprocess.run(
-        [*base, "--base", str(finished), "--stage-options", "preprocess=--size 16"], capture_output=True, text=True
-    )
-    assert with_options.returncode == 2 and "--base with --stage-options" in with_options.stderr
+    trade = _load_script()
+    code, _, err = _main(trade, [*base[2:], "--base", str(finished), "--stage-options", "preprocess=--size 16"], monkeypatch, capsys)  # fmt: skip
+    assert code == 2 and "--base with --stage-options" in err
     # The toy run is not a `--preset fast` run: the refusal names what differs.
-    other = subprocess.run([*base, "--base", str(finished)], capture_output=True, text=True)
-    assert other.returncode == 2 and "preprocess size is 16, the preset's is 128" in other.stderr
+    code, _, err = _main(trade, [*base[2:], "--base", str(finished)], monkeypatch, capsys)
+    assert code == 2 and "preprocess size is 16, the preset's is 128" in err
     assert not (tmp_path / "b").exists()
 
     from cubecloud_cli import presets
 
-    trade = _load_script()
     # Make the toy's options the preset's own, so the toy run is a run of the preset.
     monkeypatch.setitem(presets.PRESETS["preprocess"]["fast"], "size", 16)
     for key, value in {"views": 4, "resolution": 16, "points_per_cube": 32}.items():
@@ -122,6 +123,19 @@ def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys
     assert "cubecloud" not in capsys.readouterr().out  # every stage kept, none rerun
     for stage in trade.STAGES:
         assert (work / stage / "manifest.json").stat().st_ino == (finished / stage / "manifest.json").stat().st_ino
+
+
+def _main(trade, arguments: list[str], monkeypatch, capsys) -> tuple[int, str, str]:
+    """The script's main() with these arguments: its exit code, standard output and error."""
+    capsys.readouterr()
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), *arguments])
+    try:
+        trade.main()
+        code = 0
+    except SystemExit as exit:
+        code = exit.code if isinstance(exit.code, int) else 1
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
 
 
 def _load_script():
