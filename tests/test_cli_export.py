@@ -81,7 +81,7 @@ def test_stage_writes_the_scene(exported):
         assert Image.open(exported / name).size[0] > 32
     assert set(manifest["timings_s"]) >= {"load", "bake", "render_images", "render_reference", "point_cloud", "write"}
     assert manifest["params"]["resolution"] == 32 and manifest["params"]["cunerf"] == "cunerf"
-    assert set(manifest["inputs"]) == {"preprocess/volume.npy", "cunerf/model.pt"}
+    assert set(manifest["inputs"]) == {"preprocess/volume.npy", "cunerf/model.pt", "cunerf/recon.nii.gz"}
     assert manifest["render_source"]["bake_size"] == 32
     assert manifest["image_model"]["kind"] == "dvr" and 0 <= manifest["image_model"]["transfer"]["low"] <= 1
     assert manifest["metrics"]["points"] == manifest["point_cloud"]["points"] == 1500
@@ -216,7 +216,8 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
     result = invoke("export", work, *SMALL)
     assert result.exit_code == 130
     assert "11 of 98 views are saved" in result.stderr and "run the same command to continue" in result.stderr
-    assert not (work / "export").exists() and (work / ".export.partial" / "progress" / "bake.npy").is_file()
+    assert not (work / "export").exists() and (work / ".export.partial" / "progress").is_dir()
+    assert not (work / ".export.partial" / "progress" / "bake.npy").exists()  # the cunerf stage's bake is taken
 
     calls.clear()
     resumed = invoke("export", work, *SMALL)
@@ -322,3 +323,30 @@ def test_the_overlay_example_reads_the_scene(exported, tmp_path):
     )
     assert "9 PINHOLE views of 32x32" in result.stdout and "1500 drawn points land inside the image" in result.stdout
     assert Image.open(out).size == (32, 32)
+
+
+def test_export_takes_the_cunerf_stages_own_bake_where_baking_would_give_the_same_grid(
+    trained, exported, tmp_path, monkeypatch
+):
+    import cubecloud_cli.export.stage as export_stage
+
+    assert "cunerf/recon.nii.gz" in json.loads((exported / "manifest.json").read_text())["inputs"]
+    monkeypatch.setattr(export_stage, "saved_bake", lambda *args: None)
+    baked = _copy_upstream(trained, tmp_path / "baked")
+    result = invoke("export", baked, *SMALL, "-q")
+    assert result.exit_code == 0, result.output
+    assert "cunerf/recon.nii.gz" not in json.loads((baked / "export" / "manifest.json").read_text())["inputs"]
+    for name in ("images.npy", "points3D.ply", "novel/reference.npy"):
+        assert (exported / name).read_bytes() == (baked / "export" / name).read_bytes(), name
+    monkeypatch.undo()
+    # A reconstruction changed since cunerf wrote it (one byte, the size kept) is not taken:
+    # export bakes the field again.
+    changed = _copy_upstream(trained, tmp_path / "changed")
+    recon = changed / "cunerf" / "recon.nii.gz"
+    data = bytearray(recon.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    recon.write_bytes(bytes(data))
+    result = invoke("export", changed, *SMALL, "-q")
+    assert result.exit_code == 0, result.output
+    assert "cunerf/recon.nii.gz" not in json.loads((changed / "export" / "manifest.json").read_text())["inputs"]
+    assert (changed / "export" / "images.npy").read_bytes() == (exported / "images.npy").read_bytes()

@@ -33,6 +33,7 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import NovelViewSet, nearest_angles_deg
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.export.cunerf_bake import saved_bake
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
 from cubecloud_cli.export.novel import render_novel_references, write_novel
@@ -131,6 +132,7 @@ class ExportJob:
     novel: NovelViewSet
     image_model: ImageModel
     preprocess: dict  # the preprocess manifest
+    cunerf: dict  # the cunerf manifest
     size: int  # the volume's side in voxels
     device: torch.device
     cunerf_name: str | None
@@ -180,7 +182,7 @@ def _plan_export(
     except ValueError as exc:
         raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
     job = ExportJob(
-        work, settings, cameras, settings.novel_view_set(), image_model, preprocess, size, device, cunerf_name
+        work, settings, cameras, settings.novel_view_set(), image_model, preprocess, cunerf, size, device, cunerf_name
     )
     return job, cunerf
 
@@ -247,7 +249,7 @@ def _render(
 
     with writer.phase("bake"):
         on_progress("bake", 0, views, {})
-        cunerf_images_field = _cunerf_scalar_field(field, settings, job.size, device, progress, on_progress)
+        cunerf_images_field = _cunerf_scalar_field(field, job, writer, progress, on_progress)
     with writer.phase("render_images"):
         images = _render_saving_views(
             cunerf_images_field, cameras, job.image_model, device, progress, "images", count_views("images", 0)
@@ -316,16 +318,24 @@ def _render_saving_views(
 
 
 def _cunerf_scalar_field(
-    field: CunerfField, settings: ExportSettings, size: int, device: torch.device, progress: ExportProgress, on_progress
+    field: CunerfField, job: ExportJob, writer: StageWriter, progress: ExportProgress, on_progress
 ):
-    """The field the training images are rendered from: CuNeRF baked to a grid (fast), or its
-    cube renders queried at every ray sample (``--render-from field``)."""
+    """The field the training images are rendered from: CuNeRF baked to a grid (fast; the
+    cunerf stage's own bake where it is the same grid), or its cube renders queried at every ray
+    sample (``--render-from field``)."""
+    settings, size, device = job.settings, job.size, job.device
     if settings.render_from == "grid":
         bake_size = settings.bake_resolution(size)
         baked = progress.load("bake")
         if baked is None or baked.shape != (bake_size,) * 3:
-            baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
-            progress.save("bake", baked)
+            cunerf_dir = job.work / stage_dir_name("cunerf", job.cunerf_name)
+            saved = saved_bake(cunerf_dir, job.cunerf, bake_size, device)
+            if saved is not None:
+                baked, path = saved
+                writer.add_input(path, f"{cunerf_dir.name}/{path.name}")
+            else:
+                baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
+                progress.save("bake", baked)
         return GridField(baked, device)
     occupancy = field.occupancy
     if occupancy is not None and occupancy.blocks.shape[0] * occupancy.block == size:
