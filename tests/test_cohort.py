@@ -101,26 +101,34 @@ def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(local_
     assert launcher[1:] == ["-m", "cubecloud_cli"]  # an executor may send jobs elsewhere: no job server
 
 
-def test_a_cohort_killed_mid_way_resumes_where_it_stopped(tmp_path):
-    scans = scans_folder(tmp_path / "scans", good=1)
+def test_a_cohort_killed_mid_way_resumes_where_it_stopped(local_cohort, tmp_path):
+    """The local cohort's first scan, exported: the cohort is killed while a splat stage trains,
+    and the same command finishes it without redoing the stages before."""
+    _, local_scans, local_out = local_cohort
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy2(local_scans / "case0.nii.gz", scans)  # older than the stages made from it
     out = tmp_path / "out"
+    shutil.copytree(local_out / "case0", out / "case0")
+    for stage in ("splat", "splat-random", "eval"):
+        shutil.rmtree(out / "case0" / stage)
     command = [sys.executable, "-m", "cubecloud_cli", "cohort", str(scans), "-o", str(out), "--cores", "2", *TINY, "-q"]
     process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    preprocess = out / "case0" / "preprocess" / "manifest.json"
-    training = out / "case0" / ".cunerf.partial"  # the second stage under way: the first one is done
+    exported = out / "case0" / "export" / "manifest.json"
+    written = exported.stat().st_mtime_ns
+    training = [out / "case0" / ".splat.partial", out / "case0" / ".splat-random.partial"]
     deadline = time.monotonic() + 300
-    while not training.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert training.exists(), "the cohort never started its second stage"
-    os.killpg(process.pid, signal.SIGKILL)  # the cohort, Snakemake and the running job, as a cluster would
+    while not any(p.exists() for p in training) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert any(p.exists() for p in training), "the cohort never started a splat stage"
+    os.killpg(process.pid, signal.SIGKILL)  # the cohort, Snakemake and the running jobs, as a cluster would
     process.wait()
     assert not (out / "case0" / "eval" / "manifest.json").exists()
-    written = preprocess.stat().st_mtime_ns
 
     result = invoke("cohort", scans, "-o", out, "--cores", "2", *TINY, "-q")
     assert result.exit_code == 0, result.output
     assert rows(out)["case0"]["status"] == "done"
-    assert preprocess.stat().st_mtime_ns == written  # the finished stage was not redone
+    assert exported.stat().st_mtime_ns == written  # the finished stages were not redone
 
 
 def test_bad_cohort_input_is_one_line(tmp_path):
