@@ -4,21 +4,28 @@ iteration's time goes (render forward, loss, backward, optimizer, densification)
     cubecloud run -o work                          # makes work/export (fast preset: 128²)
     python bench/splat.py work/export              # 300 iterations of the fast preset's schedule
     python bench/splat.py work/export --iterations 300 --schedule-iterations 7000
+    python bench/splat.py work/export --preset fast --threads 1 --iterations 600 --profile 100
 
 Densification follows the schedule of --schedule-iterations (the preset's length), so the first
 few hundred iterations measured here are those of a real run: from the initial cloud, before the
-first densification step grows or prunes it.
+first densification step grows or prunes it. --preset takes the splat settings of a preset (the
+anti-aliasing, the budget, the schedule's length); --threads N sets numba's and torch's threads
+(1: a run as `cubecloud run` trains it beside the baseline on 2 cores); --profile N runs N more
+iterations under cProfile and prints where their time went.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import pstats
 import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from cubecloud_cli.presets import PRESET_NAMES, PRESETS
 from cubecloud_cli.scene import read_point_cloud_ply
 from cubecloud_cli.splat.data import load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points
@@ -35,11 +42,23 @@ def main() -> None:
         "--schedule-iterations", type=int, default=2000, help="the run length the schedule is scaled to"
     )
     parser.add_argument("--max-gaussians", type=int, default=200_000)
+    parser.add_argument("--preset", choices=PRESET_NAMES, help="the preset's splat settings (its length too)")
+    parser.add_argument("--threads", type=int, help="numba's and torch's threads (default: theirs)")
+    parser.add_argument("--profile", type=int, default=0, metavar="N", help="N more iterations under cProfile")
     args = parser.parse_args()
+    if args.threads:
+        import numba
+
+        numba.set_num_threads(args.threads)
+        torch.set_num_threads(args.threads)
 
     scene = load_scene(args.scene, 1)
     xyz, rgb, _ = read_point_cloud_ply(args.scene / "points3D.ply")
-    settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
+    if args.preset:
+        fields = SplatSettings.__dataclass_fields__
+        settings = SplatSettings(**{k: v for k, v in PRESETS["splat"][args.preset].items() if k in fields})
+    else:
+        settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
     trainer = SplatTrainer(gaussians_from_points(xyz, rgb[:, :1] / 255.0), scene, settings, torch.device("cpu"))
     print(
         f"{scene.cameras.width}² views, {len(trainer.gaussians)} initial Gaussians, {torch.get_num_threads()} threads, "
@@ -54,6 +73,16 @@ def main() -> None:
         f"  training: {args.iterations / elapsed:.1f} it/s over {args.iterations} iterations "
         f"({len(trainer.gaussians)} Gaussians at the end)"
     )
+    if args.profile:
+        profiler = cProfile.Profile()
+        started = time.perf_counter()
+        profiler.enable()
+        for _ in range(args.profile):
+            trainer.step()
+        profiler.disable()
+        per_step = 1000 * (time.perf_counter() - started) / args.profile
+        print(f"  {args.profile} more iterations under cProfile: {per_step:.1f} ms each; by own time:")
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(20)
 
     splits = {"render forward": [], "loss": [], "backward": [], "optimizer": []}
     for _ in range(30):
