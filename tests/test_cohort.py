@@ -60,10 +60,9 @@ def test_two_scans_and_a_corrupt_one_run_locally_and_the_report_lists_the_failur
     assert not Path(launcher[3]).exists()  # which stopped with the cohort
 
 
-def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(local_cohort, tmp_path):
-    """The local cohort's first scan, its stages up to export kept: the executor submits the
-    two splat runs and eval, each job a process of its own (each pays Python's and torch's start,
-    so the scan's whole pipeline would take a minute here)."""
+def exported_scan(local_cohort, tmp_path):
+    """The local cohort's first scan with its stages up to export (a scans folder and an output
+    folder of its own): the splat runs and eval are left to run."""
     _, local_scans, local_out = local_cohort
     scans = tmp_path / "scans"
     scans.mkdir()
@@ -72,6 +71,14 @@ def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(local_
     shutil.copytree(local_out / "case0", out / "case0")
     for stage in ("splat", "splat-random", "eval"):
         shutil.rmtree(out / "case0" / stage)
+    return scans, out
+
+
+def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(local_cohort, tmp_path):
+    """The local cohort's first scan, its stages up to export kept: the executor submits the
+    two splat runs and eval, each job a process of its own (each pays Python's and torch's start,
+    so the scan's whole pipeline would take a minute here)."""
+    scans, out = exported_scan(local_cohort, tmp_path)
     kept = {
         stage: (out / "case0" / stage / "manifest.json").stat().st_mtime_ns
         for stage in ("preprocess", "cunerf", "export")
@@ -104,14 +111,7 @@ def test_the_generic_cluster_executor_submits_each_job_as_its_own_process(local_
 def test_a_cohort_killed_mid_way_resumes_where_it_stopped(local_cohort, tmp_path):
     """The local cohort's first scan, exported: the cohort is killed while a splat stage trains,
     and the same command finishes it without redoing the stages before."""
-    _, local_scans, local_out = local_cohort
-    scans = tmp_path / "scans"
-    scans.mkdir()
-    shutil.copy2(local_scans / "case0.nii.gz", scans)  # older than the stages made from it
-    out = tmp_path / "out"
-    shutil.copytree(local_out / "case0", out / "case0")
-    for stage in ("splat", "splat-random", "eval"):
-        shutil.rmtree(out / "case0" / stage)
+    scans, out = exported_scan(local_cohort, tmp_path)
     command = [sys.executable, "-m", "cubecloud_cli", "cohort", str(scans), "-o", str(out), "--cores", "2", *TINY, "-q"]
     process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     exported = out / "case0" / "export" / "manifest.json"
