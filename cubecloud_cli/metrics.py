@@ -78,7 +78,7 @@ def _valid_blur_torch(stack: torch.Tensor, window: torch.Tensor) -> torch.Tensor
     return blurred.transpose(1, 2)
 
 
-# Slices per pass on a device: at 512² in float64, ~1 GB of temporaries however deep the stack.
+# Slices per pass on a device: at 512² in float64, about 2 GB of temporaries however deep the stack.
 SSIM_DEVICE_CHUNK = 64
 
 

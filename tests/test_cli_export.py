@@ -216,8 +216,7 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
     result = invoke("export", work, *SMALL)
     assert result.exit_code == 130
     assert "11 of 98 views are saved" in result.stderr and "run the same command to continue" in result.stderr
-    assert not (work / "export").exists() and (work / ".export.partial" / "progress").is_dir()
-    assert not (work / ".export.partial" / "progress" / "bake.npy").exists()  # the cunerf stage's bake is taken
+    assert not (work / "export").exists() and (work / ".export.partial" / "progress" / "bake.npy").is_file()
 
     calls.clear()
     resumed = invoke("export", work, *SMALL)
@@ -350,3 +349,12 @@ def test_export_takes_the_cunerf_stages_own_bake_where_baking_would_give_the_sam
     assert result.exit_code == 0, result.output
     assert "cunerf/recon.nii.gz" not in json.loads((changed / "export" / "manifest.json").read_text())["inputs"]
     assert (changed / "export" / "images.npy").read_bytes() == (exported / "images.npy").read_bytes()
+    # Nor one that another torch wrote: its bits may differ from this torch's bake.
+    other_torch = _copy_upstream(trained, tmp_path / "other-torch")
+    manifest_path = other_torch / "cunerf" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["runtime"]["torch"] = "0.0"
+    manifest_path.write_text(json.dumps(manifest))
+    result = invoke("export", other_torch, *SMALL, "-q")
+    assert result.exit_code == 0, result.output
+    assert "cunerf/recon.nii.gz" not in json.loads((other_torch / "export" / "manifest.json").read_text())["inputs"]

@@ -335,7 +335,7 @@ def _cunerf_scalar_field(
                 writer.add_input(path, f"{cunerf_dir.name}/{path.name}")
             else:
                 baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
-                progress.save("bake", baked)
+            progress.save("bake", baked)  # a resumed export renders from this grid, whatever its threads
         return GridField(baked, device)
     occupancy = field.occupancy
     if occupancy is not None and occupancy.blocks.shape[0] * occupancy.block == size:
