@@ -16,9 +16,11 @@ from cubecloud_cli import __version__
 from cubecloud_cli.artifacts import sha256_of_path
 
 
-def saved_bake(cunerf_dir: Path, manifest: dict, size: int, device: torch.device) -> tuple[np.ndarray, Path] | None:
-    """The cunerf run's bake at ``size``³ and its path, or None where it is not the grid that
-    baking here would give."""
+def saved_bake(
+    cunerf_dir: Path, manifest: dict, size: int, device: torch.device
+) -> tuple[np.ndarray, Path, str] | None:
+    """The cunerf run's bake at ``size``³, its path and its sha256, or None where it is not the
+    grid that baking here would give."""
     reconstruction, runtime = manifest.get("reconstruction") or {}, manifest.get("runtime") or {}
     name = reconstruction.get("file")
     if name is None or reconstruction.get("shape") != [size] * 3:
@@ -39,4 +41,4 @@ def saved_bake(cunerf_dir: Path, manifest: dict, size: int, device: torch.device
         return None
     if volume.shape != (size,) * 3 or not np.isfinite(volume).all():
         return None
-    return volume, path
+    return volume, path, recorded

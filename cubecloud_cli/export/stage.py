@@ -138,6 +138,10 @@ class ExportJob:
     cunerf_name: str | None
 
     @property
+    def cunerf_dir(self) -> Path:
+        return self.work / stage_dir_name("cunerf", self.cunerf_name)
+
+    @property
     def total_views(self) -> int:
         return 2 * len(self.cameras) + len(self.novel)
 
@@ -210,11 +214,11 @@ def _load_inputs(job: ExportJob, writer: StageWriter) -> tuple[np.ndarray, Cuner
     """The volume and the trained field, each checked against the manifest of the stage that wrote it."""
     work, size = job.work, job.size
     volume_path = work / "preprocess" / "volume.npy"
-    model_path = work / stage_dir_name("cunerf", job.cunerf_name) / MODEL_FILE
+    model_path = job.cunerf_dir / MODEL_FILE
     # The hashes are taken anyway for the manifest; they also catch files changed in place.
     for path, label, fix in (
         (volume_path, "preprocess/volume.npy", f"cubecloud preprocess SCAN -o {work} --force"),
-        (model_path, f"{stage_dir_name('cunerf', job.cunerf_name)}/{MODEL_FILE}", f"cubecloud cunerf {work} --force"),
+        (model_path, f"{job.cunerf_dir.name}/{MODEL_FILE}", f"cubecloud cunerf {work} --force"),
     ):
         recorded = read_manifest(path.parent)["files"].get(path.name, {}).get("sha256")
         if writer.add_input(path, label) != recorded:
@@ -328,11 +332,10 @@ def _cunerf_scalar_field(
         bake_size = settings.bake_resolution(size)
         baked = progress.load("bake")
         if baked is None or baked.shape != (bake_size,) * 3:
-            cunerf_dir = job.work / stage_dir_name("cunerf", job.cunerf_name)
-            saved = saved_bake(cunerf_dir, job.cunerf, bake_size, device)
-            if saved is not None:
-                baked, path = saved
-                writer.add_input(path, f"{cunerf_dir.name}/{path.name}")
+            saved = saved_bake(job.cunerf_dir, job.cunerf, bake_size, device)
+            if saved is not None:  # its hash checked against the cunerf manifest: recorded, not taken again
+                baked, path, digest = saved
+                writer.inputs[f"{job.cunerf_dir.name}/{path.name}"] = digest
             else:
                 baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
             progress.save("bake", baked)  # a resumed export renders from this grid, whatever its threads
