@@ -138,26 +138,3 @@ def _running(pid: int) -> bool:
     except OSError:
         return False
     return state != "Z"  # a zombie has stopped; only its parent, gone here, would reap it
-
-
-def test_the_server_imports_what_a_jobs_first_optimizer_would(tmp_path):
-    """torch.optim imports torch._dynamo on a process's first optimizer (about 2 s); after the
-    server's warm imports a forked job builds one without importing anything. Without them it
-    does import (else the warm-up has nothing left to do and should go)."""
-    probe = (
-        "import sys\n"
-        "from cubecloud_cli.cohort import job_server\n"
-        "if sys.argv[1] == 'warm':\n"
-        "    job_server.warm_imports()\n"
-        "import torch\n"
-        "before = set(sys.modules)\n"
-        "torch.optim.Adam([torch.zeros(1, requires_grad=True)])\n"
-        "print(len(set(sys.modules) - before))\n"
-    )
-    imported = {
-        state: int(
-            subprocess.run([sys.executable, "-c", probe, state], capture_output=True, text=True, check=True).stdout
-        )
-        for state in ("cold", "warm")
-    }
-    assert imported["cold"] > 0 and imported["warm"] == 0, imported

@@ -144,10 +144,7 @@ def _wait_for_jobs(seconds: float) -> None:
 
 def warm_imports() -> None:
     """Import what every job would otherwise import for itself, without starting a thread: the CLI
-    and its stages (torch, numba), and torch._dynamo, which torch.optim imports when a process
-    builds its first optimizer (about 2 s: each cunerf and splat job paid it again)."""
-    import torch._dynamo  # noqa: F401
-
+    and its stages (torch, numba)."""
     import cubecloud_cli.cli  # noqa: F401
 
 

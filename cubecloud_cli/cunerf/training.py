@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from cubecloud_cli.adam import Optimizer, adam
 from cubecloud_cli.cunerf.data import TrainingVoxels, voxel_centres
 from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
@@ -47,15 +48,12 @@ def adaptive_mse(output: CubeOutput, target: torch.Tensor) -> torch.Tensor:
     return loss
 
 
-def make_optimizer(model: CubeModel, settings: CunerfSettings) -> torch.optim.Optimizer:
+def make_optimizer(model: CubeModel, settings: CunerfSettings) -> Optimizer:
     if settings.model == "cunerf":
         options: dict[str, Any] = {"betas": (0.9, 0.999), "eps": 1e-6}  # the official values
     else:
         options = {"betas": (0.9, 0.99), "eps": 1e-15}  # instant-NGP's, for feature grids
-    try:
-        return torch.optim.Adam(model.parameters(), lr=settings.lr, fused=True, **options)
-    except (RuntimeError, TypeError):  # fused kernels are missing on some builds
-        return torch.optim.Adam(model.parameters(), lr=settings.lr, **options)
+    return adam([{"params": list(model.parameters())}], lr=settings.lr, **options)
 
 
 @dataclass

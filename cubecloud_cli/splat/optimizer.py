@@ -7,11 +7,13 @@ from typing import Callable, Iterable
 
 import torch
 
+from cubecloud_cli.adam import Optimizer
+
 MOMENTS = ("exp_avg", "exp_avg_sq")
 
 
 def replace_parameters(
-    optimizer: torch.optim.Optimizer,
+    optimizer: Optimizer,
     names: Iterable[str],
     new_value: Callable[[str, torch.Tensor], torch.Tensor],
     new_moment: Callable[[str, torch.Tensor], torch.Tensor],

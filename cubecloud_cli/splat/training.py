@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cubecloud_cli.adam import adam
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.metrics import psnr_from_mse
 from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
@@ -91,10 +92,7 @@ class SplatTrainer:
         groups = [{"params": [getattr(gaussians, name)], "lr": rates[name], "name": name} for name in PARAMETERS]
         # Fused: one pass over each parameter instead of about ten elementwise ops, each with its
         # own temporary; on the CPU a 75k-Gaussian step took 3.5 ms and takes 0.9 ms on one thread.
-        try:
-            self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=True)
-        except (RuntimeError, TypeError):  # fused kernels are missing on some builds
-            self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        self.optimizer = adam(groups, eps=1e-15)
         self.strategy = DensifyStrategy.from_settings(settings)
         self.schedule = self.strategy.schedule
         self.stats = GradientStats(len(gaussians), device)
