@@ -1,14 +1,32 @@
+import shutil
+
 import numpy as np
+import pytest
 from cli_helpers import assert_one_line_error, invoke
 from conftest import body_phantom, write_nifti
 
 QUICK = ("--cunerf-iterations", 3, "--views", 4, "--resolution", 16, "--splat-iterations", 3)
 
 
-def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, phantom_nifti):
-    work = tmp_path / "w"
-    first = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
-    assert first.exit_code == 0, first.output
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """One `run` of the phantom at --size 16 with QUICK settings: the scan, the work folder and
+    what the run printed. Tests take a copy of the folder (a moved folder stays current)."""
+    root = tmp_path_factory.mktemp("finished")
+    scan = write_nifti(root / "phantom.nii.gz", body_phantom(), np.diag([1.5, 1.5, 3.0, 1.0]))
+    result = invoke("run", scan, "-o", root / "w", "--size", 16, *QUICK)
+    assert result.exit_code == 0, result.output
+    return scan, root / "w", result
+
+
+def copy_of(finished, folder):
+    scan, work, result = finished
+    shutil.copytree(work, folder)
+    return scan, folder, result
+
+
+def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, finished):
+    phantom_nifti, work, first = copy_of(finished, tmp_path / "w")
     assert "preprocess" in first.stderr and "total" in first.stderr
     stamp = (work / "preprocess" / "manifest.json").stat().st_mtime_ns
 
@@ -21,10 +39,8 @@ def test_run_skips_a_current_stage_and_refuses_changed_settings(tmp_path, phanto
     assert invoke("run", phantom_nifti, "-o", work, "--size", 24, *QUICK, "--force").exit_code == 0
 
 
-def test_a_work_directory_named_another_way_or_moved_is_still_current(tmp_path, phantom_nifti, monkeypatch):
-    import shutil
-
-    assert invoke("run", phantom_nifti, "-o", tmp_path / "w", "--size", 16, *QUICK).exit_code == 0
+def test_a_work_directory_named_another_way_or_moved_is_still_current(tmp_path, finished, monkeypatch):
+    phantom_nifti, _, _ = copy_of(finished, tmp_path / "w")
     monkeypatch.chdir(tmp_path)
     relative = invoke("run", phantom_nifti, "-o", "w", "--size", 16, *QUICK)
     assert relative.exit_code == 0 and relative.stderr.count("skipped") == 6, relative.output
@@ -33,9 +49,8 @@ def test_a_work_directory_named_another_way_or_moved_is_still_current(tmp_path, 
     assert moved.exit_code == 0 and moved.stderr.count("skipped") == 6, moved.output
 
 
-def test_run_notices_a_different_scan(tmp_path, phantom_nifti):
-    work = tmp_path / "w"
-    assert invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK).exit_code == 0
+def test_run_notices_a_different_scan(tmp_path, finished):
+    _, work, _ = copy_of(finished, tmp_path / "w")
     other = write_nifti(tmp_path / "other.nii.gz", body_phantom(seed=7), np.diag([1.5, 1.5, 3.0, 1.0]))
     assert_one_line_error(invoke("run", other, "-o", work, "--size", 16, *QUICK), "input scan differs")
 
@@ -48,13 +63,10 @@ def test_run_on_the_bundled_scan(tmp_path):
     assert len(list((tmp_path / "w" / "export" / "images").iterdir())) == 4
 
 
-def test_run_trains_the_baseline_and_evaluates_both(tmp_path, phantom_nifti):
+def test_run_trains_the_baseline_and_evaluates_both(tmp_path, finished):
     import json
-    import shutil
 
-    work = tmp_path / "w"
-    result = invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK)
-    assert result.exit_code == 0, result.output
+    phantom_nifti, work, result = copy_of(finished, tmp_path / "w")
     baseline = json.loads((work / "splat-random" / "manifest.json").read_text())
     assert baseline["params"]["init"] == "random" and baseline["params"]["iterations"] == 3
     results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
@@ -69,9 +81,8 @@ def test_run_trains_the_baseline_and_evaluates_both(tmp_path, phantom_nifti):
     assert "splat-mine" in json.loads((work / "eval" / "metrics.json").read_text())["results"]
 
 
-def test_run_redoes_export_when_its_settings_change(tmp_path, phantom_nifti):
-    work = tmp_path / "w"
-    assert invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK).exit_code == 0
+def test_run_redoes_export_when_its_settings_change(tmp_path, finished):
+    phantom_nifti, work, _ = copy_of(finished, tmp_path / "w")
     error = assert_one_line_error(
         invoke("run", phantom_nifti, "-o", work, "--size", 16, *QUICK[:4], "--resolution", 20, *QUICK[6:]),
         "other settings",
