@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_helpers import invoke
 
 from cubecloud_cli.cohort.job_server import job_server
 
@@ -49,20 +50,23 @@ def wait_until(condition, seconds: float = 300.0) -> bool:
     return condition()
 
 
+# The server's jobs are compared with the CLI run in this process: a plain `python -m
+# cubecloud_cli` for a light command would spend 5 s importing every stage (the client's own
+# fallback to such a process is tested below).
+
+
 def test_a_job_through_the_server_writes_to_the_clients_streams(server_command):
     assert server_command[2] == "cubecloud_cli.cohort.job_client" and Path(server_command[3]).is_socket()
-    through_server, plain = run(server_command, "--version"), run(PLAIN, "--version")
-    assert through_server.returncode == plain.returncode == 0
-    assert through_server.stdout == plain.stdout == f"cubecloud {__import__('cubecloud_cli').__version__}\n"
+    through_server, here = run(server_command, "--version"), invoke("--version")
+    assert through_server.returncode == here.exit_code == 0
+    assert through_server.stdout == here.stdout == f"cubecloud {__import__('cubecloud_cli').__version__}\n"
 
 
 def test_bad_input_through_the_server_is_the_same_one_line_error(server_command, tmp_path):
-    through_server = run(
-        server_command, "run", tmp_path / "nowhere.nii.gz", "-o", tmp_path / "w", "--stage", "preprocess"
-    )
-    plain = run(PLAIN, "run", tmp_path / "nowhere.nii.gz", "-o", tmp_path / "w", "--stage", "preprocess")
-    assert through_server.returncode == plain.returncode == 2
-    assert through_server.stderr == plain.stderr and through_server.stderr.startswith("error: ")
+    arguments = ("run", tmp_path / "nowhere.nii.gz", "-o", tmp_path / "w", "--stage", "preprocess")
+    through_server, here = run(server_command, *arguments), invoke(*arguments)
+    assert through_server.returncode == here.exit_code == 2
+    assert through_server.stderr == here.stderr and through_server.stderr.startswith("error: ")
     assert "Traceback" not in through_server.stderr and through_server.stderr.count("\n") == 1
 
 
