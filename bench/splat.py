@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from cubecloud_cli.presets import PRESET_NAMES, PRESETS
+from cubecloud_cli.presets import PRESET_NAMES, resolve
 from cubecloud_cli.scene import read_point_cloud_ply
 from cubecloud_cli.splat.data import load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points
@@ -55,8 +55,7 @@ def main() -> None:
     scene = load_scene(args.scene, 1)
     xyz, rgb, _ = read_point_cloud_ply(args.scene / "points3D.ply")
     if args.preset:
-        fields = SplatSettings.__dataclass_fields__
-        settings = SplatSettings(**{k: v for k, v in PRESETS["splat"][args.preset].items() if k in fields})
+        settings = SplatSettings(**resolve("splat", args.preset, {}))
     else:
         settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
     trainer = SplatTrainer(gaussians_from_points(xyz, rgb[:, :1] / 255.0), scene, settings, torch.device("cpu"))

@@ -15,6 +15,7 @@ parameters' device or dtype, ``adam`` returns torch.optim.Adam instead, as befor
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Iterable, Union
 
 import torch
@@ -139,8 +140,10 @@ class FusedAdam:
 Optimizer = Union[FusedAdam, torch.optim.Optimizer]
 
 
+@functools.lru_cache(maxsize=None)
 def fused_adam_runs_on(device: torch.device, dtype: torch.dtype = torch.float32) -> bool:
-    """Whether torch's fused Adam kernel exists here and takes tensors of this device and dtype."""
+    """Whether torch's fused Adam kernel exists here and takes tensors of this device and dtype
+    (probed once per process and kind)."""
     try:
         probe = torch.zeros(1, dtype=dtype, device=device, requires_grad=True)
         probe.grad = torch.ones_like(probe)

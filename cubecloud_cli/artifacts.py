@@ -210,9 +210,9 @@ class StageWriter:
             if self._created_work and not any(self.work.iterdir()):
                 self.work.rmdir()  # a failed first run leaves no trace
 
-    def add_input(self, path: Path, label: str | None = None) -> str:
-        """Record the sha256 of a file or folder that the stage read."""
-        digest = sha256_of_path(Path(path))
+    def add_input(self, path: Path, label: str | None = None, digest: str | None = None) -> str:
+        """Record the sha256 of a file or folder that the stage read (``digest``: already taken)."""
+        digest = digest or sha256_of_path(Path(path))
         self.inputs[label or str(path)] = digest
         return digest
 

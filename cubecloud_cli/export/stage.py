@@ -335,7 +335,7 @@ def _cunerf_scalar_field(
             saved = saved_bake(job.cunerf_dir, job.cunerf, bake_size, device)
             if saved is not None:  # its hash checked against the cunerf manifest: recorded, not taken again
                 baked, path, digest = saved
-                writer.inputs[f"{job.cunerf_dir.name}/{path.name}"] = digest
+                writer.add_input(path, f"{job.cunerf_dir.name}/{path.name}", digest)
             else:
                 baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
             progress.save("bake", baked)  # a resumed export renders from this grid, whatever its threads
