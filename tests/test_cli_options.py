@@ -8,6 +8,7 @@ import typer
 
 from cubecloud_cli.cli import app
 from cubecloud_cli.cli.fields import build_settings, default_note, field_docs
+from cubecloud_cli.cli.reference import option_annotation
 from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
@@ -29,10 +30,10 @@ def test_run_takes_every_option_of_preprocess_as_preprocess_reads_it():
     preprocess, run = options_of("preprocess"), options_of("run")
     assert set(preprocess) <= set(run)
     for flag, param in preprocess.items():
-        assert (run[flag].help, run[flag].name, str(run[flag].type_descriptor.annotation)) == (
+        assert (run[flag].help, run[flag].name, str(option_annotation("run", run[flag].name))) == (
             param.help,
             param.name,
-            str(param.type_descriptor.annotation),
+            str(option_annotation("preprocess", param.name)),
         ), flag
     arguments = [p.name for p in COMMANDS["run"].params if type(p).__name__ == "TyperArgument"]
     assert arguments == [p.name for p in COMMANDS["preprocess"].params if type(p).__name__ == "TyperArgument"]
@@ -43,7 +44,7 @@ def test_run_takes_every_option_of_preprocess_as_preprocess_reads_it():
 def test_a_shared_option_reads_the_same_in_every_command(flag):
     found = {name: options_of(name)[flag] for name in COMMANDS if flag in options_of(name)}
     assert found, flag
-    helps = {(param.help, str(param.type_descriptor.annotation), param.default) for param in found.values()}
+    helps = {(param.help, str(option_annotation(name, param.name)), param.default) for name, param in found.items()}
     assert len(helps) == 1, (flag, sorted(found))
 
 

@@ -18,8 +18,20 @@ from cubecloud_cli.cli import app
 BEGIN, END = "<!-- options: {} -->", "<!-- /options -->"
 
 
-def _choices(param) -> str:
-    annotation = param.type_descriptor.annotation
+def command_function(command: str):
+    """The function behind a command, as registered with the app."""
+    return next(info.callback for info in app.registered_commands if info.name == command)
+
+
+def option_annotation(command: str, param_name: str) -> object:
+    """An option's type as its command function declares it, without typer's Annotated extras.
+    Read from the function rather than from typer's parameter objects, whose internals differ
+    between typer releases (the attribute that holds it has changed)."""
+    return typing.get_type_hints(command_function(command))[param_name]
+
+
+def _choices(command: str, param) -> str:
+    annotation = option_annotation(command, param.name)
     for candidate in (annotation, *typing.get_args(annotation)):
         if typing.get_origin(candidate) is typing.Literal:
             return " " + "\\|".join(str(choice) for choice in typing.get_args(candidate))
@@ -33,7 +45,7 @@ def options_table(command: str) -> str:
         if type(param).__name__ == "TyperArgument":
             flags = (param.name or "").upper()
         else:
-            flags = ", ".join(param.opts + param.secondary_opts) + _choices(param)
+            flags = ", ".join(param.opts + param.secondary_opts) + _choices(command, param)
         meaning = (param.help or "").replace("|", "\\|")
         if getattr(param, "default", None) not in (None, False) and "(default" not in meaning:
             meaning += f" (default: {param.default})"
