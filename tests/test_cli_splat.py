@@ -20,7 +20,10 @@ from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
 from cubecloud_cli.splat.training import SplatTrainer, render
 
-QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "10"]
+# These tests are of the CPU trainer (the numba kernels, bits repeated on resume), also on a
+# machine with a GPU, where --device auto would pick it: tests/test_cuda.py covers the GPU.
+CPU = ["--device", "cpu"]
+QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "10", *CPU]
 
 
 def test_training_recovers_known_gaussians_from_their_images():
@@ -209,7 +212,7 @@ def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch)
     25 is resumed through densification, a reset and restored gradient statistics."""
     import cubecloud_cli.splat.training as training
 
-    options = ["--iterations", "80", "--eval-every", "40", "--checkpoint-every", "7"]
+    options = ["--iterations", "80", "--eval-every", "40", "--checkpoint-every", "7", *CPU]
     reference = _copy(exported, tmp_path / "reference")
     assert invoke("splat", reference, *options, "-q").exit_code == 0
     work = _copy(exported, tmp_path / "interrupted")

@@ -80,7 +80,7 @@ def test_stages_through_the_server_run_in_the_clients_folder_and_write_the_same_
     """preprocess through the server; then cunerf, which trains (threads, generators), through the
     server and plainly from copies of it. (A plain preprocess would add a Python start and
     nothing the cunerf comparison does not cover.)"""
-    tiny = ["--size", "32", "--cunerf-iterations", "40", "--threads", "2", "-q"]
+    tiny = ["--size", "32", "--cunerf-iterations", "40", "--threads", "2", "--device", "cpu", "-q"]  # bits: the CPU
     server, plain = tmp_path / "server", tmp_path / "plain"
     server.mkdir()
     result = run(server_command, "run", "-o", "work", *tiny, "--stage", "preprocess", cwd=server)  # -o relative to cwd
