@@ -18,7 +18,9 @@
 #    figure, and the paper's MLP spends ~10 min on the H200 reconstructing 512³ (docs/gpu.md).
 #
 # STEPS picks among cuda-metrics, torch-tests, gsplat-tests, fast, balanced, paper-cunerf, paper-splat
-# and fast-torch (default: all of them). The paper's splat gets all the time left, and is cut
+# and fast-torch (default: all of them), and suite (asked for by name only): the whole test suite
+# apart from the cuda tests, on 7 pytest-xdist workers of 2 threads each, as CI's 2 cores give
+# each test (about 140 s on an H100 machine's 16 cores; docs/gpu.md, the fourth session). The paper's splat gets all the time left, and is cut
 # (with its checkpoint saved) at the deadline.
 #
 # Every step has a share of SECONDS (default 560) and is cut at the deadline; OUT/log.txt holds
@@ -89,6 +91,8 @@ paper_scene() { # the paper preset's scene: 512³, the grid field for 2000 itera
 }
 wanted paper-splat && step "paper scene (while gsplat builds; not timed)" 240 bash -c "$(declare -f paper_scene); PAPER=$PAPER paper_scene" && stages "$PAPER"
 wanted cuda-metrics && step "pytest -m cuda, the metrics on the GPU" 60 python3 -m pytest -q -s -m cuda tests/test_cuda.py -k volume_ssim -p no:cacheprovider
+wanted suite && NUMBA_NUM_THREADS=2 OMP_NUM_THREADS=2 step "the whole suite but -m cuda, a GPU in sight" 300 \
+	python3 -m pytest -q -n 7 -m "not cuda" -p no:cacheprovider -rfEs
 wanted torch-tests && step "pytest -m cuda, PyTorch rasterizer" 200 python3 -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider
 
 if [[ -n $GSPLAT_SITE ]]; then
