@@ -9,10 +9,12 @@ from __future__ import annotations
 import resource
 import sys
 from dataclasses import dataclass
-
-import torch
+from typing import TYPE_CHECKING
 
 from cubecloud_cli.errors import CubecloudError
+
+if TYPE_CHECKING:  # torch is imported where a stage runs, not where the command line is read
+    import torch
 
 DEVICES = ("auto", "cpu", "cuda")
 
@@ -27,6 +29,8 @@ class Runtime:
 
     def apply(self) -> torch.device:
         """Set torch's thread count and return the device to run on."""
+        import torch
+
         if self.threads is not None:
             if self.threads < 1:
                 raise CubecloudError(f"--threads {self.threads} must be at least 1")
@@ -35,6 +39,8 @@ class Runtime:
 
 
 def resolve_device(device: str) -> torch.device:
+    import torch
+
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():
@@ -54,6 +60,8 @@ def reset_peak_memory(device: torch.device) -> None:
     except OSError:
         pass
     if device.type == "cuda":
+        import torch
+
         torch.cuda.reset_peak_memory_stats(device)
 
 
@@ -77,5 +85,7 @@ def peak_memory_mb(device: torch.device) -> dict[str, float]:
         high_water = rss / (1 if sys.platform != "darwin" else 1024)
     peak = {"peak_rss_mb": round(high_water / 1024, 1)}
     if device.type == "cuda":
+        import torch
+
         peak["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
     return peak

@@ -114,11 +114,11 @@ def test_without_the_fused_kernel_training_gets_torchs_adam(monkeypatch):
 
 def test_a_process_that_trains_imports_no_dynamo():
     """torch.optim imports torch._dynamo on a process's first optimizer (about 2 s); the trainers'
-    optimizer does not, after the imports a stage makes (the CLI's)."""
+    optimizer does not, after the imports the stages make."""
     probe = (
         "import sys\n"
         "import torch\n"
-        "import cubecloud_cli.cli\n"
+        "import cubecloud_cli.cunerf.stage, cubecloud_cli.splat.stage\n"
         "from cubecloud_cli.adam import adam\n"
         "parameter = torch.zeros(3, requires_grad=True)\n"
         "optimizer = adam([{'params': [parameter], 'lr': 0.1}])\n"

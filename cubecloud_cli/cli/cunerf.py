@@ -22,9 +22,7 @@ from cubecloud_cli.cli.common import (
 )
 from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import stage_bar
-from cubecloud_cli.cunerf import CunerfSettings, train_cunerf
-from cubecloud_cli.cunerf.fields import DENSITY_ACTIVATIONS
-from cubecloud_cli.cunerf.settings import GridInit, Model, TrainLayout
+from cubecloud_cli.cunerf.settings import DENSITY_ACTIVATIONS, CunerfSettings, GridInit, Model, TrainLayout
 from cubecloud_cli.presets import DEFAULT_PRESET
 
 log = logging.getLogger("cubecloud")
@@ -122,6 +120,8 @@ def cunerf_command(
         "skip_air": skip_air,
         "seed": seed,
     }
+    from cubecloud_cli.cunerf.stage import train_cunerf  # torch: imported when the stage runs
+
     settings = build_settings(CunerfSettings, preset, options)
     runtime = runtime_from_options(device, threads)
     with stage_bar(stage_dir_name("cunerf", name)) as on_progress:

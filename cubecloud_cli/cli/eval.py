@@ -20,9 +20,7 @@ from cubecloud_cli.cli.common import (
 from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.eval import EvalSettings, evaluate_work
-from cubecloud_cli.eval.compare import compare_works
-from cubecloud_cli.eval.stage import eval_is_current
+from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
@@ -85,6 +83,9 @@ def eval_command(
         )
     options = {"turntable_frames": turntable_frames, "turntable_resolution": turntable_resolution}
     settings = build_settings(EvalSettings, None, options)
+    from cubecloud_cli.eval.compare import compare_works  # torch: imported when the stage runs
+    from cubecloud_cli.eval.stage import eval_is_current
+
     runtime = runtime_from_options(device, threads)
     if not compare:
         manifest = _evaluate(work, settings, force, runtime)
@@ -106,5 +107,7 @@ def eval_command(
 
 
 def _evaluate(work: Path, settings: EvalSettings, force: bool, runtime: Runtime) -> dict:
+    from cubecloud_cli.eval.stage import evaluate_work
+
     with stage_bar("eval") as on_progress:
         return evaluate_work(work, settings, force=force, runtime=runtime, on_progress=on_progress)

@@ -25,8 +25,7 @@ from cubecloud_cli.cli.common import (
 )
 from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import stage_bar
-from cubecloud_cli.export import ExportSettings, export_scene
-from cubecloud_cli.export.settings import CameraPath, RenderSource
+from cubecloud_cli.export.settings import CameraPath, ExportSettings, RenderSource
 from cubecloud_cli.export.transfer import TRANSFER_PRESETS
 from cubecloud_cli.presets import DEFAULT_PRESET
 
@@ -129,6 +128,8 @@ def export_command(
         seed=seed,
         novel_directions=novel_directions,
     )
+    from cubecloud_cli.export.stage import export_scene  # torch: imported when the stage runs
+
     runtime = runtime_from_options(device, threads)
     with stage_bar(stage_dir_name("export", name)) as on_progress:
         manifest = export_scene(

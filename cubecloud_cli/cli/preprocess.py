@@ -28,7 +28,6 @@ from cubecloud_cli.cli.common import (
     scan_or_sample,
 )
 from cubecloud_cli.cli.progress import stage_bar
-from cubecloud_cli.preprocess import preprocess_scan
 from cubecloud_cli.presets import DEFAULT_PRESET
 
 log = logging.getLogger("cubecloud")
@@ -82,6 +81,8 @@ def preprocess_command(
         volume_index=volume_index,
         series=series,
     )
+    from cubecloud_cli.preprocess.stage import preprocess_scan  # imported when the stage runs
+
     with stage_bar("preprocess") as on_progress:
         manifest = preprocess_scan(scan_or_sample(scan), output, settings, force=force, on_progress=on_progress)
     log.info(describe_result(manifest, output))

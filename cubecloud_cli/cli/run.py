@@ -44,11 +44,9 @@ from cubecloud_cli.cli.export import describe_export
 from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import PipelineProgress, stage_bar
 from cubecloud_cli.cli.splat import describe_splat
-from cubecloud_cli.cunerf import CunerfSettings
-from cubecloud_cli.eval import EvalSettings
-from cubecloud_cli.eval.report import table_rows
-from cubecloud_cli.export import ExportSettings
-from cubecloud_cli.pipeline import only_stage, run_stages, stage_table
+from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.eval.settings import EvalSettings
+from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.presets import DEFAULT_PRESET
 from cubecloud_cli.splat.settings import SplatSettings
 
@@ -119,6 +117,8 @@ def run_command(
         volume_index=volume_index,
         series=series,
     )
+    from cubecloud_cli.pipeline import only_stage, run_stages, stage_table  # the stages: torch
+
     cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})
     splat = build_settings(SplatSettings, preset, {"iterations": splat_iterations})
@@ -160,6 +160,8 @@ def _report(outcomes: list, output: Path, wall_seconds: float, whole: bool = Tru
     log.info(f"splat: {describe_splat(read_manifest(Path(output) / 'splat'))}")
     log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
+    from cubecloud_cli.eval.report import table_rows
+
     table = "\n".join(table_rows(results))
     log.info(
         f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}"

@@ -24,7 +24,6 @@ from cubecloud_cli.cli.fields import build_settings, settings_option
 from cubecloud_cli.cli.progress import stage_bar
 from cubecloud_cli.presets import DEFAULT_PRESET
 from cubecloud_cli.splat.settings import Init, SplatSettings
-from cubecloud_cli.splat.stage import train_splat
 
 log = logging.getLogger("cubecloud")
 
@@ -111,6 +110,8 @@ def splat_command(
         checkpoint_every=checkpoint_every,
         seed=seed,
     )
+    from cubecloud_cli.splat.stage import train_splat  # torch: imported when the stage runs
+
     runtime = runtime_from_options(device, threads)
     with stage_bar(stage_dir_name("splat", name)) as on_progress:
         manifest = train_splat(

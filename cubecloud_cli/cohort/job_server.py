@@ -144,8 +144,12 @@ def _wait_for_jobs(seconds: float) -> None:
 
 def warm_imports() -> None:
     """Import what every job would otherwise import for itself, without starting a thread: the CLI
-    and its stages (torch, numba)."""
+    and the stages (torch, numba), which the CLI itself imports only when a stage runs."""
     import cubecloud_cli.cli  # noqa: F401
+    import cubecloud_cli.eval.compare  # noqa: F401
+    import cubecloud_cli.eval.report  # noqa: F401
+    import cubecloud_cli.eval.stage  # noqa: F401
+    import cubecloud_cli.pipeline  # noqa: F401  (every stage's module)
 
 
 def serve(path: str, parent: int) -> None:

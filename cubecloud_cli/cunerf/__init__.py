@@ -1,8 +1,13 @@
 """The cunerf stage: a cube-based neural field of the preprocessed volume (docs/cunerf.md)."""
 
-from cubecloud_cli.cunerf.api import CunerfField
-from cubecloud_cli.cunerf.settings import CunerfSettings
-from cubecloud_cli.cunerf.stage import train_cunerf
+from cubecloud_cli.lazy import lazy_exports
 from cubecloud_cli.runtime import Runtime
+
+_EXPORTS = {
+    "CunerfField": "api",
+    "CunerfSettings": "settings",
+    "train_cunerf": "stage",
+}
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = ["CunerfField", "CunerfSettings", "Runtime", "train_cunerf"]

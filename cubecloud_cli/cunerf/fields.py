@@ -27,8 +27,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from cubecloud_cli.cunerf import grid_kernels
+from cubecloud_cli.cunerf.settings import DENSITY_ACTIVATIONS
 
-DENSITY_ACTIVATIONS = ("softplus", "relu")
 POINT_LIMIT = 16.0
 
 

@@ -1,8 +1,15 @@
 """`cubecloud eval`: held-out scores of every splat run and of CuNeRF against the reference renders
 of the volume (docs/design.md §5), pictures, and tables across work directories."""
 
-from cubecloud_cli.eval.scoring import score_view, score_views, summarize
-from cubecloud_cli.eval.settings import EvalSettings
-from cubecloud_cli.eval.stage import evaluate_work
+from cubecloud_cli.lazy import lazy_exports
+
+_EXPORTS = {
+    "EvalSettings": "settings",
+    "evaluate_work": "stage",
+    "score_view": "scoring",
+    "score_views": "scoring",
+    "summarize": "scoring",
+}
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = ["EvalSettings", "evaluate_work", "score_view", "score_views", "summarize"]

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.eval.runs import MAX_TURNTABLE_FRAMES
 
 
 @dataclass(frozen=True)
@@ -16,6 +15,8 @@ class EvalSettings:
     """Largest side of the turntable frames, in pixels."""
 
     def validate(self) -> None:
+        from cubecloud_cli.eval.runs import MAX_TURNTABLE_FRAMES  # torch: not for --help
+
         if self.turntable_frames != 0 and not 2 <= self.turntable_frames <= MAX_TURNTABLE_FRAMES:
             raise CubecloudError(
                 f"--turntable-frames {self.turntable_frames} must be 0 (none) or between 2 and "

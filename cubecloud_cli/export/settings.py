@@ -10,7 +10,7 @@ from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, NovelViewSet
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
 from cubecloud_cli.presets import preset_default
-from cubecloud_cli.render import IMAGE_MODELS
+from cubecloud_cli.render.image_model_names import IMAGE_MODELS
 
 RenderSource = Literal["grid", "field"]
 RENDER_SOURCES = get_args(RenderSource)

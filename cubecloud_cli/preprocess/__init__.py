@@ -1,6 +1,11 @@
 """`cubecloud preprocess`: a scan -> the normalized S³ cube volume in WORK/preprocess/."""
 
-from cubecloud_cli.preprocess.settings import PreprocessSettings
-from cubecloud_cli.preprocess.stage import preprocess_scan
+from cubecloud_cli.lazy import lazy_exports
+
+_EXPORTS = {
+    "PreprocessSettings": "settings",
+    "preprocess_scan": "stage",
+}
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = ["PreprocessSettings", "preprocess_scan"]

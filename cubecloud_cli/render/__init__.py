@@ -1,13 +1,24 @@
 """One renderer for every image model of docs/design.md §3, on any scalar field over the world cube."""
 
-from cubecloud_cli.render.image_models import IMAGE_MODELS, ImageModel, TransferFunction
-from cubecloud_cli.render.renderer import render_view, render_views
-from cubecloud_cli.render.samplers import FunctionField, GridField, Support, support_of_volume
+from cubecloud_cli.lazy import lazy_exports
+
+_EXPORTS = {
+    "IMAGE_MODELS": "image_model_names",
+    "ImageModel": "image_models",
+    "TransferFunction": "image_models",
+    "render_view": "renderer",
+    "render_views": "renderer",
+    "FunctionField": "samplers",
+    "GridField": "samplers",
+    "Support": "samplers",
+    "support_of_volume": "samplers",
+}
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = [
-    "IMAGE_MODELS",
     "FunctionField",
     "GridField",
+    "IMAGE_MODELS",
     "ImageModel",
     "Support",
     "TransferFunction",

@@ -12,7 +12,8 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-IMAGE_MODELS = ("dvr", "slice", "mip")
+from cubecloud_cli.render.image_model_names import IMAGE_MODELS
+
 # Below this the width of the transfer function's ramp is treated as a step at ``low``.
 MIN_RAMP_WIDTH = 1e-6
 

@@ -1,6 +1,14 @@
 """The splat stage: 3D Gaussian Splatting trained on an exported (or any COLMAP) scene."""
 
-from cubecloud_cli.splat.gaussians import Gaussians, gaussians_from_points, random_points
-from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
+from cubecloud_cli.lazy import lazy_exports
+
+_EXPORTS = {
+    "Gaussians": "gaussians",
+    "gaussians_from_points": "gaussians",
+    "random_points": "gaussians",
+    "read_gaussians_ply": "ply",
+    "write_gaussians_ply": "ply",
+}
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = ["Gaussians", "gaussians_from_points", "random_points", "read_gaussians_ply", "write_gaussians_ply"]

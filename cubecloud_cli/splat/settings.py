@@ -8,7 +8,6 @@ from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.presets import preset_default
-from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE
 
 REFERENCE_ITERATIONS = 30_000
 Init = Literal["cloud", "random"]
@@ -56,6 +55,8 @@ class SplatSettings:
     """Save a checkpoint every K iterations (and on Ctrl-C)."""
 
     def validate(self) -> None:
+        from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE  # torch: not for --help
+
         if self.iterations < 1:
             raise CubecloudError(f"--iterations {self.iterations} must be at least 1")
         if self.init not in INIT_CHOICES:
