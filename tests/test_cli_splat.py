@@ -4,7 +4,9 @@ foreign scenes and refusals."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +26,25 @@ from cubecloud_cli.splat.training import SplatTrainer, render
 # machine with a GPU, where --device auto would pick it: tests/test_cuda.py covers the GPU.
 CPU = ["--device", "cpu"]
 QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "10", *CPU]
+
+
+def interrupt_splat_at_step(monkeypatch, step: int, ctrl_c: bool = True) -> None:
+    """Interrupt training step ``step`` inside its loss: by a real SIGINT (Ctrl-C), which the stage
+    handles by saving that step, or with ``ctrl_c=False`` by a bare KeyboardInterrupt, which
+    leaves only the last periodic checkpoint."""
+    import cubecloud_cli.splat.training as training
+
+    original, calls = training.photometric_loss, []
+
+    def interrupted_loss(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == step:
+            if not ctrl_c:
+                raise KeyboardInterrupt
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
 
 
 def test_training_recovers_known_gaussians_from_their_images():
@@ -121,21 +142,8 @@ def test_random_initialisation_beside_it(exported, tmp_path):
 
 
 def test_interrupt_and_resume_match_an_uninterrupted_run(exported, trained, tmp_path, monkeypatch):
-    import cubecloud_cli.splat.training as training
-
     work = _copy(exported, tmp_path)
-    original, calls = training.photometric_loss, []
-
-    def interrupted_loss(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 25:
-            import os
-            import signal
-
-            os.kill(os.getpid(), signal.SIGINT)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    interrupt_splat_at_step(monkeypatch, 25)
     result = invoke("splat", work, *QUICK)
     assert result.exit_code == 130 and "iteration 25 is saved" in result.stderr
     monkeypatch.undo()
@@ -210,21 +218,12 @@ def test_threads_bound_the_kernels_too(exported, tmp_path):
 def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch):
     """80 iterations densify every 10 until 40 and reset opacity at 10, 20, 30: an interrupt at
     25 is resumed through densification, a reset and restored gradient statistics."""
-    import cubecloud_cli.splat.training as training
 
     options = ["--iterations", "80", "--eval-every", "40", "--checkpoint-every", "7", *CPU]
     reference = _copy(exported, tmp_path / "reference")
     assert invoke("splat", reference, *options, "-q").exit_code == 0
     work = _copy(exported, tmp_path / "interrupted")
-    original, calls = training.photometric_loss, []
-
-    def interrupted_loss(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 25:
-            raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    interrupt_splat_at_step(monkeypatch, 25, ctrl_c=False)
     assert invoke("splat", work, *options).exit_code == 130
     monkeypatch.undo()
     state = torch.load(work / ".splat.partial" / "checkpoint.pt", weights_only=False)
@@ -241,18 +240,9 @@ def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch)
 
 
 def test_resume_refuses_another_scene(exported, tmp_path, monkeypatch):
-    import cubecloud_cli.splat.training as training
 
     work = _copy(exported, tmp_path)
-    original, calls = training.photometric_loss, []
-
-    def interrupted_loss(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 15:  # after the checkpoint at 10
-            raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    interrupt_splat_at_step(monkeypatch, 15, ctrl_c=False)  # after the checkpoint at 10
     assert invoke("splat", work, *QUICK).exit_code == 130
     monkeypatch.undo()
     other = tmp_path / "other"

@@ -217,24 +217,13 @@ def test_cunerf_interrupted_and_resumed_on_cuda_lands_where_an_uninterrupted_run
 def test_splat_interrupted_and_resumed_on_cuda_lands_where_an_uninterrupted_run_does(works, tmp_path, monkeypatch):
     """As for cunerf: the resumed splat's held-out score is the uninterrupted run's, to within
     the spread that CUDA's unordered sums allow."""
-    import os
-    import signal
-
-    import cubecloud_cli.splat.training as training
+    from test_cli_splat import interrupt_splat_at_step
 
     _, gpu, _ = works
     work = tmp_path / "resumed"
     for stage in ("preprocess", "cunerf", "export"):
         shutil.copytree(gpu / stage, work / stage)
-    original, calls = training.photometric_loss, []
-
-    def interrupted_loss(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 70:
-            os.kill(os.getpid(), signal.SIGINT)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
+    interrupt_splat_at_step(monkeypatch, 70)
     assert invoke(*splat_args(work), "--device", "cuda", "-q").exit_code == 130
     monkeypatch.undo()
     result = invoke(*splat_args(work), "--device", "cuda", "--resume", "-q")
