@@ -2,8 +2,8 @@
 
 A stage package's public names (``from cubecloud_cli.cunerf import train_cunerf``) live in
 modules that import torch, numba or scipy: seconds of imports. The command line needs only the
-settings classes to build its options, so `cubecloud --help`, `--version` and a one-line error
-about a missing file should not pay for the stages. Each package maps its public names to the
+settings classes to build its options, so `cubecloud --help` and `--version` should not pay for
+the stages (a command that runs imports its stage first, and then checks its inputs). Each package maps its public names to the
 modules that define them, and a name's module is imported when the name is first read.
 """
 
