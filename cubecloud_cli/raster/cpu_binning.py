@@ -32,21 +32,24 @@ def stable_depth_order(candidates, depths):
     order = candidates.copy()
     scratch_keys = np.empty_like(keys)
     scratch_order = np.empty_like(order)
-    counts = np.zeros(2049, dtype=np.int64)
-    for shift in range(0, 64, 11):  # six passes of 11 bits
-        counts[:] = 0
-        for i in range(count):
-            counts[((keys[i] >> np.uint64(shift)) & np.uint64(0x7FF)) + 1] += 1
-        if count > 0 and counts[((keys[0] >> np.uint64(shift)) & np.uint64(0x7FF)) + 1] == count:
+    # Every pass's digit counts from one read of the keys, not one read a pass.
+    counts = np.zeros((6, 2049), dtype=np.int64)
+    for i in range(count):
+        key = keys[i]
+        for p in range(6):
+            counts[p, ((key >> np.uint64(11 * p)) & np.uint64(0x7FF)) + 1] += 1
+    for p in range(6):  # six passes of 11 bits
+        shift = np.uint64(11 * p)
+        if count > 0 and counts[p, ((keys[0] >> shift) & np.uint64(0x7FF)) + 1] == count:
             continue  # one digit for all keys (the high bits of nearby depths): order unchanged
         for b in range(2048):
-            counts[b + 1] += counts[b]
+            counts[p, b + 1] += counts[p, b]
         for i in range(count):
-            digit = (keys[i] >> np.uint64(shift)) & np.uint64(0x7FF)
-            position = counts[digit]
+            digit = (keys[i] >> shift) & np.uint64(0x7FF)
+            position = counts[p, digit]
             scratch_keys[position] = keys[i]
             scratch_order[position] = order[i]
-            counts[digit] = position + 1
+            counts[p, digit] = position + 1
         keys, scratch_keys = scratch_keys, keys
         order, scratch_order = scratch_order, order
     return order
