@@ -146,10 +146,8 @@ def warm_imports() -> None:
     """Import what every job would otherwise import for itself, without starting a thread: the CLI
     and the stages (torch, numba), which the CLI itself imports only when a stage runs."""
     import cubecloud_cli.cli  # noqa: F401
-    import cubecloud_cli.eval.compare  # noqa: F401
-    import cubecloud_cli.eval.report  # noqa: F401
-    import cubecloud_cli.eval.stage  # noqa: F401
-    import cubecloud_cli.pipeline  # noqa: F401  (every stage's module)
+    import cubecloud_cli.eval.compare  # noqa: F401  (eval --compare)
+    import cubecloud_cli.pipeline  # noqa: F401  (every stage's module, eval's report among them)
 
 
 def serve(path: str, parent: int) -> None:
