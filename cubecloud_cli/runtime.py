@@ -6,6 +6,7 @@ device count as the same stage.
 
 from __future__ import annotations
 
+import ctypes
 import resource
 import sys
 from dataclasses import dataclass
@@ -35,7 +36,33 @@ class Runtime:
             if self.threads < 1:
                 raise CubecloudError(f"--threads {self.threads} must be at least 1")
             torch.set_num_threads(self.threads)
+        keep_freed_memory()
         return resolve_device(self.device)
+
+
+# glibc's mallopt parameters: the size from which an allocation gets pages of its own, and how
+# much free memory the heap's top may hold before it is handed back to the system.
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+KEPT_FREE_BYTES = 512 * 2**20
+
+
+def keep_freed_memory() -> bool:
+    """Let glibc's heap keep up to 512 MiB of freed memory for the next allocation instead of
+    handing it back to the system. A training step allocates and frees the same few MB of
+    arrays each time (the kernels' outputs, torch's gradients); by default glibc maps such
+    blocks afresh and unmaps them on free, so each step touched ~2,200 new pages, zeroed by
+    the kernel at a page fault each: ~10 % of a 50k-Gaussian frame on a 2-core VM
+    (docs/results.md). The resident peak is unchanged; the process just keeps what it had.
+    Returns whether the setting took (not on other C libraries, where it is skipped)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # musl and other C libraries have no mallopt
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return bool(mallopt(M_MMAP_THRESHOLD, KEPT_FREE_BYTES) and mallopt(M_TRIM_THRESHOLD, KEPT_FREE_BYTES))
 
 
 def resolve_device(device: str) -> torch.device:
