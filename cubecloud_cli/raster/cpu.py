@@ -129,10 +129,10 @@ class _Composite(torch.autograd.Function):
         # A frame widened to float64 (a tile list past float32's exact integers) takes its
         # gradient in float64 too: one signature per compute type, as the oracle tests compile.
         grad = _numpy(grad_image.reshape(height * width, -1)).astype(arrays[2].dtype, copy=False)
-        slot_grads = kernels.backward(
+        slot_grads, written = kernels.backward(
             offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad
         )
-        per_gaussian = torch.from_numpy(binning.sum_per_gaussian(slot_grads, *owners, ctx.count))
+        per_gaussian = torch.from_numpy(binning.sum_per_gaussian(slot_grads, written, *owners, ctx.count))
         dtype, device = grad_image.dtype, grad_image.device
         per_gaussian = per_gaussian.to(dtype=dtype, device=device)
         return (

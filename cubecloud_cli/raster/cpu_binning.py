@@ -144,13 +144,15 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def sum_per_gaussian(slot_values, order, first, count):
-    """(count, K) sums of each Gaussian's rows of the Gaussian-major (entries, K) ``slot_values``,
-    in parallel over Gaussians (each owns its rows: no two threads write the same memory)."""
+def sum_per_gaussian(slot_values, written, order, first, count):
+    """(count, K) sums of each Gaussian's ``written`` rows of the Gaussian-major (entries, K)
+    ``slot_values`` (rows not written hold no value and count as zero), in parallel over
+    Gaussians (each owns its rows: no two threads write the same memory)."""
     sums = np.zeros((count, slot_values.shape[1]))
     for rank in prange(order.size):
         g = order[rank]
         for e in range(first[rank], first[rank + 1]):
-            for j in range(slot_values.shape[1]):
-                sums[g, j] += slot_values[e, j]
+            if written[e]:
+                for j in range(slot_values.shape[1]):
+                    sums[g, j] += slot_values[e, j]
     return sums
