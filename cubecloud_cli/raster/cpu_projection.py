@@ -105,12 +105,13 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
     filter's opacity factors (N,) (ones without ``antialias``) as ``project``; ``variance`` is the
     px² added to every footprint."""
     count = means.shape[0]
-    means2d = np.empty((count, 2))
-    conics = np.empty((count, 3))
-    covariances2d = np.empty((count, 3))
-    depths = np.empty(count)
+    real = means.dtype  # computed in float64, stored in the inputs' type: no conversion after
+    means2d = np.empty((count, 2), dtype=real)
+    conics = np.empty((count, 3), dtype=real)
+    covariances2d = np.empty((count, 3), dtype=real)
+    depths = np.empty(count, dtype=real)
     radii = np.zeros(count, dtype=np.int64)
-    compensations = np.ones(count)
+    compensations = np.ones(count, dtype=real)
     limit_x = FRUSTUM_CLAMP * (width / 2.0) / focal
     limit_y = FRUSTUM_CLAMP * (height / 2.0) / focal
     for i in prange(count):
@@ -132,7 +133,8 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         a += variance
         c += variance
         determinant = max(a * c - b * b, MIN_DETERMINANT)
-        conics[i, 0], conics[i, 1], conics[i, 2] = c / determinant, -b / determinant, a / determinant
+        conic_a, conic_b, conic_c = c / determinant, -b / determinant, a / determinant
+        conics[i, 0], conics[i, 1], conics[i, 2] = conic_a, conic_b, conic_c
         covariances2d[i, 0], covariances2d[i, 1], covariances2d[i, 2] = a, b, c
         u = focal * cx / z + width / 2.0
         v = focal * cy / z + height / 2.0
@@ -142,9 +144,9 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
         finite = (
             np.isfinite(u)
             and np.isfinite(v)
-            and np.isfinite(conics[i, 0])
-            and np.isfinite(conics[i, 1])
-            and np.isfinite(conics[i, 2])
+            and np.isfinite(conic_a)
+            and np.isfinite(conic_b)
+            and np.isfinite(conic_c)
             and np.isfinite(largest)
             and largest < 1e36
         )  # ceil(3√λ) stays within int64
@@ -180,9 +182,10 @@ def project_backward(
     in the forward pass's order, checked against autograd in tests/test_raster_cpu.py; split up,
     one derivation would be scattered over functions passing a dozen partials around."""
     count = means.shape[0]
-    grad_means = np.zeros((count, 3))
-    grad_scales = np.zeros((count, 3))
-    grad_quaternions = np.zeros((count, 4))
+    real = means.dtype  # as the forward: float64 arithmetic, stored in the inputs' type
+    grad_means = np.zeros((count, 3), dtype=real)
+    grad_scales = np.zeros((count, 3), dtype=real)
+    grad_quaternions = np.zeros((count, 4), dtype=real)
     limit_x = FRUSTUM_CLAMP * (width / 2.0) / focal
     limit_y = FRUSTUM_CLAMP * (height / 2.0) / focal
     for i in prange(count):
