@@ -23,6 +23,7 @@ from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import composite, project, splat_pairs
 from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA
+from cubecloud_cli.runtime import keep_freed_memory
 
 
 def random_scene(count: int, seed: int = 0):
@@ -111,6 +112,7 @@ def main() -> None:
         "--antialias", action="store_true", help="project through the 2D Mip filter, as anti-aliased training does"
     )
     args = parser.parse_args()
+    keep_freed_memory()  # as training does (Runtime.apply): freed arrays are reused, not re-faulted
 
     scene = cloud_scene(args.cloud, args.gaussians) if args.cloud else random_scene(args.gaussians)
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=args.resolution))

@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 
 from cubecloud_cli.presets import PRESET_NAMES, resolve
+from cubecloud_cli.runtime import keep_freed_memory
 from cubecloud_cli.scene import read_point_cloud_ply
 from cubecloud_cli.splat.data import load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points
@@ -46,6 +47,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, help="numba's and torch's threads (default: theirs)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="N more iterations under cProfile")
     args = parser.parse_args()
+    keep_freed_memory()  # as every stage's Runtime.apply does
     if args.threads:
         import numba
 
