@@ -221,31 +221,56 @@ def project_backward(
     grad_compensations,
 ):
     """Gradients with respect to means (N, 3), scales (N, 3) and quaternions (N, 4), computed in
-    float64 and stored in the inputs' type; in parallel over blocks of Gaussians turned into
-    columns for ``_project_block_backward``'s vector loop, as the forward."""
+    float64 and stored in the inputs' type. Gaussians whose incoming gradients are all zero
+    (culled, hidden or off screen: in a dense view, many) keep zero gradients and are not
+    computed; the others are gathered, in blocks, into columns for ``_project_block_backward``'s
+    vector loop, in parallel over blocks as the forward."""
     count = means.shape[0]
     real = means.dtype
-    grad_means = np.empty((count, 3), dtype=real)
-    grad_scales = np.empty((count, 3), dtype=real)
-    grad_quaternions = np.empty((count, 4), dtype=real)
-    for block in prange(-(-count // BLOCK)):
+    grad_means = np.zeros((count, 3), dtype=real)
+    grad_scales = np.zeros((count, 3), dtype=real)
+    grad_quaternions = np.zeros((count, 4), dtype=real)
+    moving = np.empty(count, dtype=np.int64)
+    moved = 0
+    for i in range(count):
+        if (
+            grad_means2d[i, 0] != 0.0
+            or grad_means2d[i, 1] != 0.0
+            or grad_conics[i, 0] != 0.0
+            or grad_conics[i, 1] != 0.0
+            or grad_conics[i, 2] != 0.0
+            or (antialias and grad_compensations[i] != 0.0)
+        ):
+            moving[moved] = i
+            moved += 1
+    for block in prange(-(-moved // BLOCK)):
         start = block * BLOCK
-        size = min(count, start + BLOCK) - start
-        block_means, block_scales, block_quaternions = _columns(means, scales, quaternions, start, size)
+        rows = moving[start : min(moved, start + BLOCK)]
+        size = rows.size
+        block_means = np.empty((3, size), dtype=means.dtype)
+        block_scales = np.empty((3, size), dtype=scales.dtype)
+        block_quaternions = np.empty((4, size), dtype=quaternions.dtype)
         block_grad_means2d = np.empty((2, size), dtype=grad_means2d.dtype)
         block_grad_conics = np.empty((3, size), dtype=grad_conics.dtype)
+        block_grad_compensations = np.empty(size, dtype=grad_compensations.dtype)
         for j in range(size):
-            for k in range(2):
-                block_grad_means2d[k, j] = grad_means2d[start + j, k]
+            i = rows[j]
             for k in range(3):
-                block_grad_conics[k, j] = grad_conics[start + j, k]
+                block_means[k, j] = means[i, k]
+                block_scales[k, j] = scales[i, k]
+                block_grad_conics[k, j] = grad_conics[i, k]
+            for k in range(4):
+                block_quaternions[k, j] = quaternions[i, k]
+            for k in range(2):
+                block_grad_means2d[k, j] = grad_means2d[i, k]
+            block_grad_compensations[j] = grad_compensations[i]
         results = np.empty((10, size))
         _project_block_backward(
             block_means, block_scales, block_quaternions, rotation, translation, focal, width, height, near, variance,
-            antialias, block_grad_means2d, block_grad_conics, grad_compensations[start : start + size], results,
+            antialias, block_grad_means2d, block_grad_conics, block_grad_compensations, results,
         )  # fmt: skip
         for j in range(size):
-            i = start + j
+            i = rows[j]
             for k in range(3):
                 grad_means[i, k] = results[k, j]
                 grad_scales[i, k] = results[3 + k, j]
@@ -274,9 +299,9 @@ def _project_block_backward(
 ):
     """``project_backward`` for one block held by column (as ``_project_block``; the incoming
     gradients too): the gradients of means (rows 0–2), scales (3–5) and quaternions (6–9) into
-    ``results`` (10, n). A Gaussian whose incoming gradients are all zero (culled, hidden or off
-    screen) gets zeros: its chain is computed with the others' and then discarded, with any 0·∞
-    it made.
+    ``results`` (10, n). A Gaussian whose incoming gradients are all zero gets zeros (its chain
+    computed with the others' and then discarded, with any 0·∞ it made), though the caller passes
+    only Gaussians with a gradient.
 
     One body on purpose: it is the chain rule of ``projection.project`` written out step by step
     in the forward pass's order, checked against autograd in tests/test_raster_cpu.py; split up,
