@@ -132,14 +132,20 @@ class _Composite(torch.autograd.Function):
         slot_grads, written = kernels.backward(
             offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad
         )
-        per_gaussian = torch.from_numpy(binning.sum_per_gaussian(slot_grads, written, *owners, ctx.count))
+        per_gaussian = binning.sum_per_gaussian(slot_grads, written, *owners, ctx.count)
         dtype, device = grad_image.dtype, grad_image.device
-        per_gaussian = per_gaussian.to(dtype=dtype, device=device)
+        real = np.float64 if dtype == torch.float64 else np.float32
+
+        def column(columns: slice) -> torch.Tensor:
+            # contiguous: the projection's backward reads the first two as they are, uncopied
+            part = np.ascontiguousarray(per_gaussian[:, columns], dtype=real)
+            return torch.from_numpy(part).to(dtype=dtype, device=device)
+
         return (
-            per_gaussian[:, 0:2],
-            per_gaussian[:, 2:5],
-            per_gaussian[:, 6:],
-            per_gaussian[:, 5],
+            column(slice(0, 2)),
+            column(slice(2, 5)),
+            column(slice(6, None)),
+            column(slice(5, 6))[:, 0],
             None,
             None,
             None,
