@@ -1,11 +1,15 @@
 """Every parallel CPU kernel parallelises its prange loops only (cubecloud_cli/jit.py)."""
 
 import os
+import platform
+import re
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 import torch
+from numba import njit
 from numba.core.registry import CPUDispatcher
 from test_raster import H, W, camera, scene
 
@@ -105,3 +109,19 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
         for _ in ("compiled in the process", "loaded from the cache")
     ]
     assert len(runs[0].split()) == 5 and runs[0] == runs[1]
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads x86 assembly")
+def test_a_loop_writing_many_arrays_still_vectorizes():
+    # The projection kernels' loop reads and writes many arrays; LLVM's default limit on the
+    # run-time overlap checks that takes (128) leaves such a loop scalar. jit.py raises it.
+    reads, writes = 6, 14
+    names = [f"r{j}" for j in range(reads)] + [f"w{j}" for j in range(writes)]
+    body = "\n".join(f"        w{j}[i] = t * {j + 2}.0 + r{j % reads}[i]" for j in range(writes))
+    source = f"def many_columns({', '.join(names)}):\n    for i in range(r0.size):\n        t = r0[i] * r1[i]\n{body}\n"
+    namespace = {}
+    exec(source, namespace)
+    many_columns = njit(error_model="numpy")(namespace["many_columns"])
+    many_columns(*(np.ones(64) for _ in names))
+    assembly = many_columns.inspect_asm(many_columns.signatures[0])
+    assert re.search(r"\bv?mulpd\b", assembly), "the loop stayed scalar (mulsd only)"
