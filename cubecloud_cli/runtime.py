@@ -52,15 +52,18 @@ def keep_freed_memory() -> bool:
     arrays each time (the kernels' outputs, torch's gradients); by default glibc maps such
     blocks afresh and unmaps them on free, so each step touched ~2,200 new pages, zeroed by
     the kernel at a page fault each: ~10 % of a 50k-Gaussian frame on a 2-core VM
-    (docs/results.md). The resident peak is unchanged; the process just keeps what it had.
+    (docs/results.md). What an earlier stage of the same process freed is handed back first
+    (``malloc_trim``), so that a stage's recorded peak memory is its own.
     Returns whether the setting took (not on other C libraries, where it is skipped)."""
     if not sys.platform.startswith("linux"):
         return False
     try:
         libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
+        mallopt, malloc_trim = libc.mallopt, libc.malloc_trim
     except (OSError, AttributeError):  # musl and other C libraries have no mallopt
         return False
+    malloc_trim.argtypes, malloc_trim.restype = (ctypes.c_size_t,), ctypes.c_int
+    malloc_trim(0)
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(M_MMAP_THRESHOLD, KEPT_FREE_BYTES) and mallopt(M_TRIM_THRESHOLD, KEPT_FREE_BYTES))
 
