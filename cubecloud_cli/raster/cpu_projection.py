@@ -44,7 +44,9 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
     for block in prange(-(-count // BLOCK)):
         start = block * BLOCK
         size = min(count, start + BLOCK) - start
-        block_means, block_scales, block_quaternions = _columns(means, scales, quaternions, start, size)
+        block_means, block_scales, block_quaternions = _columns(
+            means, scales, quaternions, np.arange(start, start + size)
+        )
         results = np.empty((10, size))
         project_block(
             block_means, block_scales, block_quaternions, rotation, translation, focal, width, height, near, variance,
@@ -61,17 +63,20 @@ def project_forward(means, scales, quaternions, rotation, translation, focal, wi
 
 
 @njit(cache=True)
-def _columns(means, scales, quaternions, start, size):
-    """Rows ``start:start + size`` of the Gaussians' parameters as columns, in their own types."""
+def _columns(means, scales, quaternions, rows):
+    """The parameters of the Gaussians ``rows`` as columns (one array row per parameter), in
+    their own types."""
+    size = rows.size
     block_means = np.empty((3, size), dtype=means.dtype)
     block_scales = np.empty((3, size), dtype=scales.dtype)
     block_quaternions = np.empty((4, size), dtype=quaternions.dtype)
     for j in range(size):
+        i = rows[j]
         for k in range(3):
-            block_means[k, j] = means[start + j, k]
-            block_scales[k, j] = scales[start + j, k]
+            block_means[k, j] = means[i, k]
+            block_scales[k, j] = scales[i, k]
         for k in range(4):
-            block_quaternions[k, j] = quaternions[start + j, k]
+            block_quaternions[k, j] = quaternions[i, k]
     return block_means, block_scales, block_quaternions
 
 
@@ -119,22 +124,16 @@ def project_backward(
         start = block * BLOCK
         rows = moving[start : min(moved, start + BLOCK)]
         size = rows.size
-        block_means = np.empty((3, size), dtype=means.dtype)
-        block_scales = np.empty((3, size), dtype=scales.dtype)
-        block_quaternions = np.empty((4, size), dtype=quaternions.dtype)
+        block_means, block_scales, block_quaternions = _columns(means, scales, quaternions, rows)
         block_grad_means2d = np.empty((2, size), dtype=grad_means2d.dtype)
         block_grad_conics = np.empty((3, size), dtype=grad_conics.dtype)
         block_grad_compensations = np.empty(size, dtype=grad_compensations.dtype)
         for j in range(size):
             i = rows[j]
-            for k in range(3):
-                block_means[k, j] = means[i, k]
-                block_scales[k, j] = scales[i, k]
-                block_grad_conics[k, j] = grad_conics[i, k]
-            for k in range(4):
-                block_quaternions[k, j] = quaternions[i, k]
             for k in range(2):
                 block_grad_means2d[k, j] = grad_means2d[i, k]
+            for k in range(3):
+                block_grad_conics[k, j] = grad_conics[i, k]
             block_grad_compensations[j] = grad_compensations[i]
         results = np.empty((10, size))
         project_block_backward(

@@ -165,9 +165,8 @@ def project_block_backward(
 ):
     """``cpu_projection.project_backward`` for one block held by column (as ``project_block``; the incoming
     gradients too): the gradients of means (rows 0–2), scales (3–5) and quaternions (6–9) into
-    ``results`` (10, n). A Gaussian whose incoming gradients are all zero gets zeros (its chain
-    computed with the others' and then discarded, with any 0·∞ it made), though the caller passes
-    only Gaussians with a gradient.
+    ``results`` (10, n). The caller passes only Gaussians with an incoming gradient; the others
+    keep zero gradients there (and make no 0·∞ here).
 
     One body on purpose: it is the chain rule of ``projection.project`` written out step by step
     in the forward pass's order, checked against autograd in tests/test_raster_cpu.py; split up,
@@ -179,14 +178,6 @@ def project_block_backward(
         g_compensation = grad_compensations[i] if antialias else 0.0
         g_u, g_v = grad_means2d[0, i], grad_means2d[1, i]
         g_conic_a, g_conic_b, g_conic_c = grad_conics[0, i], grad_conics[1, i], grad_conics[2, i]
-        silent = (
-            (g_u == 0.0)
-            & (g_v == 0.0)
-            & (g_conic_a == 0.0)
-            & (g_conic_b == 0.0)
-            & (g_conic_c == 0.0)
-            & (g_compensation == 0.0)
-        )
         cx, cy, depth = _camera(means[0, i], means[1, i], means[2, i], rotation, translation)
         in_front = depth > near
         z = depth if in_front else 1.0
@@ -227,7 +218,7 @@ def project_block_backward(
             g_scale = g_u0[j] * (t0[0] * r[j] + t0[1] * r[3 + j] + t0[2] * r[6 + j]) + g_u1[j] * (
                 t1[0] * r[j] + t1[1] * r[3 + j] + t1[2] * r[6 + j]
             )
-            results[3 + j, i] = 0.0 if silent else g_scale
+            results[3 + j, i] = g_scale
         # u_j = (T r_j) s_j: gradients of T's rows and of the rotation matrix R(q) (row-major)
         w0, w1, w2 = g_u0[0] * s[0], g_u0[1] * s[1], g_u0[2] * s[2]
         v0, v1, v2 = g_u1[0] * s[0], g_u1[1] * s[1], g_u1[2] * s[2]
@@ -284,10 +275,10 @@ def project_block_backward(
         g_qy = g_qy - radial * qy if normed else g_qy
         g_qz = g_qz - radial * qz if normed else g_qz
         scale = max(norm, MIN_QUATERNION_NORM)
-        results[6, i] = 0.0 if silent else g_qw / scale
-        results[7, i] = 0.0 if silent else g_qx / scale
-        results[8, i] = 0.0 if silent else g_qy / scale
-        results[9, i] = 0.0 if silent else g_qz / scale
+        results[6, i] = g_qw / scale
+        results[7, i] = g_qx / scale
+        results[8, i] = g_qy / scale
+        results[9, i] = g_qz / scale
         # T rows: t0 = f/z (w0 − x/z w2), t1 = f/z (w1 − y/z w2)
         g_f_over_z = 0.0
         g_x_over_z = 0.0
@@ -310,4 +301,4 @@ def project_block_backward(
         g_z = g_z if in_front else 0.0
         for k in range(3):
             g_mean = rotation[0, k] * g_cx + rotation[1, k] * g_cy + rotation[2, k] * g_z
-            results[k, i] = 0.0 if silent else g_mean
+            results[k, i] = g_mean
