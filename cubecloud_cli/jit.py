@@ -57,6 +57,11 @@ PRANGE_ONLY = ParallelOptions(
 # vectorized behind more checks too, which changes no result unless a loop reassociates a sum.
 MEMORY_CHECK_LIMIT = 1024
 llvm.set_option("cubecloud", f"-vectorize-memory-check-threshold={MEMORY_CHECK_LIMIT}")
+# LLVM leaves a loop of a known trip count under 16 scalar (``vectorizer-min-trip-count``) unless
+# its cost model finds no scalar remainder. The compositing kernels' narrow rows are loops of 8
+# pixels: one AVX2 vector of float32 (cubecloud_cli/raster/cpu_kernels.py, NARROW).
+MIN_VECTOR_TRIP_COUNT = 8
+llvm.set_option("cubecloud", f"-vectorizer-min-trip-count={MIN_VECTOR_TRIP_COUNT}")
 
 FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn", "reassoc"}
 EXACT_FASTMATH = {"nnan", "ninf", "nsz"}

@@ -14,7 +14,7 @@ from numba.core.registry import CPUDispatcher
 from test_raster import H, W, camera, scene
 
 from cubecloud_cli.cunerf import grid_kernels
-from cubecloud_cli.jit import EXACT_FASTMATH, PRANGE_ONLY
+from cubecloud_cli.jit import EXACT_FASTMATH, FASTMATH, PRANGE_ONLY
 from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import _numpy, project_cpu
@@ -125,3 +125,21 @@ def test_a_loop_writing_many_arrays_still_vectorizes():
     many_columns(*(np.ones(64) for _ in names))
     assembly = many_columns.inspect_asm(many_columns.signatures[0])
     assert re.search(r"\bv?mulpd\b", assembly), "the loop stayed scalar (mulsd only)"
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads x86 assembly")
+def test_a_narrow_row_of_the_compositing_kernels_vectorizes():
+    # A narrow row is a loop of 8 float32 pixels; LLVM's default leaves loops of under 16
+    # iterations scalar, and jit.py lowers that limit to 8.
+    real = np.float32
+
+    @njit(fastmath=FASTMATH)
+    def narrow_row(transmittance, colour, weights, window):
+        return cpu_kernels.blend_row(
+            transmittance, colour, weights, 0, window, cpu_kernels.NARROW, real(-8.0), real(8.0), real(-4.5),
+            real(0.3), real(0.2), real(0.01), real(0.2), real(5.0), real(0.5), real(1.0), cpu_kernels.polynomial_falloff,
+        )  # fmt: skip
+
+    narrow_row(np.ones((TILE, TILE), real), np.zeros((TILE, TILE), real), np.zeros(TILE, real), 3)
+    assembly = narrow_row.inspect_asm(narrow_row.signatures[0])
+    assert re.search(r"\bv?mulps\b", assembly), "the narrow row stayed scalar (mulss only)"

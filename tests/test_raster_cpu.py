@@ -14,14 +14,16 @@ import pytest
 import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from cubecloud_cli.jit import FASTMATH
 from cubecloud_cli.raster import project
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available, gsplat_inputs, rasterizer_for
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import project_cpu
 from cubecloud_cli.raster.cpu_binning import bin_tiles, splat_boxes, sum_per_gaussian
-from cubecloud_cli.raster.cpu_kernels import exp_negative
+from cubecloud_cli.raster.cpu_kernels import NARROW, blend_row, exp_negative, narrow_window, polynomial_falloff
 from cubecloud_cli.raster.pairs import pixel_bounds
 
 W, H = 40, 28
@@ -116,6 +118,66 @@ def test_the_inline_exp_is_accurate_wherever_a_pair_is_kept():
     approx = np.array([exp_negative(p) for p in singles])
     exact = np.exp(-singles.astype(np.float64))
     assert np.max(np.abs(approx - exact) / exact) < 5e-6  # float32 kernels composite in float32
+
+
+@settings(deadline=None)
+@given(st.integers(1, (1 << TILE) - 1))
+@example(0b1)
+@example(1 << (TILE - 1))
+@example(0b11111111 << (TILE - NARROW))
+@example(0b100000001)
+def test_a_narrow_window_covers_every_live_column_or_is_refused(columns):
+    window = narrow_window(columns)
+    live = [i for i in range(TILE) if columns >> i & 1]
+    if live[-1] - live[0] < NARROW:
+        assert 0 <= window <= TILE - NARROW and window <= live[0] and live[-1] < window + NARROW
+    else:
+        assert window == -1
+
+
+@njit(fastmath=FASTMATH)
+def _blend_one_row(transmittance, colour, weights, window, narrow, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
+    if narrow:
+        return blend_row(
+            transmittance, colour, weights, 0, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+        )  # fmt: skip
+    return blend_row(
+        transmittance, colour, weights, 0, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+@settings(max_examples=60, deadline=None)
+@given(
+    first=st.integers(0, TILE - 1), width=st.integers(1, NARROW), u=st.floats(-4.0, 20.0), dy=st.floats(-3.0, 3.0),
+    conic=st.tuples(st.floats(0.05, 3.0), st.floats(-0.5, 0.5), st.floats(0.05, 3.0)), opacity=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**16),
+)  # fmt: skip
+def test_a_narrow_row_blends_the_bits_of_a_whole_row(real, first, width, u, dy, conic, opacity, seed):
+    """The 8-pixel loop gives each pixel the bits the 16-pixel loop gives it: dx is one rounding of
+    dx0 + column in both, whatever the window."""
+    final = min(first + width - 1, TILE - 1)
+    window = min(first, TILE - NARROW)
+    rng = np.random.default_rng(seed)
+    start = rng.uniform(1e-4, 1.0, TILE).astype(real)
+    start[rng.random(TILE) < 0.2] *= -1  # stopped pixels
+    start[rng.random(TILE) < 0.1] = 0  # beyond the image's edge
+    dx0 = real(0.5 - u)
+    level = max(np.log(255.0 * opacity), 0.0) if opacity > 0 else 0.0
+    scalars = (
+        dx0 + real(first - 0.5), dx0 + real(final + 0.5), dx0, real(dy), real(conic[0]), real(conic[1] * 0.9 * min(conic[0], conic[2]) ** 0.5 * 2),
+        real(conic[2]), real(level + 1e-9), real(opacity), real(0.7),
+    )  # fmt: skip
+    rows = []
+    for narrow in (True, False):
+        transmittance = np.zeros((TILE, TILE), real)
+        transmittance[0] = start
+        colour, weights = np.zeros((TILE, TILE), real), np.zeros(TILE, real)
+        counts = _blend_one_row(transmittance, colour, weights, window, narrow, *scalars)
+        rows.append(
+            (transmittance[0].tobytes(), colour[0].tobytes(), weights[window : window + NARROW].tobytes(), counts)
+        )
+    assert rows[0] == rows[1]
 
 
 def test_a_tile_list_too_long_for_float32_positions_composites_in_float64(monkeypatch):

@@ -8,7 +8,8 @@ the reference CUDA rasterizer does; float64 inputs (the tests' oracle comparison
 
 What makes them fast on two cores (``bench/raster.py``): within a tile each Gaussian visits only
 the rows of its own box; each row is one fixed 16-pixel loop without branches (every test a
-select), which LLVM turns into SIMD, 8 float32 lanes at a time on AVX2. The exp is inline
+select), which LLVM turns into SIMD, 8 float32 lanes at a time on AVX2, or one 8-pixel loop
+where the row's pixels to visit lie within 8 columns (NARROW). The exp is inline
 arithmetic (a polynomial, then squarings), not a libm call; rows whose pixels have all stopped
 are skipped by a bit mask; the backward skips entries that blended nothing.
 
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from cubecloud_cli.jit import FASTMATH, PRANGE_ONLY, as_real
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
@@ -34,16 +36,20 @@ LEVEL_MARGIN = 1e-9
 EXP_POLYNOMIAL_LIMIT = 6.0
 
 # How the pixel loops stay SIMD (numba hands them to LLVM's loop vectorizer, which gives up on
-# any of these): each loop runs over one whole tile row, 16 pixels, indexed by the loop variable
-# alone (an index like row + i is checked for wrap-around, a branch); every test is a select
-# between values of the compute type (int64 compares or counters halve the width); no call and
-# no inner loop in the body; no Python division check (error_model="numpy": 1 − α ≥ 0.01); and
-# few arrays written, each a plain 2D tile array, none passed to a helper (reference counting
-# calls). Rows of 8 pixels would waste fewer lanes on narrow splats, but LLVM's cost model does
-# not vectorize a loop that short.
+# any of these): each loop runs over a constant count of pixels of a tile row (16, or NARROW),
+# indexed by an unsigned index (a signed one, like window + i, is checked for wrap-around, a
+# branch); every test is a select between values of the compute type (int64 compares or counters
+# halve the width); no call and no inner loop in the body; no Python division check
+# (error_model="numpy": 1 − α ≥ 0.01); and few arrays written, each a plain 2D tile array, none
+# passed to a helper (reference counting calls).
 # The backward compares entry positions within a tile in the compute type: float32 counts exactly
 # to 2²⁴, so ``cpu.py`` composites a tile list longer than that in float64.
 EXACT_POSITIONS = {np.dtype(np.float32): 2**24, np.dtype(np.float64): 2**53}
+# Most rows a splat covers in a tile are narrow: at 50k Gaussians and 128², two in three of the
+# rows with a live pixel lie within 8 columns, three in four once stopped pixels are left out.
+# Such a row is one 8-lane loop, one AVX2 vector of float32, instead of two. LLVM's loop
+# vectorizer leaves loops of under 16 iterations scalar unless told (cubecloud_cli/jit.py).
+NARROW = 8
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -69,6 +75,15 @@ def exp_negative(power):
     return e * e
 
 
+@njit(cache=True, inline="always")
+def narrow_window(columns):
+    """The first column of a NARROW-pixel window over every set bit of ``columns`` (a non-zero
+    bit mask of a tile row, bit i for column i), or −1 where they span more than NARROW columns."""
+    lowest = trailing_zeros(columns)
+    highest = 63 - leading_zeros(columns)
+    return min(lowest, TILE - NARROW) if highest - lowest < NARROW else -1
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def polynomial_falloff(power):
     """exp(−power) of a pair, for Gaussians whose power level is within the polynomial's range."""
@@ -92,16 +107,21 @@ def pair_alpha(dx, dy, a, b, c, opacity, falloff):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def blend_row(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff):
-    """Blend one Gaussian into row ``r`` of a tile, where its box spans dx ∈ [low, high].
+def blend_row(
+    transmittance, colour, weights, r, window, lanes, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
+):  # fmt: skip
+    """Blend one Gaussian into columns ``window`` to ``window + lanes − 1`` of row ``r`` of a tile,
+    where its box spans dx ∈ [low, high]; ``lanes`` is a constant (TILE or NARROW).
     Channel 0 is blended here; ``weights`` keeps each pixel's T·α (0 where not blended) for the
     caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
     the sign says which pixels are live. Returns (pixels stopped, whether any was blended)."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     min_alpha, stop_level = as_real(MIN_ALPHA, dx0), as_real(TRANSMITTANCE_STOP, dx0)
     stops = blends = zero
-    dx = dx0
-    for i in range(TILE):
+    column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
+    for lane in range(lanes):
+        i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
+        dx = dx0 + column
         before = transmittance[r, i]
         power, _, alpha = pair_alpha(dx, dy, a, b, c, opacity, falloff)
         valid = (dx >= low) & (dx <= high) & (power <= cut) & (alpha >= min_alpha) & (before > zero)
@@ -114,17 +134,18 @@ def blend_row(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cu
         weights[i] = weight
         stops += one if stop else zero
         blends += one if blend else zero
-        dx += one
+        column += one
     return int(stops), blends > zero
 
 
 @njit(cache=True, fastmath=FASTMATH)
 def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
-    """``blend_row`` with libm's exp, out of line: a second inlined copy of the row loop for a
-    Gaussian outside the [0, 1] opacity contract would double the kernel's first compilation."""
+    """``blend_row`` over the whole row with libm's exp, out of line: a second inlined copy of the
+    row loop for a Gaussian outside the [0, 1] opacity contract would double the kernel's first
+    compilation."""
     return blend_row(
-        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
-    )
+        transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+    )  # fmt: skip
 
 
 @njit(parallel=PRANGE_ONLY, cache=True, fastmath=FASTMATH)
@@ -174,16 +195,22 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
             any_blend = False
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
                 r = py - top
-                if live_columns[r] & columns == 0:
+                live = live_columns[r] & columns
+                if live == 0:
                     continue  # every pixel of this row under the splat has stopped
                 dy = as_real(py + 0.5 - v, conics)
+                window = narrow_window(live)
                 if levels[g] > EXP_POLYNOMIAL_LIMIT:
                     stops, blends = blend_row_exactly(
                         transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
                     )  # fmt: skip
+                elif window >= 0 and channels == 1:
+                    stops, blends = blend_row(
+                        transmittance, colour, weights, r, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                    )  # fmt: skip
                 else:
                     stops, blends = blend_row(
-                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                        transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
                 any_blend |= blends
                 for ch in range(1, channels):
@@ -266,8 +293,9 @@ def unblend_grey_row(
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
     g_colour = zero
-    dx = dx0
+    column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
+        dx = dx0 + column
         valid, before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, falloff
         )
@@ -277,20 +305,23 @@ def unblend_grey_row(
         g_colour += weight * grad
         behind[r, i] += weight * colour_0
         sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
-        dx += one
+        column += one
     return sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], g_colour
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
 def unblend_grey_row_into_lanes(
-    transmittance, behind, tile_grad, last_entry, lanes, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+    transmittance, behind, tile_grad, last_entry, lanes, r, window, width, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
 ):  # fmt: skip
-    """``unblend_grey_row`` with the polynomial exp, adding each pixel's seven terms into its lane
+    """``unblend_grey_row`` with the polynomial exp over columns ``window`` to ``window + width − 1``
+    (``width`` a constant, TILE or NARROW), adding each pixel's seven terms into its column's lane
     of ``lanes`` (7 × 16) instead of summing the row: the entry's sums are then taken across
     lanes once, after its last row, rather than seven times a row."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
-    dx = dx0
-    for i in range(TILE):
+    column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
+    for lane in range(width):
+        i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
+        dx = dx0 + column
         valid, before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, polynomial_falloff
         )  # fmt: skip
@@ -306,7 +337,7 @@ def unblend_grey_row_into_lanes(
         lanes[4, i] += terms[4]
         lanes[5, i] += terms[5]
         lanes[6, i] += weight * grad
-        dx += one
+        column += one
 
 
 @njit(cache=True, fastmath=FASTMATH, error_model="numpy")
@@ -328,8 +359,9 @@ def unblend_colour_row(
     of line: RGB scenes are not CT's, and the kernel's first compilation stays short."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
-    dx = dx0
+    column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
+        dx = dx0 + column
         if exact:
             valid, before, weight, survive, gaussian, raw = unblend_pair(
                 transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, exact_falloff
@@ -347,7 +379,7 @@ def unblend_colour_row(
                 colour_grad[ch] += weight * tile_grad[ch, r, i]
                 behind[ch, r, i] += weight * colour
             sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
-        dx += one
+        column += one
     return sums
 
 
@@ -429,6 +461,8 @@ def backward(
             low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
             position = as_real(k - start, conics)
             exact = levels[g] > EXP_POLYNOMIAL_LIMIT
+            halves = 1 if final - first < NARROW else 2
+            window = min(first, TILE - NARROW) if halves == 1 else 0
             # Sums over this entry's pixels, kept in registers and written to its slot once.
             entry_sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # mean2d (2), conic (3), opacity
             g_colour_0 = 0.0
@@ -451,9 +485,10 @@ def backward(
                     entry_sums = added(entry_sums, grey)
                     g_colour_0 += grey[6]
                 else:
-                    unblend_grey_row_into_lanes(
-                        transmittance, behind, tile_grad, last_entry, lanes, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
-                    )  # fmt: skip
+                    for half in range(halves):  # as in forward: one inlined loop of NARROW pixels
+                        unblend_grey_row_into_lanes(
+                            transmittance, behind, tile_grad, last_entry, lanes, r, window + half * NARROW, NARROW, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+                        )  # fmt: skip
             if channels == 1 and not exact:
                 lane_sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
                 for i in range(TILE):
