@@ -248,15 +248,17 @@ def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
             and bounds[g, 2] <= top + TILE - 1
         ]
         assert entries[offsets[tile] : offsets[tile + 1]].tolist() == touches
-    values = np.random.default_rng(0).normal(size=(entries.size, 3))
+    values = np.random.default_rng(0).normal(size=(entries.size, 6 + 2))  # two colour channels
     written = np.random.default_rng(1).random(entries.size) < 0.3
-    expected = np.zeros((500, 3))
+    expected = np.zeros((500, 8))
     np.add.at(expected, entries[written], values[written])
     gaussian_major = np.full_like(values, np.nan)  # a row not written holds garbage, never summed
     gaussian_major[slots[written]] = values[written]
     written_by_slot = np.zeros(entries.size, dtype=bool)
     written_by_slot[slots[written]] = True
-    sums = sum_per_gaussian(gaussian_major, written_by_slot, order, first, 500)
+    grads = (np.zeros((500, 2)), np.zeros((500, 3)), np.zeros(500), np.zeros((500, 2)))
+    sum_per_gaussian(gaussian_major, written_by_slot, order, first, *grads)
+    sums = np.concatenate([grads[0], grads[1], grads[2][:, None], grads[3]], axis=1)
     np.testing.assert_allclose(sums, expected, atol=1e-12)
     assert sorted(slots.tolist()) == list(range(entries.size))
 

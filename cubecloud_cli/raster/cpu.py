@@ -132,20 +132,20 @@ class _Composite(torch.autograd.Function):
         slot_grads, written = kernels.backward(
             offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended, grad
         )
-        per_gaussian = binning.sum_per_gaussian(slot_grads, written, *owners, ctx.count)
         dtype, device = grad_image.dtype, grad_image.device
         real = np.float64 if dtype == torch.float64 else np.float32
-
-        def column(columns: slice) -> torch.Tensor:
-            # contiguous: the projection's backward reads the first two as they are, uncopied
-            part = np.ascontiguousarray(per_gaussian[:, columns], dtype=real)
-            return torch.from_numpy(part).to(dtype=dtype, device=device)
-
+        count, channels = ctx.count, slot_grads.shape[1] - 6
+        # contiguous: the projection's backward reads the first two as they are, uncopied
+        grads = [np.zeros(shape, real) for shape in ((count, 2), (count, 3), count, (count, channels))]
+        binning.sum_per_gaussian(slot_grads, written, *owners, *grads)
+        means2d_grad, conics_grad, opacities_grad, colours_grad = (
+            torch.from_numpy(g).to(dtype=dtype, device=device) for g in grads
+        )
         return (
-            column(slice(0, 2)),
-            column(slice(2, 5)),
-            column(slice(6, None)),
-            column(slice(5, 6))[:, 0],
+            means2d_grad,
+            conics_grad,
+            colours_grad,
+            opacities_grad,
             None,
             None,
             None,

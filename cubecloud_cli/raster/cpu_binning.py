@@ -144,15 +144,26 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def sum_per_gaussian(slot_values, written, order, first, count):
-    """(count, K) sums of each Gaussian's ``written`` rows of the Gaussian-major (entries, K)
-    ``slot_values`` (rows not written hold no value and count as zero), in parallel over
-    Gaussians (each owns its rows: no two threads write the same memory)."""
-    sums = np.zeros((count, slot_values.shape[1]))
+def sum_per_gaussian(slot_values, written, order, first, means2d_grad, conics_grad, opacities_grad, colours_grad):
+    """Each Gaussian's sums of its ``written`` rows of the Gaussian-major (entries, 6 + C)
+    ``slot_values`` (rows not written hold no value and count as zero), in parallel over Gaussians
+    (each owns its rows: no two threads write the same memory). The columns are the compositing
+    backward's: mean2d (2), conic (3), opacity, colour (C); each group goes to its own output,
+    (count, 2), (count, 3), (count,) and (count, C), which the caller has zeroed. The sums are
+    taken in float64, row by row, and stored in the outputs' type: the gradients come out as
+    the contiguous arrays autograd takes, without a copy per column group."""
     for rank in prange(order.size):
         g = order[rank]
-        for e in range(first[rank], first[rank + 1]):
-            if written[e]:
-                for j in range(slot_values.shape[1]):
-                    sums[g, j] += slot_values[e, j]
-    return sums
+        for j in range(slot_values.shape[1]):
+            total = 0.0
+            for e in range(first[rank], first[rank + 1]):
+                if written[e]:
+                    total += slot_values[e, j]
+            if j < 2:
+                means2d_grad[g, j] = total
+            elif j < 5:
+                conics_grad[g, j - 2] = total
+            elif j == 5:
+                opacities_grad[g] = total
+            else:
+                colours_grad[g, j - 6] = total

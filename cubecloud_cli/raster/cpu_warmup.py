@@ -40,8 +40,9 @@ def compile_backward_side() -> None:
         empty(0, 2), empty(0, 3), empty(0),
     )  # fmt: skip
     cpu_binning.sum_per_gaussian(
-        empty(0, 7, dtype=wide), empty(0, dtype=np.bool_), empty(0, dtype=index), empty(0, dtype=index), 0
-    )
+        empty(0, 7, dtype=wide), empty(0, dtype=np.bool_), empty(0, dtype=index), empty(0, dtype=index),
+        empty(0, 2), empty(0, 3), empty(0), empty(0, 1),
+    )  # fmt: skip
 
 
 class BackwardCompile:
