@@ -11,7 +11,7 @@ the rows of its own box; each row is one fixed 16-pixel loop without branches (e
 select), which LLVM turns into SIMD, 8 float32 lanes at a time on AVX2, or one 8-pixel loop
 where the row's pixels to visit lie within 8 columns (NARROW). The exp is inline
 arithmetic (a polynomial, then squarings), not a libm call; rows whose pixels have all stopped
-are skipped by a bit mask; the backward skips entries that blended nothing.
+are skipped by a bit mask; the backward skips entries, and rows of entries, that blended nothing.
 
 Backward walks each pixel's list back to front (as the reference CUDA code does), recovering the
 transmittance before each Gaussian by division by (1 − α) ≥ 0.01. Gradients go into one row per
@@ -155,6 +155,8 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
 
     ``last`` is, per pixel, the entry where the backward pass starts: the entry at which the pixel
     stopped (not blended), else the tile's end. Any entry before it with α ≥ 1/255 was blended.
+    ``blended_rows`` is, per entry, a bit per tile row where it blended a pixel (0: none), the
+    rows the backward visits: the others have no gradient.
 
     One body on purpose: the per-tile state (transmittance, the bit masks of live pixels) lives in
     the body of the parallel loop over tiles, which numba compiles as one kernel."""
@@ -163,7 +165,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     image = np.zeros((height * width, channels), dtype=real)
     final_transmittance = np.ones(height * width, dtype=real)
     last = np.zeros(height * width, dtype=np.int64)
-    blended = np.zeros(entries.size, dtype=np.bool_)  # entries that blended any pixel
+    blended_rows = np.zeros(entries.size, dtype=np.int32)
     for tile in prange(offsets.size - 1):
         start, end = offsets[tile], offsets[tile + 1]
         ty, tx = tile // tiles_x, tile % tiles_x
@@ -192,7 +194,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
             dx0 = as_real(left + 0.5 - u, conics)
             # Half a pixel of slack: dx steps by 1, and its rounding must not drop an edge column.
             low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
-            any_blend = False
+            rows_blended = 0
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
                 r = py - top
                 live = live_columns[r] & columns
@@ -212,7 +214,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                     stops, blends = blend_row(
                         transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
-                any_blend |= blends
+                rows_blended |= (1 << r) if blends else 0
                 for ch in range(1, channels):
                     for i in range(TILE):
                         other_colours[ch, r, i] += weights[i] * colours[g, ch]
@@ -225,8 +227,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                             last_entry[r, i] = k
                     live_columns[r] = mask
                     alive -= stops
-            if any_blend:
-                blended[k] = True
+            blended_rows[k] = rows_blended
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 r, i = py - top, px - left
@@ -237,7 +238,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                     image[pixel, ch] = other_colours[ch, r, i] + remaining * background[ch]
                 final_transmittance[pixel] = remaining
                 last[pixel] = last_entry[r, i]
-    return image, final_transmittance, last, blended
+    return image, final_transmittance, last, blended_rows
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
@@ -400,7 +401,7 @@ def backward(
     tiles_x,
     final_transmittance,
     last,
-    blended,
+    blended_rows,
     grad_image,
 ):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
@@ -449,7 +450,8 @@ def backward(
         for r in range(TILE):
             latest = max(latest, row_latest[r])
         for k in range(latest - 1, start - 1, -1):
-            if not blended[k]:  # its gradients are all zero
+            rows = blended_rows[k]
+            if rows == 0:  # its gradients are all zero
                 continue
             g = entries[k]
             cut = as_real(levels[g] + LEVEL_MARGIN, conics)
@@ -469,8 +471,8 @@ def backward(
             colour_grad[:] = 0.0
             for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
                 r = py - top
-                if k >= row_latest[r]:
-                    continue  # every pixel of this row stopped before this entry
+                if (rows >> r) & 1 == 0:
+                    continue  # it blended no pixel of this row in the forward: no gradient here
                 dy = as_real(py + 0.5 - v, conics)
                 if channels > 1:
                     sums = unblend_colour_row(
