@@ -433,22 +433,19 @@ def backward(
         last_entry = np.full((TILE, TILE), -1.0, dtype=real)
         colour_grad = np.zeros(channels, dtype=real)
         lanes = np.zeros((7, TILE), dtype=real)  # an entry's per-pixel gradient terms, by lane
-        row_latest = np.zeros(TILE, dtype=np.int64)  # per row, the largest last entry
+        latest = start  # the tile's largest last entry: where its backward walk begins
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 r, i = py - top, px - left
                 pixel = py * width + px
                 transmittance[r, i] = final_transmittance[pixel]
                 last_entry[r, i] = last[pixel] - start
-                row_latest[r] = max(row_latest[r], last[pixel])
+                latest = max(latest, last[pixel])
                 behind[r, i] = final_transmittance[pixel] * background[0]
                 tile_grad[r, i] = grad_image[pixel, 0]
                 for ch in range(channels if channels > 1 else 0):  # RGB rows read these instead
                     behind_channels[ch, r, i] = final_transmittance[pixel] * background[ch]
                     grad_channels[ch, r, i] = grad_image[pixel, ch]
-        latest = start
-        for r in range(TILE):
-            latest = max(latest, row_latest[r])
         for k in range(latest - 1, start - 1, -1):
             rows = blended_rows[k]
             if rows == 0:  # its gradients are all zero
