@@ -72,7 +72,9 @@ from cubecloud_cli.raster import cpu_kernels
 inputs = np.load(sys.argv[1])
 composited = cpu_kernels.forward(*[inputs[f"forward_{i}"] for i in range(9)], *inputs["sizes"])
 mlp = grid_kernels.mlp_forward(*[inputs[f"mlp_{i}"] for i in range(5)])
-for array in (*composited, mlp):
+image, transmittance, last, rows, pixels = composited
+recorded = np.where((rows[:, None] >> np.arange(16)) & 1 == 1, pixels, 0)  # the rest is never written
+for array in (image, transmittance, last, rows, recorded, mlp):
     print(hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest())
 """
 
@@ -108,7 +110,7 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
         ).stdout  # fmt: skip
         for _ in ("compiled in the process", "loaded from the cache")
     ]
-    assert len(runs[0].split()) == 5 and runs[0] == runs[1]
+    assert len(runs[0].split()) == 6 and runs[0] == runs[1]
 
 
 @pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads x86 assembly")
@@ -134,12 +136,12 @@ def test_a_narrow_row_of_the_compositing_kernels_vectorizes():
     real = np.float32
 
     @njit(fastmath=FASTMATH)
-    def narrow_row(transmittance, colour, weights, window):
+    def narrow_row(transmittance, colour, weights, lane_bits, window):
         return cpu_kernels.blend_row(
-            transmittance, colour, weights, 0, window, cpu_kernels.NARROW, real(-8.0), real(8.0), real(-4.5),
+            transmittance, colour, weights, lane_bits, 0, window, cpu_kernels.NARROW, real(-8.0), real(8.0), real(-4.5),
             real(0.3), real(0.2), real(0.01), real(0.2), real(5.0), real(0.5), real(1.0), cpu_kernels.polynomial_falloff,
         )  # fmt: skip
 
-    narrow_row(np.ones((TILE, TILE), real), np.zeros((TILE, TILE), real), np.zeros(TILE, real), 3)
+    narrow_row(np.ones((TILE, TILE), real), np.zeros((TILE, TILE), real), np.zeros(TILE, real), 2.0 ** np.arange(TILE, dtype=real), 3)
     assembly = narrow_row.inspect_asm(narrow_row.signatures[0])
     assert re.search(r"\bv?mulps\b", assembly), "the narrow row stayed scalar (mulss only)"

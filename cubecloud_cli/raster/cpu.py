@@ -99,9 +99,7 @@ class _Composite(torch.autograd.Function):
         )
         offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
-        if offsets.size > 1 and np.diff(offsets).max() >= kernels.EXACT_POSITIONS[arrays[2].dtype]:
-            arrays = tuple(a.astype(np.float64) if a.dtype == np.float32 else a for a in arrays)
-        image, final_transmittance, last, blended_rows = kernels.forward(
+        image, final_transmittance, last, blended_rows, blended_pixels = kernels.forward(
             offsets, entries, *arrays, width, height, tiles_x
         )
         ctx.saved = (
@@ -113,6 +111,7 @@ class _Composite(torch.autograd.Function):
             final_transmittance,
             last,
             blended_rows,
+            blended_pixels,
             width,
             height,
             tiles_x,
@@ -127,14 +126,10 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_coverage):
-        offsets, entries, slots, owners, arrays, final_transmittance, last, blended_rows, width, height, tiles_x = (
-            ctx.saved
-        )
-        # A frame widened to float64 (a tile list past float32's exact integers) takes its
-        # gradient in float64 too: one signature per compute type, as the oracle tests compile.
+        offsets, entries, slots, owners, arrays, final_transmittance, last, *blended, width, height, tiles_x = ctx.saved
         grad = _numpy(grad_image.reshape(height * width, -1)).astype(arrays[2].dtype, copy=False)
         slot_grads, written = kernels.backward(
-            offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, blended_rows, grad
+            offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, *blended, grad
         )
         dtype, device = grad_image.dtype, grad_image.device
         real = np.float64 if dtype == torch.float64 else np.float32

@@ -38,13 +38,10 @@ EXP_POLYNOMIAL_LIMIT = 6.0
 # How the pixel loops stay SIMD (numba hands them to LLVM's loop vectorizer, which gives up on
 # any of these): each loop runs over a constant count of pixels of a tile row (16, or NARROW),
 # indexed by an unsigned index (a signed one, like window + i, is checked for wrap-around, a
-# branch); every test is a select between values of the compute type (int64 compares or counters
-# halve the width); no call and no inner loop in the body; no Python division check
+# branch); every test is a select between values of the compute type or of int32 (int64 compares
+# or counters halve the width); no call and no inner loop in the body; no Python division check
 # (error_model="numpy": 1 − α ≥ 0.01); and few arrays written, each a plain 2D tile array, none
 # passed to a helper (reference counting calls).
-# The backward compares entry positions within a tile in the compute type: float32 counts exactly
-# to 2²⁴, so ``cpu.py`` composites a tile list longer than that in float64.
-EXACT_POSITIONS = {np.dtype(np.float32): 2**24, np.dtype(np.float64): 2**53}
 # Most rows a splat covers in a tile are narrow: at 50k Gaussians and 128², two in three of the
 # rows with a live pixel lie within 8 columns, three in four once stopped pixels are left out.
 # Such a row is one 8-lane loop, one AVX2 vector of float32, instead of two. LLVM's loop
@@ -78,7 +75,9 @@ def exp_negative(power):
 @njit(cache=True, inline="always")
 def narrow_window(columns):
     """The first column of a NARROW-pixel window over every set bit of ``columns`` (a non-zero
-    bit mask of a tile row, bit i for column i), or −1 where they span more than NARROW columns."""
+    bit mask of a tile row of any integer type, bit i for column i), or −1 where they span more
+    than NARROW columns."""
+    columns = np.int64(columns)  # leading_zeros counts within the argument's own width
     lowest = trailing_zeros(columns)
     highest = 63 - leading_zeros(columns)
     return min(lowest, TILE - NARROW) if highest - lowest < NARROW else -1
@@ -108,13 +107,15 @@ def pair_alpha(dx, dy, a, b, c, opacity, falloff):
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def blend_row(
-    transmittance, colour, weights, r, window, lanes, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
+    transmittance, colour, weights, lane_bits, r, window, lanes, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
 ):  # fmt: skip
     """Blend one Gaussian into columns ``window`` to ``window + lanes − 1`` of row ``r`` of a tile,
     where its box spans dx ∈ [low, high]; ``lanes`` is a constant (TILE or NARROW).
     Channel 0 is blended here; ``weights`` keeps each pixel's T·α (0 where not blended) for the
     caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
-    the sign says which pixels are live. Returns (pixels stopped, whether any was blended)."""
+    the sign says which pixels are live. Returns the bit masks of the columns that stopped and of
+    those blended. ``lane_bits[i]`` is 2^i in the compute type: the masks are float sums of
+    distinct powers of two below 2¹⁶, exact in any order of summation, so the loop stays SIMD."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     min_alpha, stop_level = as_real(MIN_ALPHA, dx0), as_real(TRANSMITTANCE_STOP, dx0)
     stops = blends = zero
@@ -132,19 +133,21 @@ def blend_row(
         transmittance[r, i] = -before if stop else (after if blend else before)
         colour[r, i] += weight * colour_0
         weights[i] = weight
-        stops += one if stop else zero
-        blends += one if blend else zero
+        stops += lane_bits[i] if stop else zero
+        blends += lane_bits[i] if blend else zero
         column += one
-    return int(stops), blends > zero
+    return int(stops), int(blends)
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
+def blend_row_exactly(
+    transmittance, colour, weights, lane_bits, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+):  # fmt: skip
     """``blend_row`` over the whole row with libm's exp, out of line: a second inlined copy of the
     row loop for a Gaussian outside the [0, 1] opacity contract would double the kernel's first
     compilation."""
     return blend_row(
-        transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+        transmittance, colour, weights, lane_bits, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
     )  # fmt: skip
 
 
@@ -154,9 +157,11 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     box, so the work follows the pair count rather than pixels × entries.
 
     ``last`` is, per pixel, the entry where the backward pass starts: the entry at which the pixel
-    stopped (not blended), else the tile's end. Any entry before it with α ≥ 1/255 was blended.
-    ``blended_rows`` is, per entry, a bit per tile row where it blended a pixel (0: none), the
-    rows the backward visits: the others have no gradient.
+    stopped (not blended), else the tile's end. ``blended_rows`` is, per entry, a bit per tile row
+    where it blended a pixel (0: none), and ``blended_pixels[entry, row]`` that row's bit per
+    blended column, set only where the row's bit is: the pairs the backward undoes, exactly these.
+    Recomputing them there instead let a pair at the α threshold round to the other side now and
+    then, the two kernels being optimised apart (docs/results.md).
 
     One body on purpose: the per-tile state (transmittance, the bit masks of live pixels) lives in
     the body of the parallel loop over tiles, which numba compiles as one kernel."""
@@ -166,6 +171,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     final_transmittance = np.ones(height * width, dtype=real)
     last = np.zeros(height * width, dtype=np.int64)
     blended_rows = np.zeros(entries.size, dtype=np.int32)
+    blended_pixels = np.empty((entries.size, TILE), dtype=np.uint16)
     for tile in prange(offsets.size - 1):
         start, end = offsets[tile], offsets[tile + 1]
         ty, tx = tile // tiles_x, tile % tiles_x
@@ -179,6 +185,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         colour = np.zeros((TILE, TILE), dtype=real)  # channel 0; the others, rarely used, apart
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
         weights = np.zeros(TILE, dtype=real)
+        lane_bits = np.empty(TILE, dtype=real)
+        for i in range(TILE):
+            lane_bits[i] = 1 << i
         last_entry = np.full((TILE, TILE), end)  # where the backward pass starts, per pixel
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
         alive = (right - left + 1) * (bottom - top + 1)
@@ -203,30 +212,28 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                 dy = as_real(py + 0.5 - v, conics)
                 window = narrow_window(live)
                 if levels[g] > EXP_POLYNOMIAL_LIMIT:
-                    stops, blends = blend_row_exactly(
-                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+                    stopped, blended = blend_row_exactly(
+                        transmittance, colour, weights, lane_bits, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
                     )  # fmt: skip
                 elif window >= 0 and channels == 1:
-                    stops, blends = blend_row(
-                        transmittance, colour, weights, r, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                    stopped, blended = blend_row(
+                        transmittance, colour, weights, lane_bits, r, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
                 else:
-                    stops, blends = blend_row(
-                        transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                    stopped, blended = blend_row(
+                        transmittance, colour, weights, lane_bits, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
-                rows_blended |= (1 << r) if blends else 0
+                if blended:
+                    rows_blended |= 1 << r
+                    blended_pixels[k, r] = blended
                 for ch in range(1, channels):
                     for i in range(TILE):
                         other_colours[ch, r, i] += weights[i] * colours[g, ch]
-                if stops > 0:  # rare: each pixel stops once
-                    mask = 0
-                    for i in range(TILE):
-                        if transmittance[r, i] > 0.0:
-                            mask |= 1 << i
-                        elif transmittance[r, i] < 0.0 and last_entry[r, i] == end:
-                            last_entry[r, i] = k
-                    live_columns[r] = mask
-                    alive -= stops
+                live_columns[r] &= ~stopped
+                while stopped:  # rare: each pixel stops once
+                    last_entry[r, trailing_zeros(stopped)] = k
+                    stopped &= stopped - 1
+                    alive -= 1
             blended_rows[k] = rows_blended
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
@@ -238,23 +245,21 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                     image[pixel, ch] = other_colours[ch, r, i] + remaining * background[ch]
                 final_transmittance[pixel] = remaining
                 last[pixel] = last_entry[r, i]
-    return image, final_transmittance, last, blended_rows
+    return image, final_transmittance, last, blended_rows, blended_pixels
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
-def unblend_pair(after, last_position, position, dx, dy, low, high, a, b, c, cut, opacity, falloff):
-    """Undo one pair, back to front, from the pixel's T after it: whether it was blended, T before
-    it and its weight T·α (both 0 if not blended), 1 / (1 − α), the Gaussian falloff and the
-    unclamped o·falloff.
+def unblend_pair(after, valid, dx, dy, a, b, c, opacity, falloff):
+    """Undo one pair, back to front, from the pixel's T after it and whether the forward blended
+    it: T before it and its weight T·α (both 0 if not blended), 1 / (1 − α), the Gaussian falloff
+    and the unclamped o·falloff.
     Scalars in and out: an array passed to a helper inside the pixel loop costs reference counting
     calls there, and a call keeps the loop from SIMD."""
     zero, one = as_real(0.0, dx), as_real(1.0, dx)
-    power, gaussian, alpha = pair_alpha(dx, dy, a, b, c, opacity, falloff)
-    valid = (dx >= low) & (dx <= high) & (position < last_position) & (power <= cut)
-    valid = valid & (alpha >= as_real(MIN_ALPHA, dx))
+    _, gaussian, alpha = pair_alpha(dx, dy, a, b, c, opacity, falloff)
     survive = one / (one - alpha)
     before = after * survive if valid else zero
-    return valid, before, before * alpha, survive, gaussian, opacity * gaussian
+    return before, before * alpha, survive, gaussian, opacity * gaussian
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -286,20 +291,18 @@ def added(sums, terms):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
-def unblend_grey_row(
-    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
-):  # fmt: skip
-    """One Gaussian's gradients over row ``r`` of a tile of one channel, back to front: the sums
-    for mean2d (2), conic (3), opacity and colour. ``behind`` is the colour composited behind it."""
+def unblend_grey_row(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b, c, opacity, colour_0, falloff):
+    """One Gaussian's gradients over row ``r`` of a tile of one channel, back to front, at the
+    columns of the bit mask ``pixels`` (those it blended): the sums for mean2d (2), conic (3),
+    opacity and colour. ``behind`` is the colour composited behind it."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
     g_colour = zero
     column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
         dx = dx0 + column
-        valid, before, weight, survive, gaussian, raw = unblend_pair(
-            transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, falloff
-        )
+        valid = (pixels >> i) & 1 != 0
+        before, weight, survive, gaussian, raw = unblend_pair(transmittance[r, i], valid, dx, dy, a, b, c, opacity, falloff)
         transmittance[r, i] = before if valid else transmittance[r, i]
         grad = tile_grad[r, i]
         grad_alpha = grad * (before * colour_0 - behind[r, i] * survive) if valid else zero
@@ -312,19 +315,21 @@ def unblend_grey_row(
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
 def unblend_grey_row_into_lanes(
-    transmittance, behind, tile_grad, last_entry, lanes, r, window, width, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+    transmittance, behind, tile_grad, lanes, lane_bits, r, window, width, pixels, dx0, dy, a, b, c, opacity, colour_0
 ):  # fmt: skip
     """``unblend_grey_row`` with the polynomial exp over columns ``window`` to ``window + width − 1``
     (``width`` a constant, TILE or NARROW), adding each pixel's seven terms into its column's lane
     of ``lanes`` (7 × 16) instead of summing the row: the entry's sums are then taken across
-    lanes once, after its last row, rather than seven times a row."""
+    lanes once, after its last row, rather than seven times a row. ``lane_bits[i]`` is 2^i as an
+    int32, so that the test of a column's bit is as wide as a float32 lane."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
     for lane in range(width):
         i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
         dx = dx0 + column
-        valid, before, weight, survive, gaussian, raw = unblend_pair(
-            transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, polynomial_falloff
+        valid = pixels & lane_bits[i] != 0
+        before, weight, survive, gaussian, raw = unblend_pair(
+            transmittance[r, i], valid, dx, dy, a, b, c, opacity, polynomial_falloff
         )  # fmt: skip
         transmittance[r, i] = before if valid else transmittance[r, i]
         grad = tile_grad[r, i]
@@ -342,18 +347,16 @@ def unblend_grey_row_into_lanes(
 
 
 @njit(cache=True, fastmath=FASTMATH, error_model="numpy")
-def unblend_grey_row_exactly(
-    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
-):  # fmt: skip
+def unblend_grey_row_exactly(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b, c, opacity, colour_0):
     """``unblend_grey_row`` with libm's exp, out of line (as ``blend_row_exactly``)."""
     return unblend_grey_row(
-        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+        transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b, c, opacity, colour_0, exact_falloff
     )  # fmt: skip
 
 
 @njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def unblend_colour_row(
-    transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours, exact, colour_grad
+    transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b, c, opacity, colours, exact, colour_grad
 ):  # fmt: skip
     """``unblend_grey_row`` for several channels (``behind`` and ``tile_grad`` per channel first;
     the colour gradients added into ``colour_grad``; libm's exp where ``exact``). Scalar and out
@@ -363,24 +366,25 @@ def unblend_colour_row(
     column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
         dx = dx0 + column
-        if exact:
-            valid, before, weight, survive, gaussian, raw = unblend_pair(
-                transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, exact_falloff
-            )
-        else:
-            valid, before, weight, survive, gaussian, raw = unblend_pair(
-                transmittance[r, i], last_entry[r, i], position, dx, dy, low, high, a, b, c, cut, opacity, polynomial_falloff
-            )  # fmt: skip
-        if valid:
-            transmittance[r, i] = before
-            grad_alpha = zero
-            for ch in range(colours.size):
-                colour = as_real(colours[ch], dx)
-                grad_alpha += tile_grad[ch, r, i] * (before * colour - behind[ch, r, i] * survive)
-                colour_grad[ch] += weight * tile_grad[ch, r, i]
-                behind[ch, r, i] += weight * colour
-            sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
         column += one
+        if (pixels >> i) & 1 == 0:
+            continue
+        if exact:
+            before, weight, survive, gaussian, raw = unblend_pair(
+                transmittance[r, i], True, dx, dy, a, b, c, opacity, exact_falloff
+            )  # fmt: skip
+        else:
+            before, weight, survive, gaussian, raw = unblend_pair(
+                transmittance[r, i], True, dx, dy, a, b, c, opacity, polynomial_falloff
+            )  # fmt: skip
+        transmittance[r, i] = before
+        grad_alpha = zero
+        for ch in range(colours.size):
+            colour = as_real(colours[ch], dx)
+            grad_alpha += tile_grad[ch, r, i] * (before * colour - behind[ch, r, i] * survive)
+            colour_grad[ch] += weight * tile_grad[ch, r, i]
+            behind[ch, r, i] += weight * colour
+        sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
     return sums
 
 
@@ -402,14 +406,16 @@ def backward(
     final_transmittance,
     last,
     blended_rows,
+    blended_pixels,
     grad_image,
 ):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
     colour (C), in the rows of the Gaussian-major ``slots``, summed per Gaussian afterwards; and
-    which slots were written. Entries are walked back to front; each pixel starts at its last
-    blended entry. An entry that blended nothing has no gradient, and its slot row is left
-    unwritten rather than zeroed: in a dense view most entries are such (three in four at 50k
-    Gaussians, 128²), and zeroing and summing their rows cost more than the rows that count.
+    which slots were written. Entries are walked back to front, each undoing the pairs the
+    forward blended (``blended_rows``, ``blended_pixels``). An entry that blended nothing has no
+    gradient, and its slot row is left unwritten rather than zeroed: in a dense view most entries
+    are such (three in four at 50k Gaussians, 128²), and zeroing and summing their rows cost
+    more than the rows that count.
 
     One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]
@@ -428,18 +434,17 @@ def backward(
         tile_grad = np.zeros((TILE, TILE), dtype=real)
         behind_channels = np.zeros((channels, TILE, TILE), dtype=real)
         grad_channels = np.zeros((channels, TILE, TILE), dtype=real)
-        # Per pixel, where its backward pass starts, counted from the tile's first entry in the
-        # compute type (an int64 compare would halve the SIMD width); −1 beyond the image's edge.
-        last_entry = np.full((TILE, TILE), -1.0, dtype=real)
         colour_grad = np.zeros(channels, dtype=real)
         lanes = np.zeros((7, TILE), dtype=real)  # an entry's per-pixel gradient terms, by lane
+        lane_bits = np.empty(TILE, dtype=np.int32)
+        for i in range(TILE):
+            lane_bits[i] = 1 << i
         latest = start  # the tile's largest last entry: where its backward walk begins
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 r, i = py - top, px - left
                 pixel = py * width + px
                 transmittance[r, i] = final_transmittance[pixel]
-                last_entry[r, i] = last[pixel] - start
                 latest = max(latest, last[pixel])
                 behind[r, i] = final_transmittance[pixel] * background[0]
                 tile_grad[r, i] = grad_image[pixel, 0]
@@ -451,15 +456,11 @@ def backward(
             if rows == 0:  # its gradients are all zero
                 continue
             g = entries[k]
-            cut = as_real(levels[g] + LEVEL_MARGIN, conics)
             u, v, opacity = means2d[g, 0], means2d[g, 1], as_real(opacities[g], conics)
             a, b, c, colour_0 = conics[g, 0], conics[g, 1], conics[g, 2], as_real(colours[g, 0], conics)
-            first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
             dx0 = as_real(left + 0.5 - u, conics)
-            # Half a pixel of slack: dx steps by 1, and its rounding must not drop an edge column.
-            low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
-            position = as_real(k - start, conics)
             exact = levels[g] > EXP_POLYNOMIAL_LIMIT
+            first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
             halves = 1 if final - first < NARROW else 2
             window = min(first, TILE - NARROW) if halves == 1 else 0
             # Sums over this entry's pixels, kept in registers and written to its slot once.
@@ -470,23 +471,23 @@ def backward(
                 r = py - top
                 if (rows >> r) & 1 == 0:
                     continue  # it blended no pixel of this row in the forward: no gradient here
+                pixels = np.int32(blended_pixels[k, r])
                 dy = as_real(py + 0.5 - v, conics)
                 if channels > 1:
                     sums = unblend_colour_row(
-                        transmittance, behind_channels, grad_channels, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colours[g], exact, colour_grad
+                        transmittance, behind_channels, grad_channels, r, pixels, dx0, dy, a, b, c, opacity, colours[g], exact, colour_grad
                     )  # fmt: skip
                     entry_sums = added(entry_sums, sums)
-                    continue
-                if exact:
+                elif exact:
                     grey = unblend_grey_row_exactly(
-                        transmittance, behind, tile_grad, last_entry, r, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+                        transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b, c, opacity, colour_0
                     )  # fmt: skip
                     entry_sums = added(entry_sums, grey)
                     g_colour_0 += grey[6]
                 else:
                     for half in range(halves):  # as in forward: one inlined loop of NARROW pixels
                         unblend_grey_row_into_lanes(
-                            transmittance, behind, tile_grad, last_entry, lanes, r, window + half * NARROW, NARROW, position, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+                            transmittance, behind, tile_grad, lanes, lane_bits, r, window + half * NARROW, NARROW, pixels, dx0, dy, a, b, c, opacity, colour_0
                         )  # fmt: skip
             if channels == 1 and not exact:
                 lane_sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
