@@ -138,15 +138,12 @@ def test_a_narrow_window_covers_every_live_column_or_is_refused(columns):
 
 @njit(fastmath=FASTMATH)
 def _blend_one_row(transmittance, colour, weights, window, narrow, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
-    lane_bits = np.empty(TILE, transmittance.dtype)
-    for i in range(TILE):
-        lane_bits[i] = 1 << i
     if narrow:
         return blend_row(
-            transmittance, colour, weights, lane_bits, 0, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+            transmittance, colour, weights, 0, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
         )  # fmt: skip
     return blend_row(
-        transmittance, colour, weights, lane_bits, 0, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+        transmittance, colour, weights, 0, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
     )  # fmt: skip
 
 

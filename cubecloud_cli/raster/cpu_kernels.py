@@ -22,8 +22,9 @@ memory and the per-Gaussian sums read contiguous rows.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
+from numba.extending import overload
 
 from cubecloud_cli.jit import FASTMATH, PRANGE_ONLY, as_real
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
@@ -47,6 +48,25 @@ EXP_POLYNOMIAL_LIMIT = 6.0
 # Such a row is one 8-lane loop, one AVX2 vector of float32, instead of two. LLVM's loop
 # vectorizer leaves loops of under 16 iterations scalar unless told (cubecloud_cli/jit.py).
 NARROW = 8
+
+
+# 2^i for column i, as the row loops' masks need them: module constants, which numba compiles
+# into read-only data, so that LLVM knows no tile array overlaps them (a tile-local table cost
+# the row loops a run-time overlap check each).
+LANE_BITS_SINGLE = 2.0 ** np.arange(TILE, dtype=np.float32)
+LANE_BITS_DOUBLE = 2.0 ** np.arange(TILE, dtype=np.float64)
+LANE_FLAGS = (1 << np.arange(TILE)).astype(np.int32)
+
+
+def lane_bit(i, like):
+    """2^i in ``like``'s float type: a column's bit of a row mask, as a value of the compute type."""
+    return as_real(2.0**i, like)
+
+
+@overload(lane_bit)
+def _lane_bit(i, like):
+    bits = LANE_BITS_DOUBLE if like == types.float64 else LANE_BITS_SINGLE
+    return lambda i, like: bits[i]
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -107,15 +127,15 @@ def pair_alpha(dx, dy, a, b, c, opacity, falloff):
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def blend_row(
-    transmittance, colour, weights, lane_bits, r, window, lanes, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
+    transmittance, colour, weights, r, window, lanes, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, falloff
 ):  # fmt: skip
     """Blend one Gaussian into columns ``window`` to ``window + lanes − 1`` of row ``r`` of a tile,
     where its box spans dx ∈ [low, high]; ``lanes`` is a constant (TILE or NARROW).
     Channel 0 is blended here; ``weights`` keeps each pixel's T·α (0 where not blended) for the
     caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
     the sign says which pixels are live. Returns the bit masks of the columns that stopped and of
-    those blended. ``lane_bits[i]`` is 2^i in the compute type: the masks are float sums of
-    distinct powers of two below 2¹⁶, exact in any order of summation, so the loop stays SIMD."""
+    those blended: float sums of distinct powers of two below 2¹⁶, exact in any order of
+    summation, so that the loop stays SIMD."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     min_alpha, stop_level = as_real(MIN_ALPHA, dx0), as_real(TRANSMITTANCE_STOP, dx0)
     stops = blends = zero
@@ -133,21 +153,20 @@ def blend_row(
         transmittance[r, i] = -before if stop else (after if blend else before)
         colour[r, i] += weight * colour_0
         weights[i] = weight
-        stops += lane_bits[i] if stop else zero
-        blends += lane_bits[i] if blend else zero
+        bit = lane_bit(i, dx0)
+        stops += bit if stop else zero
+        blends += bit if blend else zero
         column += one
     return int(stops), int(blends)
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def blend_row_exactly(
-    transmittance, colour, weights, lane_bits, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
-):  # fmt: skip
+def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
     """``blend_row`` over the whole row with libm's exp, out of line: a second inlined copy of the
     row loop for a Gaussian outside the [0, 1] opacity contract would double the kernel's first
     compilation."""
     return blend_row(
-        transmittance, colour, weights, lane_bits, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
+        transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
     )  # fmt: skip
 
 
@@ -185,9 +204,6 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         colour = np.zeros((TILE, TILE), dtype=real)  # channel 0; the others, rarely used, apart
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
         weights = np.zeros(TILE, dtype=real)
-        lane_bits = np.empty(TILE, dtype=real)
-        for i in range(TILE):
-            lane_bits[i] = 1 << i
         last_entry = np.full((TILE, TILE), end)  # where the backward pass starts, per pixel
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
         alive = (right - left + 1) * (bottom - top + 1)
@@ -213,15 +229,15 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                 window = narrow_window(live)
                 if levels[g] > EXP_POLYNOMIAL_LIMIT:
                     stopped, blended = blend_row_exactly(
-                        transmittance, colour, weights, lane_bits, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
+                        transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
                     )  # fmt: skip
                 elif window >= 0 and channels == 1:
                     stopped, blended = blend_row(
-                        transmittance, colour, weights, lane_bits, r, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                        transmittance, colour, weights, r, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
                 else:
                     stopped, blended = blend_row(
-                        transmittance, colour, weights, lane_bits, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
+                        transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
                 if blended:
                     rows_blended |= 1 << r
@@ -229,8 +245,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                 for ch in range(1, channels):
                     for i in range(TILE):
                         other_colours[ch, r, i] += weights[i] * colours[g, ch]
-                live_columns[r] &= ~stopped
-                while stopped:  # rare: each pixel stops once
+                if stopped:  # rare: each pixel stops once
+                    live_columns[r] &= ~stopped
+                while stopped:
                     last_entry[r, trailing_zeros(stopped)] = k
                     stopped &= stopped - 1
                     alive -= 1
@@ -315,19 +332,19 @@ def unblend_grey_row(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b,
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
 def unblend_grey_row_into_lanes(
-    transmittance, behind, tile_grad, lanes, lane_bits, r, window, width, pixels, dx0, dy, a, b, c, opacity, colour_0
+    transmittance, behind, tile_grad, lanes, r, window, width, pixels, dx0, dy, a, b, c, opacity, colour_0
 ):  # fmt: skip
     """``unblend_grey_row`` with the polynomial exp over columns ``window`` to ``window + width − 1``
     (``width`` a constant, TILE or NARROW), adding each pixel's seven terms into its column's lane
     of ``lanes`` (7 × 16) instead of summing the row: the entry's sums are then taken across
-    lanes once, after its last row, rather than seven times a row. ``lane_bits[i]`` is 2^i as an
-    int32, so that the test of a column's bit is as wide as a float32 lane."""
+    lanes once, after its last row, rather than seven times a row. A column's bit is tested in
+    int32, as wide as a float32 lane."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
     for lane in range(width):
         i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
         dx = dx0 + column
-        valid = pixels & lane_bits[i] != 0
+        valid = pixels & LANE_FLAGS[i] != 0
         before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], valid, dx, dy, a, b, c, opacity, polynomial_falloff
         )  # fmt: skip
@@ -436,9 +453,6 @@ def backward(
         grad_channels = np.zeros((channels, TILE, TILE), dtype=real)
         colour_grad = np.zeros(channels, dtype=real)
         lanes = np.zeros((7, TILE), dtype=real)  # an entry's per-pixel gradient terms, by lane
-        lane_bits = np.empty(TILE, dtype=np.int32)
-        for i in range(TILE):
-            lane_bits[i] = 1 << i
         latest = start  # the tile's largest last entry: where its backward walk begins
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
@@ -487,7 +501,7 @@ def backward(
                 else:
                     for half in range(halves):  # as in forward: one inlined loop of NARROW pixels
                         unblend_grey_row_into_lanes(
-                            transmittance, behind, tile_grad, lanes, lane_bits, r, window + half * NARROW, NARROW, pixels, dx0, dy, a, b, c, opacity, colour_0
+                            transmittance, behind, tile_grad, lanes, r, window + half * NARROW, NARROW, pixels, dx0, dy, a, b, c, opacity, colour_0
                         )  # fmt: skip
             if channels == 1 and not exact:
                 lane_sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
