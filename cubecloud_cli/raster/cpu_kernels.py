@@ -319,7 +319,9 @@ def unblend_grey_row(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b,
     for i in range(TILE):
         dx = dx0 + column
         valid = (pixels >> i) & 1 != 0
-        before, weight, survive, gaussian, raw = unblend_pair(transmittance[r, i], valid, dx, dy, a, b, c, opacity, falloff)
+        before, weight, survive, gaussian, raw = unblend_pair(
+            transmittance[r, i], valid, dx, dy, a, b, c, opacity, falloff
+        )
         transmittance[r, i] = before if valid else transmittance[r, i]
         grad = tile_grad[r, i]
         grad_alpha = grad * (before * colour_0 - behind[r, i] * survive) if valid else zero
