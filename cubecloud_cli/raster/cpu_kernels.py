@@ -332,7 +332,7 @@ def unblend_grey_row(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b,
     column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
         dx = dx0 + column
-        valid = (pixels >> i) & 1 != 0
+        valid = pixels & LANE_FLAGS[i] != 0
         before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], valid, dx, dy, a, b, c, opacity, falloff
         )
@@ -400,7 +400,7 @@ def unblend_colour_row(
     for i in range(TILE):
         dx = dx0 + column
         column += one
-        if (pixels >> i) & 1 == 0:
+        if pixels & LANE_FLAGS[i] == 0:
             continue
         if exact:
             before, weight, survive, gaussian, raw = unblend_pair(
