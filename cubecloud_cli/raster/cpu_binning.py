@@ -151,19 +151,29 @@ def sum_per_gaussian(slot_values, written, order, first, means2d_grad, conics_gr
     backward's: mean2d (2), conic (3), opacity, colour (C); each group goes to its own output,
     (count, 2), (count, 3), (count,) and (count, C), which the caller has zeroed. The sums are
     taken in float64, row by row, and stored in the outputs' type: the gradients come out as
-    the contiguous arrays autograd takes, without a copy per column group."""
+    the contiguous arrays autograd takes, without a copy per column group.
+
+    A row is read once for its first seven columns, and whether it was written is a select, not
+    a branch: about one row in four is, in no order a branch predictor learns, and a branch per
+    row and column cost four times the sums themselves (docs/results.md)."""
     for rank in prange(order.size):
         g = order[rank]
-        for j in range(slot_values.shape[1]):
+        mean_x = mean_y = conic_a = conic_b = conic_c = opacity = colour_0 = 0.0
+        for e in range(first[rank], first[rank + 1]):
+            kept = written[e]
+            mean_x += slot_values[e, 0] if kept else 0.0
+            mean_y += slot_values[e, 1] if kept else 0.0
+            conic_a += slot_values[e, 2] if kept else 0.0
+            conic_b += slot_values[e, 3] if kept else 0.0
+            conic_c += slot_values[e, 4] if kept else 0.0
+            opacity += slot_values[e, 5] if kept else 0.0
+            colour_0 += slot_values[e, 6] if kept else 0.0
+        means2d_grad[g, 0], means2d_grad[g, 1] = mean_x, mean_y
+        conics_grad[g, 0], conics_grad[g, 1], conics_grad[g, 2] = conic_a, conic_b, conic_c
+        opacities_grad[g] = opacity
+        colours_grad[g, 0] = colour_0
+        for ch in range(1, colours_grad.shape[1]):
             total = 0.0
             for e in range(first[rank], first[rank + 1]):
-                if written[e]:
-                    total += slot_values[e, j]
-            if j < 2:
-                means2d_grad[g, j] = total
-            elif j < 5:
-                conics_grad[g, j - 2] = total
-            elif j == 5:
-                opacities_grad[g] = total
-            else:
-                colours_grad[g, j - 6] = total
+                total += slot_values[e, 6 + ch] if written[e] else 0.0
+            colours_grad[g, ch] = total
