@@ -322,6 +322,16 @@ def test_radix_depth_order_is_a_stable_sort(depths):
     np.testing.assert_array_equal(stable_depth_order(candidates, depths), np.argsort(depths, kind="stable"))
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(2.0, 2.0099999904632568, width=32, allow_subnormal=False) | st.sampled_from([2.0, 2.005]), min_size=0, max_size=300))
+def test_radix_depth_order_of_nearby_float32_depths_is_a_stable_sort(depths):
+    """Training's case: float32 depths in a narrow range, where most 11-bit digits of the keys are
+    the same in every key and only those that differ take a pass."""
+    depths = np.asarray(depths, dtype=np.float32)
+    candidates = np.arange(depths.size, dtype=np.int64)
+    np.testing.assert_array_equal(stable_depth_order(candidates, depths), np.argsort(depths, kind="stable"))
+
+
 def test_the_mip_filter_replaces_the_dilation_and_plain_3dgs_is_untouched():
     """Off, the projection is the reference's (0.3 px² added, no opacity factor); on, 0.1 px² is
     added and the opacity factor is √(det Σ₂ / det(Σ₂ + 0.1 I)) of the undilated footprint."""

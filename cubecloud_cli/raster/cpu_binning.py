@@ -21,27 +21,39 @@ from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 @njit(cache=True)
 def stable_depth_order(candidates, depths):
     """``candidates`` sorted by depth, ties kept in index order: an LSD radix sort on the float64
-    bits (sign-flipped so that integer order is float order), linear in the count."""
+    bits (sign-flipped so that integer order is float order), linear in the count. Only the 11-bit
+    digits that differ between keys take a pass: float32 depths leave the low 29 bits zero, and
+    nearby depths share their sign and exponent."""
     count = candidates.size
     keys = np.empty(count, dtype=np.uint64)
     sign = np.uint64(1) << np.uint64(63)
+    any_bits, all_bits = np.uint64(0), ~np.uint64(0)
     for i in range(count):
         value = depths[candidates[i]] + 0.0  # turns −0 into +0, which compares equal to it
         bits = np.float64(value).view(np.uint64)
-        keys[i] = ~bits if bits & sign else bits | sign
+        key = ~bits if bits & sign else bits | sign
+        keys[i] = key
+        any_bits |= key
+        all_bits &= key
+    varying = any_bits ^ all_bits  # bits set in some keys and clear in others
+    shifts = np.empty(6, dtype=np.uint64)
+    passes = 0
+    for p in range(6):
+        if (varying >> np.uint64(11 * p)) & np.uint64(0x7FF):
+            shifts[passes] = np.uint64(11 * p)
+            passes += 1
+    # Every pass's digit counts from one read of the keys, not one read a pass; int32 counts keep
+    # them in the L1 cache.
+    counts = np.zeros((passes, 2049), dtype=np.int32)
+    for i in range(count):
+        key = keys[i]
+        for p in range(passes):
+            counts[p, ((key >> shifts[p]) & np.uint64(0x7FF)) + 1] += 1
     order = candidates.copy()
     scratch_keys = np.empty_like(keys)
     scratch_order = np.empty_like(order)
-    # Every pass's digit counts from one read of the keys, not one read a pass.
-    counts = np.zeros((6, 2049), dtype=np.int64)
-    for i in range(count):
-        key = keys[i]
-        for p in range(6):
-            counts[p, ((key >> np.uint64(11 * p)) & np.uint64(0x7FF)) + 1] += 1
-    for p in range(6):  # six passes of 11 bits
-        shift = np.uint64(11 * p)
-        if count > 0 and counts[p, ((keys[0] >> shift) & np.uint64(0x7FF)) + 1] == count:
-            continue  # one digit for all keys (the high bits of nearby depths): order unchanged
+    for p in range(passes):
+        shift = shifts[p]
         for b in range(2048):
             counts[p, b + 1] += counts[p, b]
         for i in range(count):
@@ -88,15 +100,37 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def _entry_tiles(order, bounds, first, tiles_x, tile_of_entry, gaussian_of_entry):
+def _tile_spans(bounds, tiles_x):
+    """Per Gaussian: the first tile its box touches (row-major index), how many tile columns it
+    spans, and how many tiles in all (0 for an empty box)."""
+    count = bounds.shape[0]
+    corner = np.empty(count, dtype=np.int64)
+    columns = np.empty(count, dtype=np.int64)
+    tiles = np.empty(count, dtype=np.int64)
+    for g in prange(count):
+        x0, x1 = bounds[g, 0] >> TILE_SHIFT, bounds[g, 1] >> TILE_SHIFT
+        y0, y1 = bounds[g, 2] >> TILE_SHIFT, bounds[g, 3] >> TILE_SHIFT
+        empty = bounds[g, 1] < bounds[g, 0] or bounds[g, 3] < bounds[g, 2]
+        corner[g] = y0 * tiles_x + x0
+        columns[g] = x1 - x0 + 1
+        tiles[g] = 0 if empty else (x1 - x0 + 1) * (y1 - y0 + 1)
+    return corner, columns, tiles
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def _entry_tiles(order, corner, columns, first, tiles_x, tile_of_entry, gaussian_of_entry):
+    """Each Gaussian's entries, row by row of its tiles: one loop with the wrap to the next tile
+    row as a select (two nested loops of one or two trips each are a branch miss apiece)."""
     for rank in prange(order.size):
         g = order[rank]
-        position = first[rank]
-        for ty in range(bounds[g, 2] >> TILE_SHIFT, (bounds[g, 3] >> TILE_SHIFT) + 1):
-            for tx in range(bounds[g, 0] >> TILE_SHIFT, (bounds[g, 1] >> TILE_SHIFT) + 1):
-                tile_of_entry[position] = ty * tiles_x + tx
-                gaussian_of_entry[position] = g
-                position += 1
+        position, width = first[rank], columns[g]
+        row_start, column = corner[g], 0
+        for e in range(position, first[rank + 1]):
+            tile_of_entry[e] = row_start + column
+            gaussian_of_entry[e] = g
+            wrap = column + 1 == width
+            column = 0 if wrap else column + 1
+            row_start = row_start + tiles_x if wrap else row_start
 
 
 @njit(cache=True)
@@ -106,27 +140,23 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     gradients: ``slots[k]`` is entry k's row there, and the Gaussian of depth rank r (``order[r]``)
     owns rows ``first[r]:first[r + 1]``, so its gradients are summed from contiguous memory."""
     count = bounds.shape[0]
+    corner, columns, tiles = _tile_spans(bounds, tiles_x)
     nonempty = np.empty(count, dtype=np.int64)
     kept = 0
     for g in range(count):
-        if bounds[g, 1] >= bounds[g, 0] and bounds[g, 3] >= bounds[g, 2]:
-            nonempty[kept] = g
-            kept += 1
+        nonempty[kept] = g
+        kept += tiles[g] > 0
     order = stable_depth_order(nonempty[:kept], depths)
     # Entries in depth order (each Gaussian's tiles together), then a stable counting sort by
     # tile: every tile's list stays front to back.
     first = np.empty(kept + 1, dtype=np.int64)
     first[0] = 0
     for rank in range(kept):
-        g = order[rank]
-        tiles = ((bounds[g, 1] >> TILE_SHIFT) - (bounds[g, 0] >> TILE_SHIFT) + 1) * (
-            (bounds[g, 3] >> TILE_SHIFT) - (bounds[g, 2] >> TILE_SHIFT) + 1
-        )
-        first[rank + 1] = first[rank] + tiles
+        first[rank + 1] = first[rank] + tiles[order[rank]]
     total = first[kept]
     tile_of_entry = np.empty(total, dtype=np.int64)
     gaussian_of_entry = np.empty(total, dtype=np.int64)
-    _entry_tiles(order, bounds, first, tiles_x, tile_of_entry, gaussian_of_entry)
+    _entry_tiles(order, corner, columns, first, tiles_x, tile_of_entry, gaussian_of_entry)
     offsets = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
     for e in range(total):
         offsets[tile_of_entry[e] + 1] += 1
