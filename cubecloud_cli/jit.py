@@ -17,7 +17,11 @@ a run from an empty cache gave other bits than a warm one (docs/results.md).
 
 * ``FASTMATH``, for the rasterizer: every freedom but ``contract`` (no FMA). Its reductions count
   pixels or sum gradients, and LLVM vectorised them alike in both copies (tests/test_jit.py); dropping
-  ``reassoc`` as well made it 2.3× slower (bench/raster.py).
+  ``reassoc`` as well made it 2.3× slower (bench/raster.py), and the backward 1.24–1.38× slower
+  even with its float column counter replaced (a float induction needs ``reassoc`` to vectorise).
+  What ``reassoc`` may regroup must then read the same in both copies: a product of three or
+  more factors did not (the backward's conic terms), so the kernels multiply values that have
+  other uses, which it leaves whole (``cpu_kernels.pair_geometry_gradients``).
 * ``EXACT_FASTMATH``, for the grid field's MLP: no freedom that changes a finite result, so both
   copies must agree. Its hidden-unit sums did differ with ``reassoc``; without it the kernels are
   as fast.

@@ -297,17 +297,25 @@ def unblend_pair(after, valid, dx, dy, a, b, c, opacity, falloff):
 def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     """A pair's share of the gradients of mean2d (2), conic (3) and opacity, from the loss's
     gradient with respect to its α. Where α is clamped at 0.99 it does not move; where the power
-    is clamped at 0 neither do the conic and mean."""
+    is clamped at 0 neither do the conic and mean. The conic's a and c terms are twice theirs
+    (∂power/∂a = dx²/2): the caller halves their sums once, exactly.
+
+    Each conic term is a product of two values that have other uses (dx², dx·dy, dy² also make
+    the power), which reassociation cannot regroup. As products of three or four factors, LLVM
+    grouped them one way in the kernel numba compiles in the process and another way in the copy
+    it loads from its cache, and a seeded run from an empty cache ended on other bits
+    (cubecloud_cli/jit.py)."""
     zero, half = as_real(0.0, dx), as_real(0.5, dx)
+    dx_dx, dx_dy, dy_dy = dx * dx, dx * dy, dy * dy
     moving = grad_alpha if raw <= as_real(MAX_ALPHA, dx) else zero
-    raw_power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+    raw_power = half * (a * dx_dx + c * dy_dy) + b * dx_dy
     grad_power = -moving * raw if raw_power > zero else zero
     return (
         -grad_power * (a * dx + b * dy),
         -grad_power * (c * dy + b * dx),
-        grad_power * half * dx * dx,
-        grad_power * dx * dy,
-        grad_power * half * dy * dy,
+        grad_power * dx_dx,
+        grad_power * dx_dy,
+        grad_power * dy_dy,
         moving * gaussian,
     )
 
@@ -532,7 +540,7 @@ def backward(
             slot = slots[k]
             written[slot] = True
             for j in range(6):
-                slot_grads[slot, j] = entry_sums[j]
+                slot_grads[slot, j] = entry_sums[j] * (0.5 if j == 2 or j == 4 else 1.0)  # see pair_geometry_gradients
             if channels == 1:
                 slot_grads[slot, 6] = g_colour_0
             else:
