@@ -183,56 +183,6 @@ def test_a_loop_writing_many_arrays_still_vectorizes():
     assert re.search(r"\bv?mulpd\b", assembly), "the loop stayed scalar (mulsd only)"
 
 
-BACKWARD_FRESH_OR_CACHED = """
-import hashlib, sys
-import numpy as np
-from cubecloud_cli.raster import cpu_kernels
-inputs = np.load(sys.argv[1])
-width, height, tiles_x = inputs["sizes"]
-head, tail = [inputs[f"head_{i}"] for i in range(10)], [inputs[f"tail_{i}"] for i in range(5)]
-cpu_kernels.forward(head[0], head[1], *head[3:], width, height, tiles_x)  # as training: forward first
-slot_grads, written = cpu_kernels.backward(*head, width, height, tiles_x, *tail)
-print(hashlib.sha256(np.ascontiguousarray(slot_grads[written]).tobytes()).hexdigest())
-"""
-
-
-def test_the_compositing_backward_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
-    """As above for the compositing backward, on one frame's gradients: its conic terms, as
-    products of three factors, were grouped one way in each copy (cpu_kernels.pair_geometry_gradients)."""
-    means, log_scales, quaternions, opacities, colours = (t.float() for t in scene(count=400, seed=5))
-    cameras, rotation, translation = camera(0, torch.float32)
-    projected = project_cpu(
-        means * 0.5, torch.exp(log_scales), quaternions, rotation, translation, float(cameras.focal), W, H, True
-    )
-    effective = _numpy(projected.effective_opacities(opacities))
-    means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
-    bounds, levels = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
-    offsets, entries, slots, *_ = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
-    grey = _numpy(colours[:, :1])  # training's case (CT), whose rows take the vector loops
-    arrays = (bounds, means2d, _numpy(projected.conics), grey, effective, levels, np.zeros(1, np.float32))
-    _, transmittance, last, rows, pixels = cpu_kernels.forward(offsets, entries, *arrays, W, H, tiles_x)
-    grad = np.random.default_rng(0).standard_normal((W * H, 1)).astype(np.float32)
-    head, tail = (offsets, entries, slots, *arrays), (transmittance, last, rows, pixels, grad)
-    np.savez(
-        tmp_path / "inputs.npz",
-        **{f"head_{i}": a for i, a in enumerate(head)},
-        **{f"tail_{i}": a for i, a in enumerate(tail)},
-        sizes=np.array([W, H, tiles_x]),
-    )
-    environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
-    runs = [
-        subprocess.run(
-            [sys.executable, "-c", BACKWARD_FRESH_OR_CACHED, str(tmp_path / "inputs.npz")],
-            env=environment,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout  # fmt: skip
-        for _ in ("compiled in the process", "loaded from the cache")
-    ]
-    assert len(runs[0].split()) == 1 and runs[0] == runs[1]
-
-
 @pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads x86 assembly")
 def test_a_narrow_row_of_the_compositing_kernels_vectorizes():
     # A narrow row is a loop of 8 float32 pixels; LLVM's default leaves loops of under 16

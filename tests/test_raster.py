@@ -323,7 +323,13 @@ def test_radix_depth_order_is_a_stable_sort(depths):
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.floats(2.0, 2.0099999904632568, width=32, allow_subnormal=False) | st.sampled_from([2.0, 2.005]), min_size=0, max_size=300))
+@given(
+    st.lists(
+        st.floats(2.0, 2.0099999904632568, width=32, allow_subnormal=False) | st.sampled_from([2.0, 2.005]),
+        min_size=0,
+        max_size=300,
+    )
+)
 def test_radix_depth_order_of_nearby_float32_depths_is_a_stable_sort(depths):
     """Training's case: float32 depths in a narrow range, where most 11-bit digits of the keys are
     the same in every key and only those that differ take a pass."""
