@@ -185,7 +185,7 @@ def sum_per_gaussian(slot_values, written, order, first, means2d_grad, conics_gr
 
     A row is read once for its first seven columns, and whether it was written is a select, not
     a branch: about one row in four is, in no order a branch predictor learns, and a branch per
-    row and column cost four times the sums themselves (docs/results.md)."""
+    row and column made the sums 2.3 times slower (docs/results.md)."""
     for rank in prange(order.size):
         g = order[rank]
         mean_x = mean_y = conic_a = conic_b = conic_c = opacity = colour_0 = 0.0
