@@ -82,12 +82,9 @@ print(hashlib.sha256(mlp.tobytes()).hexdigest())
 """
 
 
-def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
-    """The compositing forward and the grid field's MLP (the kernels whose bits differed) run on
-    one input in a process that compiles them into an empty cache, then in one that loads them
-    from it: the same bits. A render where they differed by one float32 ulp in 92 of 960 pixels.
-    Both the RGB rows and the grey ones (training's, narrow rows included). The compositing
-    backward has a test of its own; the projection's kernels take no fast-math freedom."""
+def _binned_scene():
+    """A float32 scene of 400 Gaussians projected and binned as training does: the tile lists
+    and the forward kernel's per-Gaussian arrays (RGB colours; grey is their first channel)."""
     means, log_scales, quaternions, opacities, colours = (t.float() for t in scene(count=400, seed=5))
     cameras, rotation, translation = camera(0, torch.float32)
     projected = project_cpu(
@@ -96,17 +93,19 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
     effective = _numpy(projected.effective_opacities(opacities))
     means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
     bounds, levels = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
-    offsets, entries, *_ = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
-    forward = (offsets, entries, bounds, means2d, _numpy(projected.conics), _numpy(colours), effective, levels)
-    rng = np.random.default_rng(0)
-    mlp = [rng.normal(size=shape).astype(np.float32) for shape in ((3000, 6), (6, 32), (32,), (2, 32), (2,))]
-    arrays = {f"forward_{i}": a for i, a in enumerate((*forward, np.zeros(2, np.float32)))}
-    arrays.update({f"mlp_{i}": a for i, a in enumerate(mlp)}, sizes=np.array([W, H, tiles_x]))
+    offsets, entries, slots, *_ = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
+    per_gaussian = (bounds, means2d, _numpy(projected.conics), _numpy(colours), effective, levels)
+    return offsets, entries, slots, per_gaussian, tiles_x
+
+
+def _fresh_then_cached(script, arrays, tmp_path):
+    """``script``'s output in a process that compiles the kernels into an empty numba cache, then
+    in one that loads them from it; ``arrays`` reach it as the .npz file its argument names."""
     np.savez(tmp_path / "inputs.npz", **arrays)
     environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
-    runs = [
+    return [
         subprocess.run(
-            [sys.executable, "-c", FRESH_OR_CACHED, str(tmp_path / "inputs.npz")],
+            [sys.executable, "-c", script, str(tmp_path / "inputs.npz")],
             env=environment,
             capture_output=True,
             text=True,
@@ -114,6 +113,21 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
         ).stdout  # fmt: skip
         for _ in ("compiled in the process", "loaded from the cache")
     ]
+
+
+def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
+    """The compositing forward and the grid field's MLP (the kernels whose bits differed) run on
+    one input in a process that compiles them into an empty cache, then in one that loads them
+    from it: the same bits. A render where they differed by one float32 ulp in 92 of 960 pixels.
+    Both the RGB rows and the grey ones (training's, narrow rows included). The compositing
+    backward has a test of its own; the projection's kernels take no fast-math freedom."""
+    offsets, entries, _, per_gaussian, tiles_x = _binned_scene()
+    forward = (offsets, entries, *per_gaussian)
+    rng = np.random.default_rng(0)
+    mlp = [rng.normal(size=shape).astype(np.float32) for shape in ((3000, 6), (6, 32), (32,), (2, 32), (2,))]
+    arrays = {f"forward_{i}": a for i, a in enumerate((*forward, np.zeros(2, np.float32)))}
+    arrays.update({f"mlp_{i}": a for i, a in enumerate(mlp)}, sizes=np.array([W, H, tiles_x]))
+    runs = _fresh_then_cached(FRESH_OR_CACHED, arrays, tmp_path)
     assert len(runs[0].split()) == 11 and runs[0] == runs[1]
 
 
@@ -132,37 +146,14 @@ print(hashlib.sha256(np.ascontiguousarray(slot_grads[written]).tobytes()).hexdig
 def test_the_compositing_backward_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
     """As above for the compositing backward, on one frame's gradients: its conic terms, as
     products of three factors, were grouped one way in each copy (cpu_kernels.pair_geometry_gradients)."""
-    means, log_scales, quaternions, opacities, colours = (t.float() for t in scene(count=400, seed=5))
-    cameras, rotation, translation = camera(0, torch.float32)
-    projected = project_cpu(
-        means * 0.5, torch.exp(log_scales), quaternions, rotation, translation, float(cameras.focal), W, H, True
-    )
-    effective = _numpy(projected.effective_opacities(opacities))
-    means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
-    bounds, levels = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
-    offsets, entries, slots, *_ = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
-    grey = _numpy(colours[:, :1])  # training's case (CT), whose rows take the vector loops
-    arrays = (bounds, means2d, _numpy(projected.conics), grey, effective, levels, np.zeros(1, np.float32))
+    offsets, entries, slots, (bounds, means2d, conics, colours, effective, levels), tiles_x = _binned_scene()
+    grey = np.ascontiguousarray(colours[:, :1])  # training's case (CT), whose rows take the vector loops
+    arrays = (bounds, means2d, conics, grey, effective, levels, np.zeros(1, np.float32))
     _, transmittance, last, rows, pixels = cpu_kernels.forward(offsets, entries, *arrays, W, H, tiles_x)
     grad = np.random.default_rng(0).standard_normal((W * H, 1)).astype(np.float32)
     head, tail = (offsets, entries, slots, *arrays), (transmittance, last, rows, pixels, grad)
-    np.savez(
-        tmp_path / "inputs.npz",
-        **{f"head_{i}": a for i, a in enumerate(head)},
-        **{f"tail_{i}": a for i, a in enumerate(tail)},
-        sizes=np.array([W, H, tiles_x]),
-    )
-    environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
-    runs = [
-        subprocess.run(
-            [sys.executable, "-c", BACKWARD_FRESH_OR_CACHED, str(tmp_path / "inputs.npz")],
-            env=environment,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout  # fmt: skip
-        for _ in ("compiled in the process", "loaded from the cache")
-    ]
+    inputs = {f"head_{i}": a for i, a in enumerate(head)} | {f"tail_{i}": a for i, a in enumerate(tail)}
+    runs = _fresh_then_cached(BACKWARD_FRESH_OR_CACHED, inputs | {"sizes": np.array([W, H, tiles_x])}, tmp_path)
     assert len(runs[0].split()) == 1 and runs[0] == runs[1]
 
 
