@@ -15,7 +15,8 @@ loaded from the cache runs the second. Where the fast-math flags let LLVM round 
 the two (fusing a multiply and an add into one FMA, or summing a reduction in another order),
 a run from an empty cache gave other bits than a warm one (docs/results.md).
 
-* ``FASTMATH``, for the rasterizer: every freedom but ``contract`` (no FMA). Its reductions count
+* ``FASTMATH``, for the rasterizer: every freedom but ``contract`` (no FMA that LLVM chooses; the
+  kernels write theirs out with ``fused_multiply_add``, the same in both copies). Its reductions count
   pixels or sum gradients, and LLVM vectorised them alike in both copies (tests/test_jit.py); dropping
   ``reassoc`` as well made it 2.3× slower (bench/raster.py), and the backward 1.24–1.38× slower
   even with its float column counter replaced (a float induction needs ``reassoc`` to vectorise).
@@ -34,7 +35,7 @@ import llvmlite.binding as llvm
 import numpy as np
 from numba import types
 from numba.core.cpu import ParallelOptions
-from numba.extending import overload
+from numba.extending import intrinsic, overload
 
 # A ParallelOptions, not a dict: numba pops the keys of a dict it is given as it reads them.
 PRANGE_ONLY = ParallelOptions(
@@ -86,3 +87,18 @@ def _as_real(value, like):
         return real(value)
 
     return cast
+
+
+@intrinsic
+def fused_multiply_add(typingctx, a, b, c):
+    """a·b + c rounded once (LLVM's ``llvm.fma``, one instruction on FMA hardware). Written out
+    rather than left to ``contract``: an explicit FMA is the same in every copy LLVM makes of a
+    loop, where a contraction it chooses need not be (see above). x86-64 CPUs with AVX2
+    and all ARM64 CPUs have the instruction; elsewhere LLVM calls libm's fma, exact but slow."""
+    if not (isinstance(a, types.Float) and a == b == c):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return a(a, b, c), codegen

@@ -49,6 +49,21 @@ def test_as_real_keeps_a_kernels_arithmetic_in_its_inputs_precision():
     assert as_real(0.99, np.ones(1, np.float32)).dtype == np.float32
 
 
+@pytest.mark.parametrize("dtype, step", [(np.float64, 2.0**-30), (np.float32, 2.0**-13)])
+def test_fused_multiply_add_rounds_once(dtype, step):
+    """(1 + s)² − 1 = 2s + s²: the product alone rounds s² away, the fused operation keeps it."""
+    from cubecloud_cli.jit import fused_multiply_add
+
+    @njit
+    def fused(a, b, c):
+        return fused_multiply_add(a, b, c)
+
+    a, minus_one = dtype(1.0 + step), dtype(-1.0)
+    result = fused(a, a, minus_one)
+    assert result == dtype(2 * step + step * step) and a * a + minus_one == dtype(2 * step)
+    assert fused.nopython_signatures[-1].return_type.bitwidth == np.dtype(dtype).itemsize * 8
+
+
 def test_no_kernel_lets_llvm_fuse_multiply_and_add():
     """``contract`` (FMA) rounded the copy of a prange loop that a kernel compiled in the process
     runs otherwise than the copy a kernel loaded from the cache runs (cubecloud_cli/jit.py)."""

@@ -10,7 +10,9 @@ What makes them fast on two cores (``bench/raster.py``): within a tile each Gaus
 the rows of its own box; each row is one fixed 16-pixel loop without branches (every test a
 select), which LLVM turns into SIMD, 8 float32 lanes at a time on AVX2, or one 8-pixel loop
 where the row's pixels to visit lie within 8 columns (NARROW). The exp is inline
-arithmetic (a polynomial, then squarings), not a libm call; rows whose pixels have all stopped
+arithmetic (a polynomial, then squarings), not a libm call; the polynomial, the power and the
+sums are fused multiply-adds, written out (``cubecloud_cli.jit.fused_multiply_add``: 0.89 of the
+forward's time and 0.87 of the backward's on the bench frame); rows whose pixels have all stopped
 are skipped by a bit mask; the backward skips entries, and rows of entries, that blended nothing.
 
 Backward walks each pixel's list back to front (as the reference CUDA code does), recovering the
@@ -26,7 +28,7 @@ from numba import njit, prange, types
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import overload
 
-from cubecloud_cli.jit import FASTMATH, PRANGE_ONLY, as_real
+from cubecloud_cli.jit import FASTMATH, PRANGE_ONLY, as_real, fused_multiply_add
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
 
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
@@ -90,15 +92,18 @@ def exp_negative(power):
     x = power * as_real(1.0 / 32.0, power)
     x2 = x * x
     x4 = x2 * x2
-    one = as_real(1.0, power)
-    low = (one - x) + x2 * (as_real(0.5, power) - x * as_real(1.0 / 6.0, power))
-    middle = as_real(1.0 / 24.0, power) - x * as_real(1.0 / 120.0, power)
+    low = fused_multiply_add(
+        x2, fused_multiply_add(x, as_real(-1.0 / 6.0, power), as_real(0.5, power)), as_real(1.0, power) - x
+    )
+    middle = fused_multiply_add(x, as_real(-1.0 / 120.0, power), as_real(1.0 / 24.0, power))
     if single_precision(power):
-        e = low + x4 * (middle + x2 * as_real(1.0 / 720.0, power))
+        e = fused_multiply_add(x4, fused_multiply_add(x2, as_real(1.0 / 720.0, power), middle), low)
     else:
-        middle = middle + x2 * (as_real(1.0 / 720.0, power) - x * as_real(1.0 / 5040.0, power))
-        high = as_real(1.0 / 40320.0, power) - x * as_real(1.0 / 362880.0, power)
-        e = low + x4 * (middle + x4 * high)
+        middle = fused_multiply_add(
+            x2, fused_multiply_add(x, as_real(-1.0 / 5040.0, power), as_real(1.0 / 720.0, power)), middle
+        )
+        high = fused_multiply_add(x, as_real(-1.0 / 362880.0, power), as_real(1.0 / 40320.0, power))
+        e = fused_multiply_add(x4, fused_multiply_add(x4, high, middle), low)
     e = e * e  # written out, not a loop: an inner loop would keep the caller's loop from SIMD
     e = e * e
     e = e * e
@@ -134,7 +139,8 @@ def exact_falloff(power):
 def pair_alpha(dx, dy, a, b, c, opacity, falloff):
     """A pair's power (clamped at 0), Gaussian falloff exp(−power) and α = min(0.99, o·falloff)."""
     zero = as_real(0.0, dx)
-    power = max(as_real(0.5, dx) * (a * dx * dx + c * dy * dy) + b * dx * dy, zero)
+    dx_dx, dx_dy, dy_dy = dx * dx, dx * dy, dy * dy
+    power = max(fused_multiply_add(as_real(0.5, dx), fused_multiply_add(a, dx_dx, c * dy_dy), b * dx_dy), zero)
     gaussian = falloff(power)
     return power, gaussian, min(as_real(MAX_ALPHA, dx), opacity * gaussian)
 
@@ -165,7 +171,7 @@ def blend_row(
         blend = valid & (after >= stop_level)
         weight = before * alpha if blend else zero
         transmittance[r, i] = -before if stop else (after if blend else before)
-        colour[r, i] += weight * colour_0
+        colour[r, i] = fused_multiply_add(weight, colour_0, colour[r, i])
         weights[i] = weight
         bit = lane_bit(i, dx0)
         stops += bit if stop else zero
@@ -294,10 +300,20 @@ def unblend_pair(after, valid, dx, dy, a, b, c, opacity, falloff):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def pair_power_gradient(grad_alpha, raw, dx_dx, dx_dy, dy_dy, a, b, c):
+    """A pair's gradient with respect to its power, and with respect to its α where α moves
+    (not clamped at 0.99), from the loss's gradient with respect to its α. Where the power is
+    clamped at 0 the conic and mean do not move either."""
+    zero = as_real(0.0, dx_dx)
+    moving = grad_alpha if raw <= as_real(MAX_ALPHA, dx_dx) else zero
+    raw_power = fused_multiply_add(as_real(0.5, dx_dx), fused_multiply_add(a, dx_dx, c * dy_dy), b * dx_dy)
+    return (-moving * raw if raw_power > zero else zero), moving
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     """A pair's share of the gradients of mean2d (2), conic (3) and opacity, from the loss's
-    gradient with respect to its α. Where α is clamped at 0.99 it does not move; where the power
-    is clamped at 0 neither do the conic and mean. The conic's a and c terms are twice theirs
+    gradient with respect to its α. The conic's a and c terms are twice theirs
     (∂power/∂a = dx²/2): the caller halves their sums once, exactly.
 
     Each conic term is a product of two values that have other uses (dx², dx·dy, dy² also make
@@ -305,14 +321,11 @@ def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     grouped them one way in the kernel numba compiles in the process and another way in the copy
     it loads from its cache, and a seeded run from an empty cache ended on other bits
     (cubecloud_cli/jit.py)."""
-    zero, half = as_real(0.0, dx), as_real(0.5, dx)
     dx_dx, dx_dy, dy_dy = dx * dx, dx * dy, dy * dy
-    moving = grad_alpha if raw <= as_real(MAX_ALPHA, dx) else zero
-    raw_power = half * (a * dx_dx + c * dy_dy) + b * dx_dy
-    grad_power = -moving * raw if raw_power > zero else zero
+    grad_power, moving = pair_power_gradient(grad_alpha, raw, dx_dx, dx_dy, dy_dy, a, b, c)
     return (
-        -grad_power * (a * dx + b * dy),
-        -grad_power * (c * dy + b * dx),
+        -grad_power * fused_multiply_add(a, dx, b * dy),
+        -grad_power * fused_multiply_add(c, dy, b * dx),
         grad_power * dx_dx,
         grad_power * dx_dy,
         grad_power * dy_dy,
@@ -374,16 +387,17 @@ def unblend_grey_row_into_lanes(
         )  # fmt: skip
         transmittance[r, i] = before if valid else transmittance[r, i]
         grad = tile_grad[r, i]
-        grad_alpha = grad * (before * colour_0 - behind[r, i] * survive) if valid else zero
-        behind[r, i] += weight * colour_0
-        terms = pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c)
-        lanes[0, i] += terms[0]
-        lanes[1, i] += terms[1]
-        lanes[2, i] += terms[2]
-        lanes[3, i] += terms[3]
-        lanes[4, i] += terms[4]
-        lanes[5, i] += terms[5]
-        lanes[6, i] += weight * grad
+        grad_alpha = grad * fused_multiply_add(before, colour_0, -behind[r, i] * survive) if valid else zero
+        behind[r, i] = fused_multiply_add(weight, colour_0, behind[r, i])
+        dx_dx, dx_dy, dy_dy = dx * dx, dx * dy, dy * dy
+        grad_power, moving = pair_power_gradient(grad_alpha, raw, dx_dx, dx_dy, dy_dy, a, b, c)
+        lanes[0, i] = fused_multiply_add(-grad_power, fused_multiply_add(a, dx, b * dy), lanes[0, i])
+        lanes[1, i] = fused_multiply_add(-grad_power, fused_multiply_add(c, dy, b * dx), lanes[1, i])
+        lanes[2, i] = fused_multiply_add(grad_power, dx_dx, lanes[2, i])
+        lanes[3, i] = fused_multiply_add(grad_power, dx_dy, lanes[3, i])
+        lanes[4, i] = fused_multiply_add(grad_power, dy_dy, lanes[4, i])
+        lanes[5, i] = fused_multiply_add(moving, gaussian, lanes[5, i])
+        lanes[6, i] = fused_multiply_add(weight, grad, lanes[6, i])
         column += one
 
 
