@@ -13,21 +13,31 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from cubecloud_cli.jit import PRANGE_ONLY
 from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
+# A radix sort pass sorts on up to this many bits: its 4096 counts (int32) stay in the L1 cache,
+# and the 23 bits in which float32 depths differ take two passes rather than three of 11 bits.
+RADIX_BITS = 12
+
 
 @njit(cache=True)
 def stable_depth_order(candidates, depths):
-    """``candidates`` sorted by depth, ties kept in index order: an LSD radix sort on the float64
-    bits (sign-flipped so that integer order is float order), linear in the count. Only the 11-bit
-    digits that differ between keys take a pass: float32 depths leave the low 29 bits zero, and
-    nearby depths share their sign and exponent."""
+    """``candidates`` sorted by depth, ties kept in their order: an LSD radix sort on the float64
+    bits (sign-flipped so that integer order is float order), linear in the count. Only the bits
+    that differ between keys are sorted on, in as few passes of up to RADIX_BITS as they need:
+    float32 depths leave the low 29 bits zero, and nearby depths share their sign and exponent.
+    Where the candidates' indices fit in the low bits that every key shares, they ride there,
+    and each pass moves one array instead of two."""
     count = candidates.size
+    if count < 2:
+        return candidates.copy()
     keys = np.empty(count, dtype=np.uint64)
     sign = np.uint64(1) << np.uint64(63)
     any_bits, all_bits = np.uint64(0), ~np.uint64(0)
+    any_index_bits = np.uint64(0)
     for i in range(count):
         value = depths[candidates[i]] + 0.0  # turns −0 into +0, which compares equal to it
         bits = np.float64(value).view(np.uint64)
@@ -35,36 +45,48 @@ def stable_depth_order(candidates, depths):
         keys[i] = key
         any_bits |= key
         all_bits &= key
+        any_index_bits |= np.uint64(candidates[i])
     varying = any_bits ^ all_bits  # bits set in some keys and clear in others
-    shifts = np.empty(6, dtype=np.uint64)
-    passes = 0
-    for p in range(6):
-        if (varying >> np.uint64(11 * p)) & np.uint64(0x7FF):
-            shifts[passes] = np.uint64(11 * p)
-            passes += 1
-    # Every pass's digit counts from one read of the keys, not one read a pass; int32 counts keep
-    # them in the L1 cache.
-    counts = np.zeros((passes, 2049), dtype=np.int32)
+    if varying == 0:
+        return candidates.copy()  # one key: the order stays
+    lowest = trailing_zeros(varying)
+    span = 64 - leading_zeros(varying) - lowest
+    passes = -(-span // RADIX_BITS)
+    digit_bits = -(-span // passes)
+    digit_mask = np.uint64((1 << digit_bits) - 1)
+    shared_low = (np.uint64(1) << np.uint64(lowest)) - np.uint64(1)
+    packed = any_index_bits & shared_low == any_index_bits  # every index fits where the keys do not differ
+    if packed:
+        for i in range(count):
+            keys[i] = (keys[i] & ~shared_low) | np.uint64(candidates[i])
+    # Every pass's digit counts from one read of the keys, not one read a pass.
+    counts = np.zeros((passes, (1 << digit_bits) + 1), dtype=np.int32)
     for i in range(count):
-        key = keys[i]
+        key = keys[i] >> np.uint64(lowest)
         for p in range(passes):
-            counts[p, ((key >> shifts[p]) & np.uint64(0x7FF)) + 1] += 1
-    order = candidates.copy()
+            counts[p, ((key >> np.uint64(p * digit_bits)) & digit_mask) + 1] += 1
+    order = candidates[: 0 if packed else count].copy()
     scratch_keys = np.empty_like(keys)
     scratch_order = np.empty_like(order)
     for p in range(passes):
-        shift = shifts[p]
-        for b in range(2048):
+        shift = np.uint64(lowest + p * digit_bits)
+        for b in range(1 << digit_bits):
             counts[p, b + 1] += counts[p, b]
         for i in range(count):
-            digit = (keys[i] >> shift) & np.uint64(0x7FF)
+            digit = (keys[i] >> shift) & digit_mask
             position = counts[p, digit]
             scratch_keys[position] = keys[i]
-            scratch_order[position] = order[i]
+            if not packed:
+                scratch_order[position] = order[i]
             counts[p, digit] = position + 1
         keys, scratch_keys = scratch_keys, keys
         order, scratch_order = scratch_order, order
-    return order
+    if not packed:
+        return order
+    result = np.empty(count, dtype=np.int64)
+    for i in range(count):
+        result[i] = np.int64(keys[i] & shared_low)
+    return result
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
