@@ -43,8 +43,8 @@ def _rotation(qw, qx, qy, qz):
 @njit(cache=True, inline="always", error_model="numpy")
 def _unit_quaternion(w, x, y, z):
     norm = math.sqrt(w * w + x * x + y * y + z * z)
-    scale = max(norm, MIN_QUATERNION_NORM)
-    return w / scale, x / scale, y / scale, z / scale, norm
+    inverse = 1.0 / max(norm, MIN_QUATERNION_NORM)
+    return w * inverse, x * inverse, y * inverse, z * inverse, norm
 
 
 @njit(cache=True, inline="always")
@@ -107,11 +107,14 @@ def project_block(means, scales, quaternions, rotation, translation, focal, widt
         cx, cy, depth = _camera(means[0, i], means[1, i], means[2, i], rotation, translation)
         in_front = depth > near
         z = depth if in_front else 1.0
-        x_over_z = min(max(cx / z, -limit_x), limit_x)
-        y_over_z = min(max(cy / z, -limit_y), limit_y)
+        inverse_z = 1.0 / z  # one division where there were three: a vector division costs many multiplies
+        x_over_z = min(max(cx * inverse_z, -limit_x), limit_x)
+        y_over_z = min(max(cy * inverse_z, -limit_y), limit_y)
         qw, qx, qy, qz, _ = _unit_quaternion(quaternions[0, i], quaternions[1, i], quaternions[2, i], quaternions[3, i])
         r = _rotation(qw, qx, qy, qz)
-        _, _, u0, u1 = _footprint(rotation, scales[0, i], scales[1, i], scales[2, i], r, x_over_z, y_over_z, focal / z)
+        _, _, u0, u1 = _footprint(
+            rotation, scales[0, i], scales[1, i], scales[2, i], r, x_over_z, y_over_z, focal * inverse_z
+        )
         a = u0[0] * u0[0] + u0[1] * u0[1] + u0[2] * u0[2]
         b = u0[0] * u1[0] + u0[1] * u1[1] + u0[2] * u1[2]
         c = u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2]
@@ -120,9 +123,10 @@ def project_block(means, scales, quaternions, rotation, translation, focal, widt
         a += variance
         c += variance
         determinant = max(a * c - b * b, MIN_DETERMINANT)
-        conic_a, conic_b, conic_c = c / determinant, -b / determinant, a / determinant
-        u = focal * cx / z + width / 2.0
-        v = focal * cy / z + height / 2.0
+        inverse_determinant = 1.0 / determinant
+        conic_a, conic_b, conic_c = c * inverse_determinant, -b * inverse_determinant, a * inverse_determinant
+        u = focal * (cx * inverse_z) + width / 2.0
+        v = focal * (cy * inverse_z) + height / 2.0
         results[0, i], results[1, i] = u, v
         results[2, i], results[3, i], results[4, i] = conic_a, conic_b, conic_c
         results[5, i], results[6, i], results[7, i] = a, b, c
@@ -181,10 +185,11 @@ def project_block_backward(
         cx, cy, depth = _camera(means[0, i], means[1, i], means[2, i], rotation, translation)
         in_front = depth > near
         z = depth if in_front else 1.0
-        raw_x, raw_y = cx / z, cy / z
+        inverse_z = 1.0 / z  # z, the determinant and |q| are each divided by once, as in the forward
+        raw_x, raw_y = cx * inverse_z, cy * inverse_z
         x_over_z = min(max(raw_x, -limit_x), limit_x)
         y_over_z = min(max(raw_y, -limit_y), limit_y)
-        f_over_z = focal / z
+        f_over_z = focal * inverse_z
         qw, qx, qy, qz, norm = _unit_quaternion(
             quaternions[0, i], quaternions[1, i], quaternions[2, i], quaternions[3, i]
         )
@@ -198,11 +203,12 @@ def project_block_backward(
         raw_determinant = a * c - b * b
         determinant = max(raw_determinant, MIN_DETERMINANT)
         # conics = (c, −b, a) / det; no gradient through a clamped determinant
-        g_det = -(g_conic_a * c - g_conic_b * b + g_conic_c * a) / (determinant * determinant)
+        inverse_determinant = 1.0 / determinant
+        g_det = -(g_conic_a * c - g_conic_b * b + g_conic_c * a) * (inverse_determinant * inverse_determinant)
         g_det = 0.0 if raw_determinant < MIN_DETERMINANT else g_det
-        g_a = g_conic_c / determinant + g_det * c
-        g_b = -g_conic_b / determinant - 2.0 * g_det * b
-        g_c = g_conic_a / determinant + g_det * a
+        g_a = g_conic_c * inverse_determinant + g_det * c
+        g_b = -g_conic_b * inverse_determinant - 2.0 * g_det * b
+        g_c = g_conic_a * inverse_determinant + g_det * a
         # ρ = √(1 − deficit), deficit = (v(a0 + c0) + v²) / blurred, blurred = a·c − b²:
         # d deficit / d a0 = (v − deficit·c) / blurred, likewise for c0; / d b = 2b·deficit / blurred.
         # At the floor ρ is constant.
@@ -274,11 +280,11 @@ def project_block_backward(
         g_qx = g_qx - radial * qx if normed else g_qx
         g_qy = g_qy - radial * qy if normed else g_qy
         g_qz = g_qz - radial * qz if normed else g_qz
-        scale = max(norm, MIN_QUATERNION_NORM)
-        results[6, i] = g_qw / scale
-        results[7, i] = g_qx / scale
-        results[8, i] = g_qy / scale
-        results[9, i] = g_qz / scale
+        inverse_norm = 1.0 / max(norm, MIN_QUATERNION_NORM)
+        results[6, i] = g_qw * inverse_norm
+        results[7, i] = g_qx * inverse_norm
+        results[8, i] = g_qy * inverse_norm
+        results[9, i] = g_qz * inverse_norm
         # T rows: t0 = f/z (w0 − x/z w2), t1 = f/z (w1 − y/z w2)
         g_f_over_z = 0.0
         g_x_over_z = 0.0
@@ -288,16 +294,17 @@ def project_block_backward(
             g_f_over_z += g_t1[k] * (rotation[1, k] - y_over_z * rotation[2, k])
             g_x_over_z -= f_over_z * g_t0[k] * rotation[2, k]
             g_y_over_z -= f_over_z * g_t1[k] * rotation[2, k]
-        g_cx = focal / z * g_u
-        g_cy = focal / z * g_v
-        g_z = -focal / (z * z) * g_f_over_z - focal * (cx * g_u + cy * g_v) / (z * z)
+        inverse_z2 = inverse_z * inverse_z
+        g_cx = f_over_z * g_u
+        g_cy = f_over_z * g_v
+        g_z = -(focal * inverse_z2) * g_f_over_z - focal * (cx * g_u + cy * g_v) * inverse_z2
         # no gradient through a clamped x/z or y/z, nor through the depth of a culled Gaussian
         inside_x = (-limit_x <= raw_x) & (raw_x <= limit_x)
         inside_y = (-limit_y <= raw_y) & (raw_y <= limit_y)
-        g_cx = g_cx + g_x_over_z / z if inside_x else g_cx
-        g_z = g_z - g_x_over_z * cx / (z * z) if inside_x else g_z
-        g_cy = g_cy + g_y_over_z / z if inside_y else g_cy
-        g_z = g_z - g_y_over_z * cy / (z * z) if inside_y else g_z
+        g_cx = g_cx + g_x_over_z * inverse_z if inside_x else g_cx
+        g_z = g_z - g_x_over_z * cx * inverse_z2 if inside_x else g_z
+        g_cy = g_cy + g_y_over_z * inverse_z if inside_y else g_cy
+        g_z = g_z - g_y_over_z * cy * inverse_z2 if inside_y else g_z
         g_z = g_z if in_front else 0.0
         for k in range(3):
             g_mean = rotation[0, k] * g_cx + rotation[1, k] * g_cy + rotation[2, k] * g_z
