@@ -29,6 +29,12 @@ a run from an empty cache gave other bits than a warm one (docs/results.md).
 
 ``as_real`` types a kernel's constants like its inputs. A literal such as ``0.5`` is float64 to
 numba and would turn float32 arithmetic into float64 (and halve its SIMD width).
+
+For whoever edits the kernels: numba's cache checks only the file of the kernel it caches, not
+the files of the helpers compiled into it. After editing ``cpu_projection_blocks.py`` alone, a
+cached ``cpu_projection.project_forward`` still runs the old helper, until its own file changes
+or its ``__pycache__`` entries are removed. An install from a release rewrites every file and is
+not affected.
 """
 
 import llvmlite.binding as llvm
