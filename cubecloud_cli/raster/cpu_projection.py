@@ -9,7 +9,7 @@ branch, call or division check (``cpu_projection_blocks``), which LLVM computes 
 a time (with the memory check limit of ``cubecloud_cli.jit``): forward and backward at 50k Gaussians take 2.7 ms on two
 cores and 4.1 ms on one, against 4.6 and 7.5 ms for the scalar loop they replaced, with the same
 bits. Each divides once by z, by the determinant and by |q|, and multiplies by the reciprocals:
-a vector division costs many multiplies, and the backward had fifteen (forward 0.89–0.93 and
+a vector division costs many multiplies, and the backward had 25 (forward 0.89–0.93 and
 backward 0.86–0.90 of their time; float64 results within an ulp, float32 ones the same bits on
 the bench frame). The backward reproduces autograd's choices at the guards: no gradient through a clamped
 x/z or y/z, through the depth of a culled Gaussian, through a clamped determinant, or through a
