@@ -101,23 +101,26 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
     count = means2d.shape[0]
     bounds = np.empty((count, 4), dtype=np.int64)
     levels = np.empty(count)
+    # Two loops: the log (a libm call) alone in the first; the box loop after it has no branch (a
+    # culled box is a select), which a culled Gaussian in no order a predictor learns would miss.
+    # Together 0.82 of one loop with a branch (bench/raster.py's frame), the same boxes.
     for i in prange(count):
-        level = max(math.log(max(ALPHA_LEVEL_SCALE * opacities[i], 1e-30)), 0.0)
-        levels[i] = level
-        u, v, radius = means2d[i, 0], means2d[i, 1], np.float64(radii[i])
+        levels[i] = max(math.log(max(ALPHA_LEVEL_SCALE * opacities[i], 1e-30)), 0.0)
+    for i in prange(count):
+        level, u, v, radius = levels[i], means2d[i, 0], means2d[i, 1], np.float64(radii[i])
         half_x = min(radius, math.sqrt(2.0 * level * covariances2d[i, 0]))
         half_y = min(radius, math.sqrt(2.0 * level * covariances2d[i, 2]))
-        finite = (
-            np.isfinite(half_x) and np.isfinite(half_y) and np.isfinite(u) and np.isfinite(v) and np.isfinite(level)
-        )
+        finite = np.isfinite(half_x) & np.isfinite(half_y) & np.isfinite(u) & np.isfinite(v) & np.isfinite(level)
         # numba's min/max drop a NaN rather than propagate it, so a NaN opacity is culled by name
-        if radii[i] <= 0 or not finite or not opacities[i] >= 0.0:
-            bounds[i, 0], bounds[i, 1], bounds[i, 2], bounds[i, 3] = 0, -1, 0, -1
-            continue
-        bounds[i, 0] = np.int64(min(max(math.ceil(u - half_x - 0.5), 0.0), width))
-        bounds[i, 1] = np.int64(min(max(math.floor(u + half_x - 0.5), -1.0), width - 1.0))
-        bounds[i, 2] = np.int64(min(max(math.ceil(v - half_y - 0.5), 0.0), height))
-        bounds[i, 3] = np.int64(min(max(math.floor(v + half_y - 0.5), -1.0), height - 1.0))
+        kept = (radii[i] > 0) & finite & (opacities[i] >= 0.0)
+        x0 = min(max(math.ceil(u - half_x - 0.5), 0.0), width)
+        x1 = min(max(math.floor(u + half_x - 0.5), -1.0), width - 1.0)
+        y0 = min(max(math.ceil(v - half_y - 0.5), 0.0), height)
+        y1 = min(max(math.floor(v + half_y - 0.5), -1.0), height - 1.0)
+        bounds[i, 0] = np.int64(x0 if kept else 0.0)
+        bounds[i, 1] = np.int64(x1 if kept else -1.0)
+        bounds[i, 2] = np.int64(y0 if kept else 0.0)
+        bounds[i, 3] = np.int64(y1 if kept else -1.0)
     return bounds, levels
 
 
