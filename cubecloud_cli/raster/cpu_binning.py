@@ -179,8 +179,10 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     for rank in range(kept):
         first[rank + 1] = first[rank] + tiles[order[rank]]
     total = first[kept]
-    tile_of_entry = np.empty(total, dtype=np.int64)
-    gaussian_of_entry = np.empty(total, dtype=np.int64)
+    # int32 entries: half the memory the counting sort and the kernels move (a frame holds far
+    # fewer than 2³¹ entries: 111k at 50k Gaussians and 128²)
+    tile_of_entry = np.empty(total, dtype=np.int32)
+    gaussian_of_entry = np.empty(total, dtype=np.int32)
     _entry_tiles(order, corner, columns, first, tiles_x, tile_of_entry, gaussian_of_entry)
     offsets = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
     for e in range(total):
@@ -188,8 +190,8 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     for t in range(tiles_x * tiles_y):
         offsets[t + 1] += offsets[t]
     fill = offsets[:-1].copy()
-    entries = np.empty(total, dtype=np.int64)
-    slots = np.empty(total, dtype=np.int64)
+    entries = np.empty(total, dtype=np.int32)
+    slots = np.empty(total, dtype=np.int32)
     for e in range(total):
         tile = tile_of_entry[e]
         entries[fill[tile]] = gaussian_of_entry[e]

@@ -6,7 +6,7 @@ the trainer itself compiles the forward side through its first render; the first
 loads from the cache what the helper compiled.
 
 The helper calls the kernels with empty arrays of the training dtypes (float32 tensors; the
-float64 and int64 arrays the binning makes). Where training passes other types, the trainer
+float64, int64 and int32 arrays the binning makes). Where training passes other types, the trainer
 compiles them itself as before: the helper can only save time, never change a result. With a warm
 cache the helper is stopped as soon as the forward side is seen to have come from the cache.
 """
@@ -31,7 +31,7 @@ def compile_backward_side() -> None:
 
     index, wide = np.int64, np.float64
     cpu_kernels.backward(
-        np.zeros(1, index), empty(0, dtype=index), empty(0, dtype=index), empty(0, 4, dtype=index),
+        np.zeros(1, index), empty(0, dtype=np.int32), empty(0, dtype=np.int32), empty(0, 4, dtype=index),
         empty(0, 2), empty(0, 3), empty(0, 1), empty(0), empty(0, dtype=wide), empty(1),
         16, 16, 1, empty(0), empty(0, dtype=index), empty(0, dtype=np.int32), empty(0, 16, dtype=np.uint16),
         empty(0, 1),
