@@ -136,11 +136,18 @@ def exact_falloff(power):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def quadratic_power(dx_dx, dx_dy, dy_dy, a, b, c):
+    """½(a·dx² + c·dy²) + b·dx·dy, unclamped, from the three products: one expression for the
+    forward's α and the backward's gradient gate, so that both read the same power."""
+    return fused_multiply_add(as_real(0.5, dx_dx), fused_multiply_add(a, dx_dx, c * dy_dy), b * dx_dy)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def pair_alpha(dx, dy, a, b, c, opacity, falloff):
     """A pair's power (clamped at 0), Gaussian falloff exp(−power) and α = min(0.99, o·falloff)."""
     zero = as_real(0.0, dx)
     dx_dx, dx_dy, dy_dy = dx * dx, dx * dy, dy * dy
-    power = max(fused_multiply_add(as_real(0.5, dx), fused_multiply_add(a, dx_dx, c * dy_dy), b * dx_dy), zero)
+    power = max(quadratic_power(dx_dx, dx_dy, dy_dy, a, b, c), zero)
     gaussian = falloff(power)
     return power, gaussian, min(as_real(MAX_ALPHA, dx), opacity * gaussian)
 
@@ -306,8 +313,7 @@ def pair_power_gradient(grad_alpha, raw, dx_dx, dx_dy, dy_dy, a, b, c):
     clamped at 0 the conic and mean do not move either."""
     zero = as_real(0.0, dx_dx)
     moving = grad_alpha if raw <= as_real(MAX_ALPHA, dx_dx) else zero
-    raw_power = fused_multiply_add(as_real(0.5, dx_dx), fused_multiply_add(a, dx_dx, c * dy_dy), b * dx_dy)
-    return (-moving * raw if raw_power > zero else zero), moving
+    return (-moving * raw if quadratic_power(dx_dx, dx_dy, dy_dy, a, b, c) > zero else zero), moving
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

@@ -44,7 +44,7 @@ def _rotation(qw, qx, qy, qz):
 def _unit_quaternion(w, x, y, z):
     norm = math.sqrt(w * w + x * x + y * y + z * z)
     inverse = 1.0 / max(norm, MIN_QUATERNION_NORM)
-    return w * inverse, x * inverse, y * inverse, z * inverse, norm
+    return w * inverse, x * inverse, y * inverse, z * inverse, norm, inverse
 
 
 @njit(cache=True, inline="always")
@@ -110,7 +110,9 @@ def project_block(means, scales, quaternions, rotation, translation, focal, widt
         inverse_z = 1.0 / z  # one division where there were three: a vector division costs many multiplies
         x_over_z = min(max(cx * inverse_z, -limit_x), limit_x)
         y_over_z = min(max(cy * inverse_z, -limit_y), limit_y)
-        qw, qx, qy, qz, _ = _unit_quaternion(quaternions[0, i], quaternions[1, i], quaternions[2, i], quaternions[3, i])
+        qw, qx, qy, qz, _, _ = _unit_quaternion(
+            quaternions[0, i], quaternions[1, i], quaternions[2, i], quaternions[3, i]
+        )
         r = _rotation(qw, qx, qy, qz)
         _, _, u0, u1 = _footprint(
             rotation, scales[0, i], scales[1, i], scales[2, i], r, x_over_z, y_over_z, focal * inverse_z
@@ -190,7 +192,7 @@ def project_block_backward(
         x_over_z = min(max(raw_x, -limit_x), limit_x)
         y_over_z = min(max(raw_y, -limit_y), limit_y)
         f_over_z = focal * inverse_z
-        qw, qx, qy, qz, norm = _unit_quaternion(
+        qw, qx, qy, qz, norm, inverse_norm = _unit_quaternion(
             quaternions[0, i], quaternions[1, i], quaternions[2, i], quaternions[3, i]
         )
         r = _rotation(qw, qx, qy, qz)
@@ -280,7 +282,6 @@ def project_block_backward(
         g_qx = g_qx - radial * qx if normed else g_qx
         g_qy = g_qy - radial * qy if normed else g_qy
         g_qz = g_qz - radial * qz if normed else g_qz
-        inverse_norm = 1.0 / max(norm, MIN_QUATERNION_NORM)
         results[6, i] = g_qw * inverse_norm
         results[7, i] = g_qx * inverse_norm
         results[8, i] = g_qy * inverse_norm
