@@ -22,7 +22,7 @@ from cubecloud_cli.raster import project
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available, gsplat_inputs, rasterizer_for
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
-from cubecloud_cli.raster.cpu_binning import bin_tiles, splat_boxes, sum_per_gaussian
+from cubecloud_cli.raster.cpu_binning import alpha_level, bin_tiles, natural_log, splat_boxes, sum_per_gaussian
 from cubecloud_cli.raster.cpu_kernels import NARROW, blend_row, exp_negative, narrow_window, polynomial_falloff
 from cubecloud_cli.raster.pairs import pixel_bounds
 
@@ -118,6 +118,44 @@ def test_the_inline_exp_is_accurate_wherever_a_pair_is_kept():
     approx = np.array([exp_negative(p) for p in singles])
     exact = np.exp(-singles.astype(np.float64))
     assert np.max(np.abs(approx - exact) / exact) < 5e-6  # float32 kernels composite in float32
+
+
+@njit
+def _natural_logs(values):
+    out = np.empty_like(values)
+    for i in range(values.size):
+        out[i] = natural_log(values[i])
+    return out
+
+
+@settings(deadline=None, max_examples=300)
+@given(st.lists(st.floats(1e-30, 1.7976931348623157e308), min_size=1, max_size=64))
+@example([1.0, 2.0, math.sqrt(2.0), math.nextafter(math.sqrt(2.0), 2.0), 255.0, 1e-30, 2.2250738585072014e-308])
+@example([1.7976931348623157e308, math.nextafter(1.0, 0.0), math.nextafter(1.0, 2.0), 0.5, 3.0])
+def test_the_inline_log_is_within_an_ulp_of_libms(values):
+    """The splat boxes' levels come from natural_log, which a SIMD loop can run: within an ulp of
+    libm's log from 1e-30 (the floor its caller clamps to) to the largest float64."""
+    values = np.array(values)
+    ours, exact = _natural_logs(values), np.log(values)
+    assert np.all(np.abs(ours - exact) <= np.spacing(np.abs(exact)))
+
+
+def test_the_inline_log_passes_infinity_and_nan_through_and_levels_floor_at_zero():
+    ours = _natural_logs(np.array([math.inf, math.nan]))
+    assert ours[0] == math.inf and math.isnan(ours[1])
+    levels = _alpha_levels(np.array([0.0, 1e-300, 1.0 / 255.0, 1.0, 3.0, math.inf], dtype=np.float32))
+    np.testing.assert_array_equal(levels[:2], 0.0)
+    assert 0.0 <= levels[2] < 1e-7  # float32(1/255) × 255 rounds to within an ulp of 1
+    np.testing.assert_allclose(levels[3:5], np.log(255.0 * np.array([1.0, 3.0])), rtol=1e-15)
+    assert levels[5] == math.inf  # splat_boxes culls it
+
+
+@njit
+def _alpha_levels(opacities):
+    out = np.empty(opacities.size)
+    for i in range(opacities.size):
+        out[i] = alpha_level(opacities[i])
+    return out
 
 
 @settings(deadline=None)

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit, prange
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
-from cubecloud_cli.jit import PRANGE_ONLY
+from cubecloud_cli.jit import PRANGE_ONLY, fused_multiply_add
 from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
 # A radix sort pass sorts on up to this many bits: its 4096 counts (int32) stay in the L1 cache,
@@ -89,7 +89,59 @@ def stable_depth_order(candidates, depths):
     return result
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+# ln 2 in two parts: the high part has its low 32 bits zero, so that e · LN2_HIGH is exact for
+# any exponent e of a float64 (|e| < 2¹¹), and the low part carries the rest.
+LN2_HIGH = 0.6931471803691238
+LN2_LOW = 1.9082149292705877e-10
+
+
+@njit(cache=True, inline="always")
+def natural_log(x):
+    """ln x of a float64 without a libm call, so that a loop over many stays SIMD: the binary
+    exponent e and mantissa m ∈ [√½, √2) from the bits, then e·ln 2 + 2·atanh((m − 1)/(m + 1))
+    by its series. Within an ulp of libm's log for positive normal x (tests/test_raster_cpu.py);
+    +inf and NaN come back as they are. Zero, negative and subnormal x are not handled: callers
+    pass x ≥ 1e-30."""
+    bits = np.float64(x).view(np.uint64)
+    exponent = np.int64((bits >> np.uint64(52)) & np.uint64(0x7FF)) - 1023
+    mantissa = (np.uint64(bits) & np.uint64(0xFFFFFFFFFFFFF)) | np.uint64(0x3FF0000000000000)
+    m = np.uint64(mantissa).view(np.float64)
+    high = m > 1.4142135623730951
+    m = m * 0.5 if high else m
+    e = np.float64(exponent + 1 if high else exponent)
+    f = m - 1.0  # exact
+    s = f / (2.0 + f)  # ln(1 + f) = 2·atanh(s)
+    z = s * s
+    # Horner's form written out: a loop here, even of a constant count, would be the innermost
+    # loop LLVM's vectorizer looks at, and the caller's loop would stay scalar
+    tail = fused_multiply_add(z, 2.0 / 23.0, 2.0 / 21.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 19.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 17.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 15.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 13.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 11.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 9.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 7.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 5.0)
+    tail = fused_multiply_add(z, tail, 2.0 / 3.0)
+    tail *= z  # 2·Σ zᵏ/(2k + 1), k ≥ 1
+    # ln(1 + f) = f − (f²/2 − s·(f²/2 + tail)), as fdlibm's log orders it: f²/2 leads the
+    # correction, and the rounding errors stay below an ulp of the result
+    half_square = 0.5 * f * f
+    result = e * LN2_HIGH - ((half_square - (s * (half_square + tail) + e * LN2_LOW)) - f)
+    return result if x < np.inf else x
+
+
+@njit(cache=True, inline="always")
+def alpha_level(opacity):
+    """ln(255·o), floored at 0: the power below which a pair's α = o·exp(−power) ≥ 1/255."""
+    level = natural_log(max(ALPHA_LEVEL_SCALE * opacity, 1e-30))
+    return level if level > 0.0 else 0.0
+
+
+# error_model="numpy": natural_log divides by 2 + f ≥ 2.4, and a division that checks for zero
+# (Python's model) is a branch that keeps its loop scalar.
+@njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy")
 def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
     """Per Gaussian: the inclusive pixel box (x0, x1, y0, y1) as ``pixel_bounds`` with opacities
     computes it (empty, (0, −1, 0, −1), where culled), and the power level ln(255·o) ≥ 0 below
@@ -101,11 +153,11 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
     count = means2d.shape[0]
     bounds = np.empty((count, 4), dtype=np.int64)
     levels = np.empty(count)
-    # Two loops: the log (a libm call) alone in the first; the box loop after it has no branch (a
-    # culled box is a select), which a culled Gaussian in no order a predictor learns would miss.
-    # Together 0.82 of one loop with a branch (bench/raster.py's frame), the same boxes.
+    # Two loops: the log alone in the first, where it runs as SIMD (natural_log); the box loop
+    # after it has no branch (a culled box is a select), which a culled Gaussian in no order a
+    # predictor learns would miss.
     for i in prange(count):
-        levels[i] = max(math.log(max(ALPHA_LEVEL_SCALE * opacities[i], 1e-30)), 0.0)
+        levels[i] = alpha_level(opacities[i])
     for i in prange(count):
         level, u, v, radius = levels[i], means2d[i, 0], means2d[i, 1], np.float64(radii[i])
         half_x = min(radius, math.sqrt(2.0 * level * covariances2d[i, 0]))
