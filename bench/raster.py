@@ -5,10 +5,14 @@ PyTorch path, on a random scene of Gaussians filling the volume's cube.
     python bench/raster.py --gaussians 200000 --resolution 256
     python bench/raster.py --cloud work/export/points3D.ply   # the exported Cube-Cloud, as initialised
     python bench/raster.py --antialias           # through the 2D Mip filter (its opacity factor and backward)
+    python bench/raster.py --skip-torch --split  # and where the numba frame's time goes, part by part
 
 Prints milliseconds per forward + backward (median of --repeats, after a warm-up that also
 compiles the kernels), the split between projection, compositing forward and backward, and the
-useful (Gaussian, pixel) pairs per second: pairs with α ≥ 1/255 that were blended.
+useful (Gaussian, pixel) pairs per second: pairs with α ≥ 1/255 that were blended. --split times
+each compiled part inside the measured frames (projection forward and backward, splat boxes,
+binning, compositing kernels, per-Gaussian sums); what is left is torch's autograd, its
+operators and the array conversions around the kernels.
 """
 
 from __future__ import annotations
@@ -67,11 +71,51 @@ def useful_pairs(projected, opacities, width, height) -> int:
     return int((alpha >= MIN_ALPHA).sum())
 
 
-def time_backend(projector, compositor, scene, cameras, width, repeats, antialias=False):
+# The compiled parts of a numba frame, as cubecloud_cli.raster.cpu calls them (module, name), and
+# what the split calls them.
+FRAME_PARTS = (
+    ("cpu_projection", "project_forward", "projection forward"),
+    ("binning", "splat_boxes", "splat boxes"),
+    ("binning", "bin_tiles", "binning"),
+    ("kernels", "forward", "compositing forward"),
+    ("kernels", "backward", "compositing backward"),
+    ("binning", "sum_per_gaussian", "per-Gaussian sums"),
+    ("cpu_projection", "project_backward", "projection backward"),
+)
+
+
+def timed_parts(splits: dict[str, list[float]]) -> None:
+    """Wrap each compiled part where ``cubecloud_cli.raster.cpu`` looks it up, adding its time in
+    seconds to ``splits[label]`` at every call."""
+    from cubecloud_cli.raster import cpu
+
+    for module_name, name, label in FRAME_PARTS:
+        module = getattr(cpu, module_name)
+        part = getattr(module, name)
+
+        def timed(*args, _part=part, _label=label):
+            start = time.perf_counter()
+            result = _part(*args)
+            splits.setdefault(_label, []).append(time.perf_counter() - start)
+            return result
+
+        setattr(module, name, timed)
+
+
+def print_split(splits: dict[str, list[float]]) -> None:
+    """Median milliseconds of each part over the measured frames (the warm-up frame left out)."""
+    parts = {label: 1000 * statistics.median(splits[label][1:]) for *_, label in FRAME_PARTS}
+    frame = 1000 * statistics.median(splits["total"][1:])
+    print("  split of the numba frame (medians, ms): " + ", ".join(f"{name} {ms:.2f}" for name, ms in parts.items()))
+    print(f"  the rest (autograd, torch operators, conversions): {frame - sum(parts.values()):.2f} of {frame:.2f}")
+
+
+def time_backend(projector, compositor, scene, cameras, width, repeats, antialias=False, splits=None):
     means, log_scales, quaternions, opacities, colours = scene
     rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
     translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
-    splits = {"project": [], "forward": [], "backward": [], "total": []}
+    splits = {} if splits is None else splits
+    splits.update({"project": [], "forward": [], "backward": [], "total": []})
     for _ in range(repeats + 1):
         inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
         start = time.perf_counter()
@@ -98,7 +142,9 @@ def time_backend(projector, compositor, scene, cameras, width, repeats, antialia
             ("total", end - start),
         ):
             splits[key].append(value)
-    return {key: 1000 * statistics.median(values[1:]) for key, values in splits.items()}, projected
+    times = {key: 1000 * statistics.median(splits[key][1:]) for key in ("project", "forward", "backward", "total")}
+    times["fastest"] = 1000 * min(splits["total"][1:])
+    return times, projected
 
 
 def main() -> None:
@@ -111,6 +157,7 @@ def main() -> None:
     parser.add_argument(
         "--antialias", action="store_true", help="project through the 2D Mip filter, as anti-aliased training does"
     )
+    parser.add_argument("--split", action="store_true", help="time each compiled part of the numba frame")
     args = parser.parse_args()
     keep_freed_memory()  # as training does (Runtime.apply): freed arrays are reused, not re-faulted
 
@@ -121,6 +168,9 @@ def main() -> None:
         f"{'2D Mip filter' if args.antialias else '0.3 px² dilation'}; median of {args.repeats} forward + backward passes"
     )
     results = {}
+    numba_splits: dict[str, list[float]] = {}
+    if args.split:
+        timed_parts(numba_splits)
     for name, projector, compositor in (("numba", project_cpu, composite_cpu), ("torch", project, composite)):
         if name == "torch" and args.skip_torch:
             continue
@@ -132,15 +182,19 @@ def main() -> None:
             args.resolution,
             args.repeats if name == "numba" else max(3, args.repeats // 5),
             args.antialias,
+            numba_splits if name == "numba" else None,
         )
         results[name] = times
         print(
             f"  {name:<6} total {times['total']:7.2f} ms  (project {times['project']:.2f}, "
-            f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f})"
+            f"composite forward {times['forward']:.2f}, backward {times['backward']:.2f}; fastest frame {times['fastest']:.2f})"
         )
+        if name == "numba" and args.split:
+            print_split(numba_splits)
     pairs = useful_pairs(projected, projected.effective_opacities(scene[3]), args.resolution, args.resolution)
     print(
-        f"  useful pairs (α ≥ 1/255): {pairs:,} -> {pairs / (results['numba']['total'] / 1000) / 1e6:.1f} M pairs/s (numba, fwd+bwd)"
+        f"  useful pairs (α ≥ 1/255): {pairs:,} -> {pairs / (results['numba']['total'] / 1000) / 1e6:.1f} M pairs/s (numba, fwd+bwd; "
+        f"{pairs / (results['numba']['fastest'] / 1000) / 1e6:.1f} M/s in the fastest frame)"
     )
     if "torch" in results:
         print(
