@@ -201,6 +201,6 @@ def test_a_narrow_row_of_the_compositing_kernels_vectorizes():
             real(0.3), real(0.2), real(0.01), real(0.2), real(5.0), real(0.5), real(1.0), cpu_kernels.polynomial_falloff,
         )  # fmt: skip
 
-    narrow_row(np.ones((TILE, TILE), real), np.zeros((TILE, TILE), real), np.zeros(TILE, real), 3)
+    narrow_row(np.ones((TILE, TILE), real), np.zeros((TILE, TILE), real), np.zeros((TILE, TILE), real), 3)
     assembly = narrow_row.inspect_asm(narrow_row.signatures[0])
     assert re.search(r"\bv?mulps\b", assembly), "the narrow row stayed scalar (mulss only)"

@@ -213,14 +213,14 @@ def test_a_narrow_row_blends_the_bits_of_a_whole_row(real, first, width, u, dy, 
     for narrow in (True, False):
         transmittance = np.zeros((TILE, TILE), real)
         transmittance[0] = start
-        colour, weights = np.zeros((TILE, TILE), real), np.zeros(TILE, real)
+        colour, weights = np.zeros((TILE, TILE), real), np.zeros((TILE, TILE), real)
         stopped, blended = _blend_one_row(transmittance, colour, weights, window, narrow, *scalars)
         after = transmittance[0]
         assert stopped == sum(1 << i for i in range(TILE) if start[i] > 0 > after[i])
         assert blended == sum(1 << i for i in range(TILE) if start[i] > after[i] > 0)
         counts = stopped, blended
         rows.append(
-            (transmittance[0].tobytes(), colour[0].tobytes(), weights[window : window + NARROW].tobytes(), counts)
+            (transmittance[0].tobytes(), colour[0].tobytes(), weights[0, window : window + NARROW].tobytes(), counts)
         )
     assert rows[0] == rows[1]
 

@@ -44,7 +44,12 @@ EXP_POLYNOMIAL_LIMIT = 6.0
 # branch); every test is a select between values of the compute type or of int32 (int64 compares
 # or counters halve the width); no call and no inner loop in the body; no Python division check
 # (error_model="numpy": 1 − α ≥ 0.01); and few arrays written, each a plain 2D tile array, none
-# passed to a helper (reference counting calls).
+# passed to a helper (reference counting calls). The tile arrays a row loop reads and writes at
+# [r, i] are views of one allocation at constant distances, so that LLVM knows they do not
+# overlap: as separate arrays, each row paid about 25 instructions of run-time overlap checks
+# (forward 0.87–0.88 and backward 0.89–0.91 of their time without them, the same bits). The
+# backward's lane sums, indexed [term, i], stay apart: in the same allocation their distance
+# from row r varies, and the row loop went scalar.
 # Most rows a splat covers in a tile are narrow: at 50k Gaussians and 128², two in three of the
 # rows with a live pixel lie within 8 columns, three in four once stopped pixels are left out.
 # Such a row is one 8-lane loop, one AVX2 vector of float32, instead of two. LLVM's loop
@@ -158,8 +163,8 @@ def blend_row(
 ):  # fmt: skip
     """Blend one Gaussian into columns ``window`` to ``window + lanes − 1`` of row ``r`` of a tile,
     where its box spans dx ∈ [low, high]; ``lanes`` is a constant (TILE or NARROW).
-    Channel 0 is blended here; ``weights`` keeps each pixel's T·α (0 where not blended) for the
-    caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
+    Channel 0 is blended here; ``weights[r]`` keeps each pixel's T·α (0 where not blended) for
+    the caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
     the sign says which pixels are live. Returns the bit masks of the columns that stopped and of
     those blended: float sums of distinct powers of two below 2¹⁶, exact in any order of
     summation, so that the loop stays SIMD."""
@@ -179,7 +184,7 @@ def blend_row(
         weight = before * alpha if blend else zero
         transmittance[r, i] = -before if stop else (after if blend else before)
         colour[r, i] = fused_multiply_add(weight, colour_0, colour[r, i])
-        weights[i] = weight
+        weights[r, i] = weight
         bit = lane_bit(i, dx0)
         stops += bit if stop else zero
         blends += bit if blend else zero
@@ -223,14 +228,17 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
+        # The arrays the row loops write, as views of one allocation at fixed offsets: LLVM then
+        # knows they do not overlap, where separate arrays cost each row a run-time check.
+        state = np.zeros((3 * TILE, TILE), dtype=real)
         # > 0: live; < 0: stopped, holding −T before the stop; 0: beyond the image's edge.
-        transmittance = np.zeros((TILE, TILE), dtype=real)
+        transmittance = state[:TILE]
         for r in range(bottom - top + 1):
             for i in range(right - left + 1):
                 transmittance[r, i] = 1.0
-        colour = np.zeros((TILE, TILE), dtype=real)  # channel 0; the others, rarely used, apart
+        colour = state[TILE : 2 * TILE]  # channel 0; the others, rarely used, apart
+        weights = state[2 * TILE :]  # by row, as the others: row r's lie a constant distance from its T
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
-        weights = np.zeros(TILE, dtype=real)
         last_entry = np.full((TILE, TILE), end)  # where the backward pass starts, per pixel
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
         alive = (right - left + 1) * (bottom - top + 1)
@@ -271,7 +279,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                     blended_pixels[k, r] = blended
                 for ch in range(1, channels):
                     for i in range(TILE):
-                        other_colours[ch, r, i] += weights[i] * colours[g, ch]
+                        other_colours[ch, r, i] += weights[r, i] * colours[g, ch]
                 if stopped:  # rare: each pixel stops once
                     live_columns[r] &= ~stopped
                 while stopped:
@@ -488,11 +496,13 @@ def backward(
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
-        transmittance = np.ones((TILE, TILE), dtype=real)
-        # One channel's colour from behind the current Gaussian and loss gradient as 2D arrays,
-        # several channels' as 3D (channel first).
-        behind = np.zeros((TILE, TILE), dtype=real)
-        tile_grad = np.zeros((TILE, TILE), dtype=real)
+        # As in forward, the row loops' arrays are views of one allocation: T, then one channel's
+        # colour from behind the current Gaussian, then its loss gradient (several channels' as
+        # 3D arrays, channel first, apart).
+        state = np.zeros((3 * TILE, TILE), dtype=real)
+        transmittance = state[:TILE]
+        behind = state[TILE : 2 * TILE]
+        tile_grad = state[2 * TILE :]
         behind_channels = np.zeros((channels, TILE, TILE), dtype=real)
         grad_channels = np.zeros((channels, TILE, TILE), dtype=real)
         colour_grad = np.zeros(channels, dtype=real)
