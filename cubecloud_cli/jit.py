@@ -39,7 +39,9 @@ not affected.
 
 import llvmlite.binding as llvm
 import numpy as np
+from llvmlite import ir
 from numba import types
+from numba.core import cgutils
 from numba.core.cpu import ParallelOptions
 from numba.extending import intrinsic, overload
 
@@ -108,3 +110,55 @@ def fused_multiply_add(typingctx, a, b, c):
         return builder.fma(*args)
 
     return a(a, b, c), codegen
+
+
+def _lane_sign_bits(width: int, positive: bool):
+    """An intrinsic (tile, row, start) -> int64: bit i set where ``tile[row, start + i]`` is > 0
+    (``positive``) or has its sign bit set (negative, −0 included), for i < ``width``."""
+
+    @intrinsic
+    def lane_sign_bits(typingctx, tile, row, start):
+        if not (
+            isinstance(tile, types.Array)
+            and tile.ndim == 2
+            and tile.dtype in (types.float32, types.float64)
+            and isinstance(row, types.Integer)
+            and isinstance(start, types.Integer)
+        ):
+            return None
+
+        def codegen(context, builder, signature, args):
+            tile_type, row_type, start_type = signature.args
+            array = context.make_array(tile_type)(context, builder, args[0])
+            indices = [
+                context.cast(builder, args[1], row_type, types.intp),
+                context.cast(builder, args[2], start_type, types.intp),
+            ]
+            pointer = cgutils.get_item_pointer2(
+                context,
+                builder,
+                data=array.data,
+                shape=cgutils.unpack_tuple(builder, array.shape),
+                strides=cgutils.unpack_tuple(builder, array.strides),
+                layout=tile_type.layout,
+                inds=indices,
+                wraparound=False,
+                boundscheck=False,
+            )
+            lanes = ir.VectorType(ir.IntType(tile_type.dtype.bitwidth), width)
+            values = builder.load(builder.bitcast(pointer, lanes.as_pointer()), align=tile_type.dtype.bitwidth // 8)
+            test = builder.icmp_signed(">" if positive else "<", values, ir.Constant(lanes, None))
+            return builder.zext(builder.bitcast(test, ir.IntType(width)), ir.IntType(64))
+
+        return types.int64(tile, row, start), codegen
+
+    return lane_sign_bits
+
+
+# The bit masks of a row of 8 or 16 pixels (float32 or float64, contiguous along the row, as the
+# compositing kernels' tile arrays are): a vector compare and one move of its mask (vmovmskps),
+# where a mask summed inside a SIMD loop costs each row two horizontal reductions.
+negative_lanes_8 = _lane_sign_bits(8, positive=False)
+negative_lanes_16 = _lane_sign_bits(16, positive=False)
+positive_lanes_8 = _lane_sign_bits(8, positive=True)
+positive_lanes_16 = _lane_sign_bits(16, positive=True)

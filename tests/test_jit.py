@@ -9,12 +9,22 @@ import sys
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numba import njit
 from numba.core.registry import CPUDispatcher
 from test_raster import H, W, camera, scene
 
 from cubecloud_cli.cunerf import grid_kernels
-from cubecloud_cli.jit import EXACT_FASTMATH, FASTMATH, PRANGE_ONLY
+from cubecloud_cli.jit import (
+    EXACT_FASTMATH,
+    FASTMATH,
+    PRANGE_ONLY,
+    negative_lanes_8,
+    negative_lanes_16,
+    positive_lanes_8,
+    positive_lanes_16,
+)
 from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import _numpy, project_cpu
@@ -62,6 +72,34 @@ def test_fused_multiply_add_rounds_once(dtype, step):
     result = fused(a, a, minus_one)
     assert result == dtype(2 * step + step * step) and a * a + minus_one == dtype(2 * step)
     assert fused.nopython_signatures[-1].return_type.bitwidth == np.dtype(dtype).itemsize * 8
+
+
+@njit
+def _lane_masks(tile, row, start):
+    return (
+        negative_lanes_8(tile, row, start),
+        positive_lanes_8(tile, row, start),
+        negative_lanes_16(tile, row, 0),
+        positive_lanes_16(tile, row, 0),
+    )
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**16), row=st.integers(0, TILE - 1), start=st.integers(0, TILE - 8))
+def test_lane_masks_read_the_signs_of_a_row(dtype, seed, row, start):
+    """The compositing kernels' row masks come from a vector compare of the row: bit i set where
+    the value's sign bit is (−0 included: a stopped pixel's T is −T ≤ −0) or where it is > 0."""
+    rng = np.random.default_rng(seed)
+    tile = rng.choice(np.array([-1.0, -1e-30, -0.0, 0.0, 1e-30, 0.5, 1e30], dtype=dtype), size=(TILE, TILE))
+    tile[rng.random((TILE, TILE)) < 0.3] = rng.normal(size=1)[0]
+
+    def bits(values):
+        return sum(1 << i for i, set_ in enumerate(values) if set_)
+
+    window, whole = tile[row, start : start + 8], tile[row]
+    expected = (bits(np.signbit(window)), bits(window > 0), bits(np.signbit(whole)), bits(whole > 0))
+    assert _lane_masks(tile, row, start) == expected
 
 
 def test_no_kernel_lets_llvm_fuse_multiply_and_add():

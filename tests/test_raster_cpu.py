@@ -23,7 +23,15 @@ from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
 from cubecloud_cli.raster.cpu_binning import alpha_level, bin_tiles, natural_log, splat_boxes, sum_per_gaussian
-from cubecloud_cli.raster.cpu_kernels import NARROW, blend_row, exp_negative, narrow_window, polynomial_falloff
+from cubecloud_cli.raster.cpu_kernels import (
+    NARROW,
+    blend_row,
+    exp_negative,
+    narrow_row_masks,
+    narrow_window,
+    polynomial_falloff,
+    row_masks,
+)
 from cubecloud_cli.raster.pairs import pixel_bounds
 
 W, H = 40, 28
@@ -175,14 +183,16 @@ def test_a_narrow_window_covers_every_live_column_or_is_refused(columns):
 
 
 @njit(fastmath=FASTMATH)
-def _blend_one_row(transmittance, colour, weights, window, narrow, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):
+def _blend_one_row(transmittance, colour, weights, window, narrow, live, low, high, dx0, dy, a, b, c, cut, opacity, colour_0):  # fmt: skip
     if narrow:
-        return blend_row(
+        blend_row(
             transmittance, colour, weights, 0, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
         )  # fmt: skip
-    return blend_row(
+        return narrow_row_masks(transmittance, weights, 0, window, live)
+    blend_row(
         transmittance, colour, weights, 0, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
     )  # fmt: skip
+    return row_masks(transmittance, weights, 0, live)
 
 
 @pytest.mark.parametrize("real", [np.float32, np.float64])
@@ -194,9 +204,9 @@ def _blend_one_row(transmittance, colour, weights, window, narrow, low, high, dx
 )  # fmt: skip
 def test_a_narrow_row_blends_the_bits_of_a_whole_row(real, first, width, u, dy, conic, opacity, seed):
     """The 8-pixel loop gives each pixel the bits the 16-pixel loop gives it: dx is one rounding of
-    dx0 + column in both, whatever the window. Both return the bit masks of the columns that
-    stopped and that blended, which the backward undoes: exactly the pixels whose T went from
-    positive to negative, and from positive to a smaller positive value."""
+    dx0 + column in both, whatever the window. The bit masks read from the row after either (the
+    columns that stopped and that blended, which the backward undoes) are exactly the pixels whose
+    T went from positive to negative, and from positive to a smaller positive value."""
     final = min(first + width - 1, TILE - 1)
     window = min(first, TILE - NARROW)
     rng = np.random.default_rng(seed)
@@ -214,7 +224,8 @@ def test_a_narrow_row_blends_the_bits_of_a_whole_row(real, first, width, u, dy, 
         transmittance = np.zeros((TILE, TILE), real)
         transmittance[0] = start
         colour, weights = np.zeros((TILE, TILE), real), np.zeros((TILE, TILE), real)
-        stopped, blended = _blend_one_row(transmittance, colour, weights, window, narrow, *scalars)
+        live = sum(1 << i for i in range(first, final + 1) if start[i] > 0)  # under the splat, not stopped
+        stopped, blended = _blend_one_row(transmittance, colour, weights, window, narrow, live, *scalars)
         after = transmittance[0]
         assert stopped == sum(1 << i for i in range(TILE) if start[i] > 0 > after[i])
         assert blended == sum(1 << i for i in range(TILE) if start[i] > after[i] > 0)

@@ -28,7 +28,16 @@ from numba import njit, prange, types
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import overload
 
-from cubecloud_cli.jit import FASTMATH, PRANGE_ONLY, as_real, fused_multiply_add
+from cubecloud_cli.jit import (
+    FASTMATH,
+    PRANGE_ONLY,
+    as_real,
+    fused_multiply_add,
+    negative_lanes_8,
+    negative_lanes_16,
+    positive_lanes_8,
+    positive_lanes_16,
+)
 from cubecloud_cli.raster.constants import MAX_ALPHA, MIN_ALPHA, TILE, TRANSMITTANCE_STOP
 
 # Pairs with power > ln(255·o) have α < 1/255; the margin leaves exact ties to the α test.
@@ -57,23 +66,10 @@ EXP_POLYNOMIAL_LIMIT = 6.0
 NARROW = 8
 
 
-# 2^i for column i, as the row loops' masks need them: module constants, which numba compiles
-# into read-only data, so that LLVM knows no tile array overlaps them (a tile-local table cost
-# the row loops a run-time overlap check each).
-LANE_BITS_SINGLE = 2.0 ** np.arange(TILE, dtype=np.float32)
-LANE_BITS_DOUBLE = 2.0 ** np.arange(TILE, dtype=np.float64)
+# 2^i for column i, as the backward's row loops test a column's bit of a mask: a module constant,
+# which numba compiles into read-only data, so that LLVM knows no tile array overlaps it (a
+# tile-local table cost the row loops a run-time overlap check each).
 LANE_FLAGS = (1 << np.arange(TILE)).astype(np.int32)
-
-
-def lane_bit(i, like):
-    """2^i in ``like``'s float type: a column's bit of a row mask, as a value of the compute type."""
-    return as_real(2.0**i, like)
-
-
-@overload(lane_bit)
-def _lane_bit(i, like):
-    bits = LANE_BITS_DOUBLE if like == types.float64 else LANE_BITS_SINGLE
-    return lambda i, like: bits[i]
 
 
 def single_precision(like):
@@ -164,13 +160,10 @@ def blend_row(
     """Blend one Gaussian into columns ``window`` to ``window + lanes − 1`` of row ``r`` of a tile,
     where its box spans dx ∈ [low, high]; ``lanes`` is a constant (TILE or NARROW).
     Channel 0 is blended here; ``weights[r]`` keeps each pixel's T·α (0 where not blended) for
-    the caller's other channels. A pixel that stops keeps −T (its transmittance before the stop), so
-    the sign says which pixels are live. Returns the bit masks of the columns that stopped and of
-    those blended: float sums of distinct powers of two below 2¹⁶, exact in any order of
-    summation, so that the loop stays SIMD."""
+    the caller's other channels and its mask of blended pixels. A pixel that stops keeps −T (its
+    transmittance before the stop), so the sign says which pixels are live (``row_masks``)."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     min_alpha, stop_level = as_real(MIN_ALPHA, dx0), as_real(TRANSMITTANCE_STOP, dx0)
-    stops = blends = zero
     column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
     for lane in range(lanes):
         i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
@@ -185,11 +178,23 @@ def blend_row(
         transmittance[r, i] = -before if stop else (after if blend else before)
         colour[r, i] = fused_multiply_add(weight, colour_0, colour[r, i])
         weights[r, i] = weight
-        bit = lane_bit(i, dx0)
-        stops += bit if stop else zero
-        blends += bit if blend else zero
         column += one
-    return int(stops), int(blends)
+
+
+@njit(cache=True, inline="always")
+def row_masks(transmittance, weights, r, live):
+    """After ``blend_row`` over a whole row: the bit masks of the columns that stopped (T now
+    negative, among the ``live`` columns under the splat) and of those blended (T·α > 0).
+    Taken from the row by a vector compare after the loop rather than summed inside it, which
+    cost each row two horizontal reductions."""
+    return negative_lanes_16(transmittance, r, 0) & live, positive_lanes_16(weights, r, 0)
+
+
+@njit(cache=True, inline="always")
+def narrow_row_masks(transmittance, weights, r, window, live):
+    """``row_masks`` after ``blend_row`` over the NARROW columns from ``window``."""
+    stopped = (negative_lanes_8(transmittance, r, window) << window) & live
+    return stopped, positive_lanes_8(weights, r, window) << window
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -197,7 +202,7 @@ def blend_row_exactly(transmittance, colour, weights, r, low, high, dx0, dy, a, 
     """``blend_row`` over the whole row with libm's exp, out of line: a second inlined copy of the
     row loop for a Gaussian outside the [0, 1] opacity contract would double the kernel's first
     compilation."""
-    return blend_row(
+    blend_row(
         transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, exact_falloff
     )  # fmt: skip
 
@@ -263,17 +268,20 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                 dy = as_real(py + 0.5 - v, conics)
                 window = narrow_window(live)
                 if levels[g] > EXP_POLYNOMIAL_LIMIT:
-                    stopped, blended = blend_row_exactly(
+                    blend_row_exactly(
                         transmittance, colour, weights, r, low, high, dx0, dy, a, b, c, cut, opacity, colour_0
                     )  # fmt: skip
+                    stopped, blended = row_masks(transmittance, weights, r, live)
                 elif window >= 0 and channels == 1:
-                    stopped, blended = blend_row(
+                    blend_row(
                         transmittance, colour, weights, r, window, NARROW, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
+                    stopped, blended = narrow_row_masks(transmittance, weights, r, window, live)
                 else:
-                    stopped, blended = blend_row(
+                    blend_row(
                         transmittance, colour, weights, r, 0, TILE, low, high, dx0, dy, a, b, c, cut, opacity, colour_0, polynomial_falloff
                     )  # fmt: skip
+                    stopped, blended = row_masks(transmittance, weights, r, live)
                 if blended:
                     rows_blended |= 1 << r
                     blended_pixels[k, r] = blended
