@@ -112,17 +112,16 @@ def project_backward(
     grad_quaternions = np.zeros((count, 4), dtype=real)
     moving = np.empty(count, dtype=np.int64)
     moved = 0
-    for i in range(count):
-        if (
-            grad_means2d[i, 0] != 0.0
-            or grad_means2d[i, 1] != 0.0
-            or grad_conics[i, 0] != 0.0
-            or grad_conics[i, 1] != 0.0
-            or grad_conics[i, 2] != 0.0
-            or (antialias and grad_compensations[i] != 0.0)
-        ):
-            moving[moved] = i
-            moved += 1
+    for i in range(count):  # appended without a branch: which move follows no pattern
+        moving[moved] = i
+        moved += (
+            (grad_means2d[i, 0] != 0.0)
+            | (grad_means2d[i, 1] != 0.0)
+            | (grad_conics[i, 0] != 0.0)
+            | (grad_conics[i, 1] != 0.0)
+            | (grad_conics[i, 2] != 0.0)
+            | (antialias & (grad_compensations[i] != 0.0))
+        )
     for block in prange(-(-moved // BLOCK)):
         start = block * BLOCK
         rows = moving[start : min(moved, start + BLOCK)]
