@@ -136,6 +136,14 @@ def _natural_logs(values):
     return out
 
 
+@njit
+def _alpha_levels(opacities):
+    out = np.empty(opacities.size)
+    for i in range(opacities.size):
+        out[i] = alpha_level(opacities[i])
+    return out
+
+
 @settings(deadline=None, max_examples=300)
 @given(st.lists(st.floats(1e-30, 1.7976931348623157e308), min_size=1, max_size=64))
 @example([1.0, 2.0, math.sqrt(2.0), math.nextafter(math.sqrt(2.0), 2.0), 255.0, 1e-30, 2.2250738585072014e-308])
@@ -156,14 +164,6 @@ def test_the_inline_log_passes_infinity_and_nan_through_and_levels_floor_at_zero
     assert 0.0 <= levels[2] < 1e-7  # float32(1/255) × 255 rounds to within an ulp of 1
     np.testing.assert_allclose(levels[3:5], np.log(255.0 * np.array([1.0, 3.0])), rtol=1e-15)
     assert levels[5] == math.inf  # splat_boxes culls it
-
-
-@njit
-def _alpha_levels(opacities):
-    out = np.empty(opacities.size)
-    for i in range(opacities.size):
-        out[i] = alpha_level(opacities[i])
-    return out
 
 
 @settings(deadline=None)

@@ -104,7 +104,7 @@ def natural_log(x):
     pass x ≥ 1e-30."""
     bits = np.float64(x).view(np.uint64)
     exponent = np.int64((bits >> np.uint64(52)) & np.uint64(0x7FF)) - 1023
-    mantissa = (np.uint64(bits) & np.uint64(0xFFFFFFFFFFFFF)) | np.uint64(0x3FF0000000000000)
+    mantissa = (bits & np.uint64(0xFFFFFFFFFFFFF)) | np.uint64(0x3FF0000000000000)
     m = np.uint64(mantissa).view(np.float64)
     high = m > 1.4142135623730951
     m = m * 0.5 if high else m

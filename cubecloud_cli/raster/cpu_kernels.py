@@ -233,9 +233,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
-        # The arrays the row loops write, as views of one allocation at fixed offsets: LLVM then
-        # knows they do not overlap, where separate arrays cost each row a run-time check.
-        state = np.zeros((3 * TILE, TILE), dtype=real)
+        state = np.zeros((3 * TILE, TILE), dtype=real)  # the row loops' arrays: see "How the pixel loops stay SIMD"
         # > 0: live; < 0: stopped, holding −T before the stop; 0: beyond the image's edge.
         transmittance = state[:TILE]
         for r in range(bottom - top + 1):
@@ -504,9 +502,8 @@ def backward(
         ty, tx = tile // tiles_x, tile % tiles_x
         left, top = tx * TILE, ty * TILE
         right, bottom = min(width, left + TILE) - 1, min(height, top + TILE) - 1
-        # As in forward, the row loops' arrays are views of one allocation: T, then one channel's
-        # colour from behind the current Gaussian, then its loss gradient (several channels' as
-        # 3D arrays, channel first, apart).
+        # The row loops' arrays in one allocation, as in forward: T, then one channel's colour from
+        # behind the current Gaussian, then its loss gradient (several channels' as 3D arrays apart).
         state = np.zeros((3 * TILE, TILE), dtype=real)
         transmittance = state[:TILE]
         behind = state[TILE : 2 * TILE]
