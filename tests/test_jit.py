@@ -127,9 +127,11 @@ forward = [inputs[f"forward_{i}"] for i in range(9)]
 grey = forward[:5] + [np.ascontiguousarray(forward[5][:, :1])] + forward[6:]  # narrow rows: grey only
 mlp = grid_kernels.mlp_forward(*[inputs[f"mlp_{i}"] for i in range(5)])
 for colours in (forward, grey):
-    image, transmittance, last, rows, pixels = cpu_kernels.forward(*colours, *inputs["sizes"])
+    image, transmittance, listed, counts, rows, pixels = cpu_kernels.forward(*colours, *inputs["sizes"])
     recorded = np.where((rows[:, None] >> np.arange(16)) & 1 == 1, pixels, 0)  # the rest is never written
-    for array in (image, transmittance, last, rows, recorded):
+    offsets = colours[0]
+    walked = np.concatenate([listed[start : start + n] for start, n in zip(offsets[:-1], counts)])
+    for array in (image, transmittance, walked, rows, recorded):
         print(hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest())
 print(hashlib.sha256(mlp.tobytes()).hexdigest())
 """
@@ -190,7 +192,7 @@ import numpy as np
 from cubecloud_cli.raster import cpu_kernels
 inputs = np.load(sys.argv[1])
 width, height, tiles_x = inputs["sizes"]
-head, tail = [inputs[f"head_{i}"] for i in range(10)], [inputs[f"tail_{i}"] for i in range(5)]
+head, tail = [inputs[f"head_{i}"] for i in range(10)], [inputs[f"tail_{i}"] for i in range(6)]
 slot_grads, written = cpu_kernels.backward(*head, width, height, tiles_x, *tail)
 print(hashlib.sha256(np.ascontiguousarray(slot_grads[written]).tobytes()).hexdigest())
 """
@@ -202,9 +204,9 @@ def test_the_compositing_backward_compiled_in_the_process_gives_the_bits_of_one_
     offsets, entries, slots, (bounds, means2d, conics, colours, effective, levels), tiles_x = _binned_scene()
     grey = np.ascontiguousarray(colours[:, :1])  # training's case (CT), whose rows take the vector loops
     arrays = (bounds, means2d, conics, grey, effective, levels, np.zeros(1, np.float32))
-    _, transmittance, last, rows, pixels = cpu_kernels.forward(offsets, entries, *arrays, W, H, tiles_x)
+    _, transmittance, *blended = cpu_kernels.forward(offsets, entries, *arrays, W, H, tiles_x)
     grad = np.random.default_rng(0).standard_normal((W * H, 1)).astype(np.float32)
-    head, tail = (offsets, entries, slots, *arrays), (transmittance, last, rows, pixels, grad)
+    head, tail = (offsets, entries, slots, *arrays), (transmittance, *blended, grad)
     inputs = {f"head_{i}": a for i, a in enumerate(head)} | {f"tail_{i}": a for i, a in enumerate(tail)}
     runs = _fresh_then_cached(BACKWARD_FRESH_OR_CACHED, inputs | {"sizes": np.array([W, H, tiles_x])}, tmp_path)
     assert len(runs[0].split()) == 1 and runs[0] == runs[1]

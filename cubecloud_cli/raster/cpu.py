@@ -99,7 +99,7 @@ class _Composite(torch.autograd.Function):
         )
         offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
-        image, final_transmittance, last, blended_rows, blended_pixels = kernels.forward(
+        image, final_transmittance, *blended = kernels.forward(
             offsets, entries, *arrays, width, height, tiles_x
         )
         ctx.saved = (
@@ -109,9 +109,7 @@ class _Composite(torch.autograd.Function):
             owners,
             arrays,
             final_transmittance,
-            last,
-            blended_rows,
-            blended_pixels,
+            blended,
             width,
             height,
             tiles_x,
@@ -126,10 +124,10 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_coverage):
-        offsets, entries, slots, owners, arrays, final_transmittance, last, *blended, width, height, tiles_x = ctx.saved
+        offsets, entries, slots, owners, arrays, final_transmittance, blended, width, height, tiles_x = ctx.saved
         grad = _numpy(grad_image.reshape(height * width, -1)).astype(arrays[2].dtype, copy=False)
         slot_grads, written = kernels.backward(
-            offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, last, *blended, grad
+            offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, *blended, grad
         )
         dtype, device = grad_image.dtype, grad_image.device
         real = np.float64 if dtype == torch.float64 else np.float32

@@ -212,8 +212,10 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     """Gaussian-major within each tile: every entry, front to back, visits only the rows of its
     box, so the work follows the pair count rather than pixels × entries.
 
-    ``last`` is, per pixel, the entry where the backward pass starts: the entry at which the pixel
-    stopped (not blended), else the tile's end. ``blended_rows`` is, per entry, a bit per tile row
+    ``blended_entries`` lists, per tile from its offset on, the entries that blended a pixel, front
+    to back, ``blended_counts`` of them: the entries the backward walks, back to front, without a
+    branch per entry (three in four blend nothing, in no order a predictor learns). An entry is
+    listed by a store and a count, not a branch, too. ``blended_rows`` is, per entry, a bit per tile row
     where it blended a pixel (0: none), and ``blended_pixels[entry, row]`` that row's bit per
     blended column, written for the rows the entry visited and read only where the row's bit is:
     the pairs the backward undoes, exactly these.
@@ -226,7 +228,8 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     real = conics.dtype
     image = np.zeros((height * width, channels), dtype=real)
     final_transmittance = np.ones(height * width, dtype=real)
-    last = np.zeros(height * width, dtype=np.int64)
+    blended_entries = np.empty(entries.size, dtype=np.int32)
+    blended_counts = np.zeros(offsets.size - 1, dtype=np.int64)
     blended_rows = np.zeros(entries.size, dtype=np.int32)
     blended_pixels = np.empty((entries.size, TILE), dtype=np.uint16)
     for tile in prange(offsets.size - 1):
@@ -243,9 +246,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         colour = state[TILE : 2 * TILE]  # channel 0; the others, rarely used, apart
         weights = state[2 * TILE :]  # by row, as the others: row r's lie a constant distance from its T
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
-        last_entry = np.full((TILE, TILE), end)  # where the backward pass starts, per pixel
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
         alive = (right - left + 1) * (bottom - top + 1)
+        listed = start  # where the next entry that blends is listed
         for k in range(start, end):
             if alive == 0:
                 break
@@ -290,10 +293,12 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                 if stopped:  # rare: each pixel stops once
                     live_columns[r] &= ~stopped
                 while stopped:
-                    last_entry[r, trailing_zeros(stopped)] = k
                     stopped &= stopped - 1
                     alive -= 1
             blended_rows[k] = rows_blended
+            blended_entries[listed] = k  # kept only if it blended: the next entry's overwrites it
+            listed += rows_blended != 0
+        blended_counts[tile] = listed - start
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 r, i = py - top, px - left
@@ -303,8 +308,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
                 for ch in range(1, channels):
                     image[pixel, ch] = other_colours[ch, r, i] + remaining * background[ch]
                 final_transmittance[pixel] = remaining
-                last[pixel] = last_entry[r, i]
-    return image, final_transmittance, last, blended_rows, blended_pixels
+    return image, final_transmittance, blended_entries, blended_counts, blended_rows, blended_pixels
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always", error_model="numpy")
@@ -480,15 +484,17 @@ def backward(
     height,
     tiles_x,
     final_transmittance,
-    last,
+    blended_entries,
+    blended_counts,
     blended_rows,
     blended_pixels,
     grad_image,
 ):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
     colour (C), in the rows of the Gaussian-major ``slots``, summed per Gaussian afterwards; and
-    which slots were written. Entries are walked back to front, each undoing the pairs the
-    forward blended (``blended_rows``, ``blended_pixels``). An entry that blended nothing has no
+    which slots were written. The entries that blended are walked back to front
+    (``blended_entries``), each undoing the pairs the forward blended (``blended_rows``,
+    ``blended_pixels``). An entry that blended nothing has no
     gradient, and its slot row is left unwritten rather than zeroed: in a dense view most entries
     are such (three in four at 50k Gaussians, 128²), and zeroing and summing their rows cost
     more than the rows that count.
@@ -513,22 +519,19 @@ def backward(
         grad_channels = np.zeros((channels, TILE, TILE), dtype=real)
         colour_grad = np.zeros(channels, dtype=real)
         lanes = np.zeros((7, TILE), dtype=real)  # an entry's per-pixel gradient terms, by lane
-        latest = start  # the tile's largest last entry: where its backward walk begins
         for py in range(top, bottom + 1):
             for px in range(left, right + 1):
                 r, i = py - top, px - left
                 pixel = py * width + px
                 transmittance[r, i] = final_transmittance[pixel]
-                latest = max(latest, last[pixel])
                 behind[r, i] = final_transmittance[pixel] * background[0]
                 tile_grad[r, i] = grad_image[pixel, 0]
                 for ch in range(channels if channels > 1 else 0):  # RGB rows read these instead
                     behind_channels[ch, r, i] = final_transmittance[pixel] * background[ch]
                     grad_channels[ch, r, i] = grad_image[pixel, ch]
-        for k in range(latest - 1, start - 1, -1):
+        for listed in range(start + blended_counts[tile] - 1, start - 1, -1):
+            k = blended_entries[listed]
             rows = blended_rows[k]
-            if rows == 0:  # its gradients are all zero
-                continue
             g = entries[k]
             u, v, opacity = means2d[g, 0], means2d[g, 1], as_real(opacities[g], conics)
             a, b, c, colour_0 = conics[g, 0], conics[g, 1], conics[g, 2], as_real(colours[g, 0], conics)

@@ -33,7 +33,8 @@ def compile_backward_side() -> None:
     cpu_kernels.backward(
         np.zeros(1, index), empty(0, dtype=np.int32), empty(0, dtype=np.int32), empty(0, 4, dtype=index),
         empty(0, 2), empty(0, 3), empty(0, 1), empty(0), empty(0, dtype=wide), empty(1),
-        16, 16, 1, empty(0), empty(0, dtype=index), empty(0, dtype=np.int32), empty(0, 16, dtype=np.uint16),
+        16, 16, 1, empty(0), empty(0, dtype=np.int32), empty(0, dtype=index), empty(0, dtype=np.int32),
+        empty(0, 16, dtype=np.uint16),
         empty(0, 1),
     )  # fmt: skip
     cpu_projection.project_backward(
