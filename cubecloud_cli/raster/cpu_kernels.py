@@ -247,7 +247,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         weights = state[2 * TILE :]  # by row, as the others: row r's lie a constant distance from its T
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
-        alive = (right - left + 1) * (bottom - top + 1)
+        pixels = alive = (right - left + 1) * (bottom - top + 1)
         listed = start  # where the next entry that blends is listed
         for k in range(start, end):
             if alive == 0:
@@ -262,11 +262,21 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
             # Half a pixel of slack: dx steps by 1, and its rounding must not drop an edge column.
             low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
             rows_blended = 0
-            for py in range(max(top, bounds[g, 2]), min(bottom, bounds[g, 3]) + 1):
-                r = py - top
+            y_first, y_final = max(top, bounds[g, 2]) - top, min(bottom, bounds[g, 3]) - top
+            visit = ((1 << (y_final - y_first + 1)) - 1) << y_first  # the rows of its box
+            if alive < pixels:
+                # Once pixels stop, only the rows with a live pixel under it, as a bit mask taken
+                # without a branch a row (a row whose pixels have all stopped comes in no pattern
+                # a predictor learns). A row's mask changes only while that row is blended.
+                live_rows = 0
+                for r in range(TILE):
+                    live_rows |= np.int64(live_columns[r] & columns != 0) << r
+                visit &= live_rows
+            while visit:
+                r = trailing_zeros(visit)
+                visit &= visit - 1
+                py = top + r
                 live = live_columns[r] & columns
-                if live == 0:
-                    continue  # every pixel of this row under the splat has stopped
                 dy = as_real(py + 0.5 - v, conics)
                 window = narrow_window(live)
                 if levels[g] > EXP_POLYNOMIAL_LIMIT:
