@@ -263,7 +263,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
             low, high = dx0 + as_real(first - 0.5, conics), dx0 + as_real(final + 0.5, conics)
             rows_blended = 0
             y_first, y_final = max(top, bounds[g, 2]) - top, min(bottom, bounds[g, 3]) - top
-            visit = ((1 << (y_final - y_first + 1)) - 1) << y_first  # the rows of its box
+            # the rows of its box (none where the box misses the tile: never, as binned, but a
+            # shift by a negative count is undefined)
+            visit = ((1 << (y_final - y_first + 1)) - 1) << y_first if y_final >= y_first else 0
             if alive < pixels:
                 # Once pixels stop, only the rows with a live pixel under it, as a bit mask taken
                 # without a branch a row (a row whose pixels have all stopped comes in no pattern
