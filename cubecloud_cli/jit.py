@@ -162,3 +162,28 @@ negative_lanes_8 = _lane_sign_bits(8, positive=False)
 negative_lanes_16 = _lane_sign_bits(16, positive=False)
 positive_lanes_8 = _lane_sign_bits(8, positive=True)
 positive_lanes_16 = _lane_sign_bits(16, positive=True)
+
+
+@intrinsic
+def prefetch(typingctx, array, row):
+    """Ask the cache for row ``row`` of ``array`` (1D or 2D, any dtype) ahead of its use, without
+    waiting for it (LLVM's ``llvm.prefetch``: a hint that never faults, even out of bounds). The
+    compositing kernels read each entry's Gaussian at an index that follows no order the
+    hardware prefetcher sees."""
+    if not (isinstance(array, types.Array) and array.ndim in (1, 2) and isinstance(row, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array_type, row_type = signature.args
+        data = context.make_array(array_type)(context, builder, args[0])
+        strides = cgutils.unpack_tuple(builder, data.strides)
+        offset = builder.mul(context.cast(builder, args[1], row_type, types.intp), strides[0])
+        address = builder.gep(builder.bitcast(data.data, ir.IntType(8).as_pointer()), [offset])
+        int32 = ir.IntType(32)
+        hint = ir.FunctionType(ir.VoidType(), [ir.IntType(8).as_pointer(), int32, int32, int32])
+        function = cgutils.get_or_insert_function(builder.module, hint, "llvm.prefetch.p0i8")
+        # read (0), keep in all cache levels (3), data cache (1)
+        builder.call(function, [address, ir.Constant(int32, 0), ir.Constant(int32, 3), ir.Constant(int32, 1)])
+        return context.get_dummy_value()
+
+    return types.none(array, row), codegen

@@ -24,6 +24,7 @@ from cubecloud_cli.jit import (
     negative_lanes_16,
     positive_lanes_8,
     positive_lanes_16,
+    prefetch,
 )
 from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
 from cubecloud_cli.raster.constants import TILE
@@ -100,6 +101,27 @@ def test_lane_masks_read_the_signs_of_a_row(dtype, seed, row, start):
     window, whole = tile[row, start : start + 8], tile[row]
     expected = (bits(np.signbit(window)), bits(window > 0), bits(np.signbit(whole)), bits(whole > 0))
     assert _lane_masks(tile, row, start) == expected
+
+
+@njit
+def _gathered_after_prefetching(values, rows, ahead):
+    total = 0.0
+    for k in range(rows.size):
+        prefetch(values, rows[k] + ahead)
+        total += values[rows[k], 0]
+    return total
+
+
+def test_prefetch_is_a_hint_that_changes_nothing_and_never_faults():
+    """The compositing kernels prefetch the Gaussians of entries ahead; past the end of a tile's
+    list, or with any row at all, the hint must neither fault nor change a value."""
+    values = np.arange(300.0).reshape(100, 3)
+    rows = np.random.default_rng(0).integers(0, 100, 500)
+    for ahead in (0, 4, 100, 10**6, -(10**6)):
+        assert _gathered_after_prefetching(values, rows, ahead) == values[rows, 0].sum()
+    if platform.machine() in ("x86_64", "AMD64"):
+        assembly = _gathered_after_prefetching.inspect_asm(_gathered_after_prefetching.signatures[0])
+        assert "prefetcht0" in assembly
 
 
 def test_no_kernel_lets_llvm_fuse_multiply_and_add():
