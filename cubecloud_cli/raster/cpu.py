@@ -99,9 +99,7 @@ class _Composite(torch.autograd.Function):
         )
         offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
-        image, final_transmittance, *blended = kernels.forward(
-            offsets, entries, *arrays, width, height, tiles_x
-        )
+        image, final_transmittance, *blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
         ctx.saved = (
             offsets,
             entries,

@@ -14,6 +14,11 @@ arithmetic (a polynomial, then squarings), not a libm call; the polynomial, the 
 sums are fused multiply-adds, written out (``cubecloud_cli.jit.fused_multiply_add``: 0.89 of the
 forward's time and 0.87 of the backward's on the bench frame); rows whose pixels have all stopped
 are skipped by a bit mask; the backward skips entries, and rows of entries, that blended nothing.
+Which rows an entry visits, which of them blended and which entries the backward walks are bit
+masks and lists, kept by stores and counts rather than by tests: such a test follows no pattern
+a branch predictor learns, and each one it missed cost a row more than its pixels (docs/results.md).
+An entry's Gaussian is read at an index that follows no order in memory, so the Gaussian of the
+entry four ahead is prefetched while the current one blends.
 
 Backward walks each pixel's list back to front (as the reference CUDA code does), recovering the
 transmittance before each Gaussian by division by (1 − α) ≥ 0.01. Gradients go into one row per
@@ -270,7 +275,9 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         for k in range(start, end):
             if alive == 0:
                 break
-            prefetch_gaussian(entries[min(k + PREFETCH_AHEAD, end - 1)], bounds, means2d, conics, colours, opacities, levels)
+            prefetch_gaussian(
+                entries[min(k + PREFETCH_AHEAD, end - 1)], bounds, means2d, conics, colours, opacities, levels
+            )
             g = entries[k]
             cut = as_real(levels[g] + LEVEL_MARGIN, conics)
             u, v, opacity = means2d[g, 0], means2d[g, 1], as_real(opacities[g], conics)
