@@ -238,10 +238,10 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     ``blended_entries`` lists, per tile from its offset on, the entries that blended a pixel, front
     to back, ``blended_counts`` of them: the entries the backward walks, back to front, without a
     branch per entry (three in four blend nothing, in no order a predictor learns). An entry is
-    listed by a store and a count, not a branch, too. ``blended_rows`` is, per entry, a bit per tile row
-    where it blended a pixel (0: none), and ``blended_pixels[entry, row]`` that row's bit per
-    blended column, written for the rows the entry visited and read only where the row's bit is:
-    the pairs the backward undoes, exactly these.
+    listed by a store and a count, not a branch, too. ``blended_rows`` is, per entry, a bit per
+    tile row where it blended a pixel (0: none), and ``blended_pixels[entry, row]`` that row's bit
+    per blended column, written for the rows the entry visited and read only where the row's bit
+    is: the pairs the backward undoes, exactly these.
     Recomputing them there instead let a pair at the α threshold round to the other side now and
     then, the two kernels being optimised apart (docs/results.md).
 
@@ -270,7 +270,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
         weights = state[2 * TILE :]  # by row, as the others: row r's lie a constant distance from its T
         other_colours = np.zeros((channels, TILE, TILE), dtype=real)
         live_columns = np.full(TILE, (1 << TILE) - 1, dtype=np.int64)  # per row, a bit per live pixel
-        pixels = alive = (right - left + 1) * (bottom - top + 1)
+        tile_pixels = alive = (right - left + 1) * (bottom - top + 1)
         listed = start  # where the next entry that blends is listed
         for k in range(start, end):
             if alive == 0:
@@ -292,7 +292,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
             # the rows of its box (none where the box misses the tile: never, as binned, but a
             # shift by a negative count is undefined)
             visit = ((1 << (y_final - y_first + 1)) - 1) << y_first if y_final >= y_first else 0
-            if alive < pixels:
+            if alive < tile_pixels:
                 # Once pixels stop, only the rows with a live pixel under it, as a bit mask taken
                 # without a branch a row (a row whose pixels have all stopped comes in no pattern
                 # a predictor learns). A row's mask changes only while that row is blended.
@@ -532,10 +532,9 @@ def backward(
     colour (C), in the rows of the Gaussian-major ``slots``, summed per Gaussian afterwards; and
     which slots were written. The entries that blended are walked back to front
     (``blended_entries``), each undoing the pairs the forward blended (``blended_rows``,
-    ``blended_pixels``). An entry that blended nothing has no
-    gradient, and its slot row is left unwritten rather than zeroed: in a dense view most entries
-    are such (three in four at 50k Gaussians, 128²), and zeroing and summing their rows cost
-    more than the rows that count.
+    ``blended_pixels``). An entry that blended nothing has no gradient, and its slot row is left
+    unwritten rather than zeroed: in a dense view most entries are such (three in four at 50k
+    Gaussians, 128²), and zeroing and summing their rows cost more than the rows that count.
 
     One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]
