@@ -38,7 +38,7 @@ def test_parallel_kernels_convert_no_numpy_call_into_a_loop_of_its_own():
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value.targetoptions.get("parallel"):
                 parallel[f"{module.__name__}.{name}"] = value.targetoptions["parallel"]
-    assert len(parallel) == 13
+    assert len(parallel) == 11
     assert all(options is PRANGE_ONLY for options in parallel.values()), parallel
     assert PRANGE_ONLY.prange and not (PRANGE_ONLY.numpy or PRANGE_ONLY.setitem or PRANGE_ONLY.fusion)
 

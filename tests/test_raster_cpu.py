@@ -319,6 +319,64 @@ def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
     assert sorted(slots.tolist()) == list(range(entries.size))
 
 
+def brute_force_tile_lists(bounds, depths, tiles_x, tiles_y):
+    by_depth = np.argsort(depths, kind="stable")
+    lists = []
+    for tile in range(tiles_x * tiles_y):
+        left, top = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
+        lists.append(
+            [
+                g
+                for g in by_depth
+                if bounds[g, 1] >= max(bounds[g, 0], left)
+                and bounds[g, 0] <= left + TILE - 1
+                and bounds[g, 3] >= max(bounds[g, 2], top)
+                and bounds[g, 2] <= top + TILE - 1
+            ]
+        )
+    return lists
+
+
+@st.composite
+def boxes_in_an_image(draw):
+    """Boxes as splat_boxes makes them: inside a width × height image, or empty in either of its
+    two ways (culled: (0, −1, 0, −1); clamped off an edge: x0 = width or x1 = −1)."""
+    width, height = draw(st.integers(1, 70)), draw(st.integers(1, 70))
+    count = draw(st.integers(0, 40))
+    bounds = np.empty((count, 4), dtype=np.int64)
+    for g in range(count):
+        kind = draw(st.sampled_from(["box", "box", "box", "whole", "culled", "off the right", "off the top"]))
+        x0, x1 = sorted(draw(st.integers(0, width - 1)) for _ in range(2))
+        y0, y1 = sorted(draw(st.integers(0, height - 1)) for _ in range(2))
+        bounds[g] = {
+            "box": (x0, x1, y0, y1),
+            "whole": (0, width - 1, 0, height - 1),
+            "culled": (0, -1, 0, -1),
+            "off the right": (width, width - 1, y0, y1),
+            "off the top": (x0, x1, 0, -1),
+        }[kind]
+    depths = np.array([draw(st.sampled_from([0.5, 1.0, 1.0, 2.0, 7.25])) for _ in range(count)])
+    return bounds, depths, width, height
+
+
+@settings(max_examples=60, deadline=None)
+@given(boxes_in_an_image())
+@example((np.array([[0, 69, 0, 69], [0, -1, 0, -1], [70, 69, 3, 5]]), np.array([1.0, 1.0, 0.5]), 70, 70))
+def test_tile_lists_of_any_boxes_are_the_brute_force_lists(scene):
+    """Boxes over every tile, on the last row and column of an image that is not a whole number
+    of tiles, empty ones and ties in depth: each tile's list, in order, and its CSR offsets."""
+    bounds, depths, width, height = scene
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
+    lists = brute_force_tile_lists(bounds, depths, tiles_x, tiles_y)
+    assert offsets.tolist() == np.cumsum([0] + [len(tile_list) for tile_list in lists]).tolist()
+    assert [entries[offsets[t] : offsets[t + 1]].tolist() for t in range(tiles_x * tiles_y)] == lists
+    assert sorted(slots.tolist()) == list(range(entries.size))
+    # each Gaussian's slots are its rows first[r]:first[r + 1], in depth rank r
+    for rank, g in enumerate(order):
+        assert sorted(slots[entries == g].tolist()) == list(range(first[rank], first[rank + 1]))
+
+
 def test_the_backend_follows_the_device(monkeypatch):
     assert rasterizer_for(torch.device("cpu")) is NUMBA
     monkeypatch.setattr("cubecloud_cli.raster.backends.gsplat_available", lambda: False)

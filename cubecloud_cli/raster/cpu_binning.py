@@ -15,12 +15,16 @@ import numpy as np
 from numba import njit, prange
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
-from cubecloud_cli.jit import PRANGE_ONLY, fused_multiply_add
+from cubecloud_cli.jit import PRANGE_ONLY, fused_multiply_add, prefetch
 from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
 # A radix sort pass sorts on up to this many bits: its 4096 counts (int32) stay in the L1 cache,
 # and the 23 bits in which float32 depths differ take two passes rather than three of 11 bits.
 RADIX_BITS = 12
+
+# How many ranks ahead bin_tiles asks for a Gaussian's tile span: about the memory latency over
+# one Gaussian's scatter.
+SPANS_AHEAD = 16
 
 
 @njit(cache=True)
@@ -176,7 +180,7 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
     return bounds, levels
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(cache=True)
 def _tile_spans(bounds, tiles_x):
     """Per Gaussian: the first tile its box touches (row-major index), how many tile columns it
     spans, and how many tiles in all (0 for an empty box)."""
@@ -184,30 +188,43 @@ def _tile_spans(bounds, tiles_x):
     corner = np.empty(count, dtype=np.int64)
     columns = np.empty(count, dtype=np.int64)
     tiles = np.empty(count, dtype=np.int64)
-    for g in prange(count):
+    for g in range(count):
         x0, x1 = bounds[g, 0] >> TILE_SHIFT, bounds[g, 1] >> TILE_SHIFT
         y0, y1 = bounds[g, 2] >> TILE_SHIFT, bounds[g, 3] >> TILE_SHIFT
-        empty = bounds[g, 1] < bounds[g, 0] or bounds[g, 3] < bounds[g, 2]
+        empty = (bounds[g, 1] < bounds[g, 0]) | (bounds[g, 3] < bounds[g, 2])
         corner[g] = y0 * tiles_x + x0
         columns[g] = x1 - x0 + 1
         tiles[g] = 0 if empty else (x1 - x0 + 1) * (y1 - y0 + 1)
     return corner, columns, tiles
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
-def _entry_tiles(order, corner, columns, first, tiles_x, tile_of_entry, gaussian_of_entry):
-    """Each Gaussian's entries, row by row of its tiles: one loop with the wrap to the next tile
-    row as a select (two nested loops of one or two trips each are a branch miss apiece)."""
-    for rank in prange(order.size):
-        g = order[rank]
-        position, width = first[rank], columns[g]
-        row_start, column = corner[g], 0
-        for e in range(position, first[rank + 1]):
-            tile_of_entry[e] = row_start + column
-            gaussian_of_entry[e] = g
-            wrap = column + 1 == width
-            column = 0 if wrap else column + 1
-            row_start = row_start + tiles_x if wrap else row_start
+@njit(cache=True)
+def _tile_offsets(bounds, tiles_x, tiles_y):
+    """CSR offsets of the per-tile lists: how many non-empty boxes touch each tile (row-major),
+    counted without a loop over each box's tiles. A box adds one over a rectangle of tiles,
+    which is four updates of a difference array whose 2D prefix sum is the counts."""
+    difference = np.zeros((tiles_y + 1, tiles_x + 1), dtype=np.int64)
+    for g in range(bounds.shape[0]):
+        step = np.int64((bounds[g, 1] >= bounds[g, 0]) & (bounds[g, 3] >= bounds[g, 2]))
+        # an empty box adds zero, at corners clamped into the array
+        x0 = max(bounds[g, 0] >> TILE_SHIFT, 0)
+        x1 = max((bounds[g, 1] >> TILE_SHIFT) + 1, 0)
+        y0 = max(bounds[g, 2] >> TILE_SHIFT, 0)
+        y1 = max((bounds[g, 3] >> TILE_SHIFT) + 1, 0)
+        difference[y0, x0] += step
+        difference[y0, x1] -= step
+        difference[y1, x0] -= step
+        difference[y1, x1] += step
+    offsets = np.empty(tiles_x * tiles_y + 1, dtype=np.int64)
+    offsets[0] = 0
+    column_sums = np.zeros(tiles_x, dtype=np.int64)  # each column's prefix over the rows so far
+    for ty in range(tiles_y):
+        running = 0
+        for tx in range(tiles_x):
+            running += difference[ty, tx]
+            column_sums[tx] += running
+            offsets[ty * tiles_x + tx + 1] = offsets[ty * tiles_x + tx] + column_sums[tx]
+    return offsets
 
 
 @njit(cache=True)
@@ -215,7 +232,10 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     """Per-tile lists of the Gaussians with a non-empty box, front to back (CSR: offsets, entries),
     ties in depth kept in index order. Also a Gaussian-major numbering of the same entries, for
     gradients: ``slots[k]`` is entry k's row there, and the Gaussian of depth rank r (``order[r]``)
-    owns rows ``first[r]:first[r + 1]``, so its gradients are summed from contiguous memory."""
+    owns rows ``first[r]:first[r + 1]``, so its gradients are summed from contiguous memory.
+
+    Serial: on two threads, each of these passes measured slower than on one, the second
+    thread's wake and cold caches costing more than half of a pass (docs/results.md)."""
     count = bounds.shape[0]
     corner, columns, tiles = _tile_spans(bounds, tiles_x)
     nonempty = np.empty(count, dtype=np.int64)
@@ -224,31 +244,38 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
         nonempty[kept] = g
         kept += tiles[g] > 0
     order = stable_depth_order(nonempty[:kept], depths)
-    # Entries in depth order (each Gaussian's tiles together), then a stable counting sort by
-    # tile: every tile's list stays front to back.
-    first = np.empty(kept + 1, dtype=np.int64)
-    first[0] = 0
-    for rank in range(kept):
-        first[rank + 1] = first[rank] + tiles[order[rank]]
-    total = first[kept]
-    # int32 entries: half the memory the counting sort and the kernels move (a frame holds far
-    # fewer than 2³¹ entries: 111k at 50k Gaussians and 128²)
-    tile_of_entry = np.empty(total, dtype=np.int32)
-    gaussian_of_entry = np.empty(total, dtype=np.int32)
-    _entry_tiles(order, corner, columns, first, tiles_x, tile_of_entry, gaussian_of_entry)
-    offsets = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
-    for e in range(total):
-        offsets[tile_of_entry[e] + 1] += 1
-    for t in range(tiles_x * tiles_y):
-        offsets[t + 1] += offsets[t]
+    offsets = _tile_offsets(bounds, tiles_x, tiles_y)
+    # Gaussians front to back, each one's tiles row by row, straight into their tiles' lists:
+    # every list comes out front to back. The wrap to the next tile row is a select (two
+    # nested loops of one or two trips each are a branch miss apiece).
     fill = offsets[:-1].copy()
+    total = offsets[-1]
+    # int32 entries: half the memory the kernels move (a frame holds far fewer than 2³¹
+    # entries: 111k at 50k Gaussians and 128²)
     entries = np.empty(total, dtype=np.int32)
     slots = np.empty(total, dtype=np.int32)
-    for e in range(total):
-        tile = tile_of_entry[e]
-        entries[fill[tile]] = gaussian_of_entry[e]
-        slots[fill[tile]] = e
-        fill[tile] += 1
+    first = np.empty(kept + 1, dtype=np.int64)
+    first[0] = 0
+    slot = 0
+    for rank in range(kept):
+        g = order[rank]
+        # the spans are read in depth order, which the hardware prefetcher cannot follow
+        ahead = order[min(rank + SPANS_AHEAD, kept - 1)]
+        prefetch(tiles, ahead)
+        prefetch(columns, ahead)
+        prefetch(corner, ahead)
+        width, row_start, column = columns[g], corner[g], 0
+        for _ in range(tiles[g]):
+            tile = row_start + column
+            at = fill[tile]
+            entries[at] = g
+            slots[at] = slot
+            fill[tile] = at + 1
+            slot += 1
+            wrap = column + 1 == width
+            column = 0 if wrap else column + 1
+            row_start = row_start + tiles_x if wrap else row_start
+        first[rank + 1] = slot
     return offsets, entries, slots, order, first
 
 
