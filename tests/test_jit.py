@@ -195,8 +195,8 @@ def _binned_scene():
     )
     effective = _numpy(projected.effective_opacities(opacities))
     means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
-    bounds, levels, order = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, _numpy(projected.depths), W, H)  # fmt: skip
-    offsets, entries, slots, _ = cpu_binning.bin_tiles(bounds, order, tiles_x, -(-H // TILE))
+    bounds, levels, order, spans, tile_counts = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, _numpy(projected.depths), W, H)  # fmt: skip
+    offsets, entries, slots, _ = cpu_binning.bin_tiles(order, spans, tile_counts, tiles_x, -(-H // TILE))
     per_gaussian = (bounds, means2d, _numpy(projected.conics), _numpy(colours), effective, levels)
     return offsets, entries, slots, per_gaussian, tiles_x
 

@@ -16,7 +16,7 @@ from numba import njit, prange
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from cubecloud_cli.jit import PRANGE_ONLY, fetch_add, fused_multiply_add, prefetch
-from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
+from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE, TILE_SHIFT
 
 # A radix sort pass sorts on up to this many bits: its 4096 counts (int32) stay in the L1 cache,
 # and the 23 bits in which float32 depths differ take two passes rather than three of 11 bits.
@@ -197,6 +197,9 @@ def splat_boxes(means2d, covariances2d, radii, opacities, depths, width, height)
     order = np.empty(count, dtype=np.int64)
     pieces = -(-count // BOX_PIECE)
     next_piece = np.zeros(1, dtype=np.int64)
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    spans = np.empty((3, count), dtype=np.int64)
+    differences = np.zeros((pieces, tiles_y + 1, tiles_x + 1), dtype=np.int64)
     # One task more than there are pieces, whatever the thread count (numba's get_num_threads
     # would keep the kernel from its cache): the first sorts, and each takes pieces until none
     # is left, so a thread's later tasks find the pieces gone.
@@ -205,61 +208,67 @@ def splat_boxes(means2d, covariances2d, radii, opacities, depths, width, height)
             order[:] = stable_depth_order(np.arange(count), depths)
         piece = fetch_add(next_piece, 0, 1)
         while piece < pieces:
-            start = piece * BOX_PIECE
-            _boxes(means2d, covariances2d, radii, opacities, levels, width, height, start, min(count, start + BOX_PIECE), bounds)  # fmt: skip
+            start, stop = piece * BOX_PIECE, min(count, (piece + 1) * BOX_PIECE)
+            _boxes(means2d, covariances2d, radii, opacities, levels, width, height, start, stop, bounds)
+            _tile_spans(bounds, tiles_x, start, stop, spans, differences[piece])
             piece = fetch_add(next_piece, 0, 1)
-    return bounds, levels, order
+    return bounds, levels, order, spans, differences
 
 
 @njit(cache=True)
-def _tile_spans(bounds, tiles_x, tiles_y):
-    """Per Gaussian: the first tile its box touches (row-major index), how many tile columns it
-    spans, and how many tiles in all (0 for an empty box); and the CSR offsets of the per-tile
-    lists. One pass over the boxes. The
-    offsets come without a loop over each box's tiles: a box adds one over a rectangle of
-    tiles, four updates of a difference array whose 2D prefix sum is the counts."""
-    count = bounds.shape[0]
-    corner = np.empty(count, dtype=np.int64)
-    columns = np.empty(count, dtype=np.int64)
-    tiles = np.empty(count, dtype=np.int64)
-    difference = np.zeros((tiles_y + 1, tiles_x + 1), dtype=np.int64)
-    for g in range(count):
+def _tile_spans(bounds, tiles_x, start, stop, spans, difference):
+    """For the Gaussians ``start:stop``: the first tile each box touches (row-major index), how
+    many tile columns it spans and how many tiles in all (0 for an empty box), as ``spans``'
+    three rows; and their counts per tile, as a difference array (tiles_y + 1, tiles_x + 1)
+    whose 2D prefix sum is the counts: a box adds one over a rectangle of tiles, four updates
+    and no loop over its tiles."""
+    for g in range(start, stop):
         x0, x1 = bounds[g, 0] >> TILE_SHIFT, bounds[g, 1] >> TILE_SHIFT
         y0, y1 = bounds[g, 2] >> TILE_SHIFT, bounds[g, 3] >> TILE_SHIFT
         filled = (bounds[g, 1] >= bounds[g, 0]) & (bounds[g, 3] >= bounds[g, 2])
-        corner[g] = y0 * tiles_x + x0
-        columns[g] = x1 - x0 + 1
-        tiles[g] = (x1 - x0 + 1) * (y1 - y0 + 1) if filled else 0
+        spans[0, g] = y0 * tiles_x + x0
+        spans[1, g] = x1 - x0 + 1
+        spans[2, g] = (x1 - x0 + 1) * (y1 - y0 + 1) if filled else 0
+    for g in range(start, stop):
+        x0, x1 = bounds[g, 0] >> TILE_SHIFT, bounds[g, 1] >> TILE_SHIFT
+        y0, y1 = bounds[g, 2] >> TILE_SHIFT, bounds[g, 3] >> TILE_SHIFT
         # an empty box adds zero, at corners clamped into the array
-        step = np.int64(filled)
+        step = np.int64((bounds[g, 1] >= bounds[g, 0]) & (bounds[g, 3] >= bounds[g, 2]))
         x0, x1, y0, y1 = max(x0, 0), max(x1 + 1, 0), max(y0, 0), max(y1 + 1, 0)
         difference[y0, x0] += step
         difference[y0, x1] -= step
         difference[y1, x0] -= step
         difference[y1, x1] += step
+
+
+@njit(cache=True)
+def _tile_offsets(differences, tiles_x, tiles_y):
+    """The CSR offsets of the per-tile lists, from the pieces' difference arrays."""
     offsets = np.empty(tiles_x * tiles_y + 1, dtype=np.int64)
     offsets[0] = 0
     column_sums = np.zeros(tiles_x, dtype=np.int64)  # each column's prefix over the rows so far
     for ty in range(tiles_y):
         running = 0
         for tx in range(tiles_x):
-            running += difference[ty, tx]
+            for piece in range(differences.shape[0]):
+                running += differences[piece, ty, tx]
             column_sums[tx] += running
             offsets[ty * tiles_x + tx + 1] = offsets[ty * tiles_x + tx] + column_sums[tx]
-    return corner, columns, tiles, offsets
+    return offsets
 
 
 @njit(cache=True)
-def bin_tiles(bounds, order, tiles_x, tiles_y):
+def bin_tiles(order, spans, differences, tiles_x, tiles_y):
     """Per-tile lists of the Gaussians with a non-empty box, in ``order`` (front to back: CSR,
-    offsets and entries). Also a Gaussian-major numbering of the same entries, for gradients:
+    offsets and entries), from ``splat_boxes``' tile spans and counts. Also a Gaussian-major numbering of the same entries, for gradients:
     ``slots[k]`` is entry k's row there, and the Gaussian of rank r (``order[r]``) owns rows
     ``first[r]:first[r + 1]`` (none for an empty box), so its gradients are summed from
     contiguous memory.
 
     Serial: on two threads, each of these passes measured slower than on one, the second
     thread's wake and cold caches costing more than half of a pass (docs/results.md)."""
-    corner, columns, tiles, offsets = _tile_spans(bounds, tiles_x, tiles_y)
+    corner, columns, tiles = spans[0], spans[1], spans[2]
+    offsets = _tile_offsets(differences, tiles_x, tiles_y)
     ranked = order.size
     # Gaussians front to back, each one's tiles row by row, straight into their tiles' lists:
     # every list comes out front to back. The wrap to the next tile row is a select (two
