@@ -191,9 +191,6 @@ def splat_boxes(means2d, covariances2d, radii, opacities, depths, width, height)
     count = means2d.shape[0]
     bounds = np.empty((count, 4), dtype=np.int64)
     levels = np.empty(count)
-    # The log in a loop of its own, where it runs as SIMD (natural_log)
-    for i in prange(count):
-        levels[i] = alpha_level(opacities[i])
     order = np.empty(count, dtype=np.int64)
     pieces = -(-count // BOX_PIECE)
     next_piece = np.zeros(1, dtype=np.int64)
@@ -209,6 +206,8 @@ def splat_boxes(means2d, covariances2d, radii, opacities, depths, width, height)
         piece = fetch_add(next_piece, 0, 1)
         while piece < pieces:
             start, stop = piece * BOX_PIECE, min(count, (piece + 1) * BOX_PIECE)
+            for i in range(start, stop):  # the log in a loop of its own, where it runs as SIMD (natural_log)
+                levels[i] = alpha_level(opacities[i])
             _boxes(means2d, covariances2d, radii, opacities, levels, width, height, start, stop, bounds)
             _tile_spans(bounds, tiles_x, start, stop, spans, differences[piece])
             piece = fetch_add(next_piece, 0, 1)
