@@ -1,11 +1,12 @@
 """Which Gaussians touch which 16×16 tile, front to back: the setup of the CPU kernels.
 
-:func:`tile_lists` does in one compiled pass what :func:`cubecloud_cli.raster.pairs.pixel_bounds`
-and a sort do for the oracle: each splat's pixel box (its 3σ square shrunk to where α ≥ 1/255),
-a stable depth order, and per-tile lists in that order (CSR). The per-Gaussian parts run in
-parallel; the serial parts are linear and branch-light (a radix sort and a counting sort), which
-matters because at 50k Gaussians this setup otherwise costs as much as a quarter of a frame.
-"""
+Two compiled calls do what :func:`cubecloud_cli.raster.pairs.pixel_bounds` and a sort do for the
+oracle. :func:`splat_boxes` computes each splat's pixel box (its 3σ square shrunk to where
+α ≥ 1/255), the tiles it spans and the count of boxes per tile, in pieces that the threads take
+in turn, while one of them sorts the depths (a stable radix sort: it needs nothing else).
+:func:`bin_tiles` then writes each Gaussian's entries, front to back, straight into its tiles'
+lists (CSR), on one thread. Every part is linear and branch-light, which matters because at 50k
+Gaussians this setup once cost a quarter of a frame."""
 
 from __future__ import annotations
 
