@@ -75,8 +75,8 @@ def useful_pairs(projected, opacities, width, height) -> int:
 # what the split calls them.
 FRAME_PARTS = (
     ("cpu_projection", "project_forward", "projection forward"),
-    ("binning", "splat_boxes", "splat boxes and depth sort"),
-    ("binning", "bin_tiles", "tile lists"),
+    ("binning", "splat_boxes", "splat boxes"),
+    ("binning", "bin_tiles", "binning"),
     ("kernels", "forward", "compositing forward"),
     ("kernels", "backward", "compositing backward"),
     ("binning", "sum_per_gaussian", "per-Gaussian sums"),

@@ -187,30 +187,3 @@ def prefetch(typingctx, array, row):
         return context.get_dummy_value()
 
     return types.none(array, row), codegen
-
-
-@intrinsic
-def fetch_add(typingctx, array, index, value):
-    """Add ``value`` to ``array[index]`` (a 1D int64 array) as one atomic step, and return what
-    it held before: threads that share work take the next piece of it with no lock (LLVM's
-    ``atomicrmw add``, sequentially consistent). No bounds check, as numba's indexing."""
-    if not (
-        isinstance(array, types.Array)
-        and array.ndim == 1
-        and array.dtype == types.int64
-        and isinstance(index, types.Integer)
-        and isinstance(value, types.Integer)
-    ):
-        return None
-
-    def codegen(context, builder, signature, args):
-        array_type, index_type, value_type = signature.args
-        data = context.make_array(array_type)(context, builder, args[0])
-        stride = cgutils.unpack_tuple(builder, data.strides)[0]
-        offset = builder.mul(context.cast(builder, args[1], index_type, types.intp), stride)
-        address = builder.gep(builder.bitcast(data.data, ir.IntType(8).as_pointer()), [offset])
-        pointer = builder.bitcast(address, ir.IntType(64).as_pointer())
-        addend = context.cast(builder, args[2], value_type, types.int64)
-        return builder.atomic_rmw("add", pointer, addend, "seq_cst")
-
-    return types.int64(array, index, value), codegen

@@ -11,7 +11,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from numba import njit, prange
+from numba import njit
 from numba.core.registry import CPUDispatcher
 from test_raster import H, W, camera, scene
 
@@ -20,7 +20,6 @@ from cubecloud_cli.jit import (
     EXACT_FASTMATH,
     FASTMATH,
     PRANGE_ONLY,
-    fetch_add,
     negative_lanes_8,
     negative_lanes_16,
     positive_lanes_8,
@@ -125,31 +124,6 @@ def test_prefetch_is_a_hint_that_changes_nothing_and_never_faults():
         assert "prefetcht0" in assembly
 
 
-@njit(parallel=PRANGE_ONLY)
-def _pieces_taken(pieces, tasks, counter):
-    """How often each of ``pieces`` was taken by ``tasks`` tasks that each take pieces from
-    ``counter`` until none is left, as splat_boxes shares its boxes."""
-    taken = np.zeros(pieces, dtype=np.int64)
-    for _ in prange(tasks):
-        piece = fetch_add(counter, 0, 1)
-        while piece < pieces:
-            taken[piece] += 1
-            piece = fetch_add(counter, 0, 1)
-    return taken
-
-
-@pytest.mark.parametrize("pieces, tasks", [(0, 1), (1, 1), (5, 64), (100_000, 2), (100_000, 7)])
-def test_fetch_add_hands_each_piece_to_exactly_one_thread(pieces, tasks):
-    """Two threads (CI's cores) race for every piece: each is taken once, none is lost, and the
-    counter ends one past the pieces for each task that found none left."""
-    counter = np.zeros(1, dtype=np.int64)
-    taken = _pieces_taken(pieces, tasks, counter)
-    assert (taken == 1).all()
-    assert counter[0] == pieces + tasks
-    values = np.array([7, 40], dtype=np.int64)
-    assert njit(lambda array: fetch_add(array, 1, -3))(values) == 40 and values.tolist() == [7, 37]
-
-
 def test_no_kernel_lets_llvm_fuse_multiply_and_add():
     """``contract`` (FMA) rounded the copy of a prange loop that a kernel compiled in the process
     runs otherwise than the copy a kernel loaded from the cache runs (cubecloud_cli/jit.py)."""
@@ -195,8 +169,8 @@ def _binned_scene():
     )
     effective = _numpy(projected.effective_opacities(opacities))
     means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
-    bounds, levels, order, spans, tile_counts = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, _numpy(projected.depths), W, H)  # fmt: skip
-    offsets, entries, slots, _ = cpu_binning.bin_tiles(order, spans, tile_counts, tiles_x, -(-H // TILE))
+    bounds, levels = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
+    offsets, entries, slots, *_ = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
     per_gaussian = (bounds, means2d, _numpy(projected.conics), _numpy(colours), effective, levels)
     return offsets, entries, slots, per_gaussian, tiles_x
 

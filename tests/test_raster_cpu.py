@@ -22,15 +22,7 @@ from cubecloud_cli.raster import project
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available, gsplat_inputs, rasterizer_for
 from cubecloud_cli.raster.constants import TILE
 from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
-from cubecloud_cli.raster.cpu_binning import (
-    _tile_spans,
-    alpha_level,
-    bin_tiles,
-    natural_log,
-    splat_boxes,
-    stable_depth_order,
-    sum_per_gaussian,
-)
+from cubecloud_cli.raster.cpu_binning import alpha_level, bin_tiles, natural_log, splat_boxes, sum_per_gaussian
 from cubecloud_cli.raster.cpu_kernels import (
     NARROW,
     blend_row,
@@ -279,23 +271,17 @@ def projected_scene(count=300, seed=3):
     return project(means, scales, quaternions, rotation, translation, float(CAMERAS.focal), W, H), opacities
 
 
-def test_splat_boxes_are_the_oracles_pixel_bounds_and_the_order_a_stable_sort_by_depth():
+def test_splat_boxes_are_the_oracles_pixel_bounds():
     projected, opacities = projected_scene()
-    depths = projected.depths.detach().numpy().copy()
-    depths[10:20] = depths[10]  # ties keep index order
-    depths[3] = -0.0  # the same depth as +0.0
-    depths[5] = 0.0
-    bounds, levels, order, *_ = splat_boxes(
+    bounds, levels = splat_boxes(
         projected.means2d.detach().numpy(),
         projected.covariances2d.detach().numpy(),
         projected.radii.numpy(),
         opacities.numpy(),
-        depths,
         W,
         H,
     )
     np.testing.assert_array_equal(bounds, pixel_bounds(projected, W, H, opacities).numpy())
-    np.testing.assert_array_equal(order, np.argsort(depths, kind="stable"))
     np.testing.assert_allclose(levels, np.log(np.maximum(255 * opacities.numpy(), 1e-30)).clip(min=0))
 
 
@@ -305,10 +291,8 @@ def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
     depths = projected.depths.detach().numpy().copy()
     depths[10:20] = depths[10]  # ties keep index order
     tiles_x, tiles_y = -(-W // TILE), -(-H // TILE)
+    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
     by_depth = np.argsort(depths, kind="stable")
-    order = stable_depth_order(np.arange(depths.size), depths)
-    np.testing.assert_array_equal(order, by_depth)
-    offsets, entries, slots, first = bin_tiles(order, *spans_in_pieces(bounds, tiles_x, tiles_y, 128), tiles_x, tiles_y)
     for tile in range(tiles_x * tiles_y):
         left, top = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
         touches = [
@@ -375,30 +359,15 @@ def boxes_in_an_image(draw):
     return bounds, depths, width, height
 
 
-def spans_in_pieces(bounds, tiles_x, tiles_y, piece):
-    """The tile spans and per-piece counts that splat_boxes hands bin_tiles, in pieces of
-    ``piece`` Gaussians (splat_boxes' own are larger than these tests' scenes)."""
-    count = bounds.shape[0]
-    pieces = -(-count // piece)
-    spans = np.empty((3, count), dtype=np.int64)
-    differences = np.zeros((pieces, tiles_y + 1, tiles_x + 1), dtype=np.int64)
-    for k in range(pieces):
-        _tile_spans(bounds, tiles_x, k * piece, min(count, (k + 1) * piece), spans, differences[k])
-    return spans, differences
-
-
 @settings(max_examples=60, deadline=None)
-@given(boxes_in_an_image(), st.integers(1, 50))
-@example((np.array([[0, 69, 0, 69], [0, -1, 0, -1], [70, 69, 3, 5]]), np.array([1.0, 1.0, 0.5]), 70, 70), 2)
-def test_tile_lists_of_any_boxes_are_the_brute_force_lists(scene, piece):
+@given(boxes_in_an_image())
+@example((np.array([[0, 69, 0, 69], [0, -1, 0, -1], [70, 69, 3, 5]]), np.array([1.0, 1.0, 0.5]), 70, 70))
+def test_tile_lists_of_any_boxes_are_the_brute_force_lists(scene):
     """Boxes over every tile, on the last row and column of an image that is not a whole number
-    of tiles, empty ones and ties in depth, counted in pieces: each tile's list, in order, and
-    its CSR offsets."""
+    of tiles, empty ones and ties in depth: each tile's list, in order, and its CSR offsets."""
     bounds, depths, width, height = scene
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    order = stable_depth_order(np.arange(depths.size), depths)
-    spans, differences = spans_in_pieces(bounds, tiles_x, tiles_y, piece)
-    offsets, entries, slots, first = bin_tiles(order, spans, differences, tiles_x, tiles_y)
+    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
     lists = brute_force_tile_lists(bounds, depths, tiles_x, tiles_y)
     assert offsets.tolist() == np.cumsum([0] + [len(tile_list) for tile_list in lists]).tolist()
     assert [entries[offsets[t] : offsets[t + 1]].tolist() for t in range(tiles_x * tiles_y)] == lists
@@ -559,12 +528,11 @@ def test_opacities_outside_the_contract_match_the_oracle_or_are_culled():
     opacities = torch.full((40,), 0.5, dtype=torch.float64)
     opacities[3], opacities[4] = float("nan"), float("inf")
     projected = project(means, scales, quaternions, *args)
-    bounds, *_ = splat_boxes(
+    bounds, _ = splat_boxes(
         projected.means2d.detach().numpy(),
         projected.covariances2d.detach().numpy(),
         projected.radii.numpy(),
         opacities.numpy(),
-        projected.depths.detach().numpy(),
         W,
         H,
     )

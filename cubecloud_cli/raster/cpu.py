@@ -94,11 +94,10 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height):
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
         means2d_np, opacities_np = _numpy(means2d), _numpy(opacities)
-        bounds, levels, order, spans, tile_counts = binning.splat_boxes(
-            means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np, _numpy(depths), width, height
+        bounds, levels = binning.splat_boxes(
+            means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np, width, height
         )
-        offsets, entries, slots, first = binning.bin_tiles(order, spans, tile_counts, tiles_x, tiles_y)
-        owners = (order, first)
+        offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
         image, final_transmittance, *blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
         ctx.saved = (

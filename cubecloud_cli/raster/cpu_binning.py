@@ -1,12 +1,12 @@
 """Which Gaussians touch which 16×16 tile, front to back: the setup of the CPU kernels.
 
 Two compiled calls do what :func:`cubecloud_cli.raster.pairs.pixel_bounds` and a sort do for the
-oracle. :func:`splat_boxes` computes each splat's pixel box (its 3σ square shrunk to where
-α ≥ 1/255), the tiles it spans and the count of boxes per tile, in pieces that the threads take
-in turn, while one of them sorts the depths (a stable radix sort: it needs nothing else).
-:func:`bin_tiles` then writes each Gaussian's entries, front to back, straight into its tiles'
-lists (CSR), on one thread. Every part is linear and branch-light, which matters because at 50k
-Gaussians this setup once cost a quarter of a frame."""
+oracle. :func:`splat_boxes`, in parallel, computes each splat's pixel box (its 3σ square shrunk
+to where α ≥ 1/255). :func:`bin_tiles`, on one thread, reads the boxes once for the tiles each
+spans and the count of boxes per tile, sorts the Gaussians with a box by depth (a stable radix
+sort), and writes each one's entries, front to back, straight into its tiles' lists (CSR). Every
+part is linear and branch-light, which matters because at 50k Gaussians this setup once cost a
+quarter of a frame."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ import numpy as np
 from numba import njit, prange
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
-from cubecloud_cli.jit import PRANGE_ONLY, fetch_add, fused_multiply_add, prefetch
-from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE, TILE_SHIFT
+from cubecloud_cli.jit import PRANGE_ONLY, fused_multiply_add, prefetch
+from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
 # A radix sort pass sorts on up to this many bits: its 4096 counts (int32) stay in the L1 cache,
 # and the 23 bits in which float32 depths differ take two passes rather than three of 11 bits.
@@ -26,10 +26,6 @@ RADIX_BITS = 12
 # How many ranks ahead bin_tiles asks for a Gaussian's tile span: about the memory latency over
 # one Gaussian's scatter.
 SPANS_AHEAD = 16
-
-# Gaussians per piece of splat_boxes' box loop that a thread takes at a time: a few microseconds
-# of work, and 50 pieces at 50k Gaussians.
-BOX_PIECE = 1024
 
 
 @njit(cache=True)
@@ -151,13 +147,26 @@ def alpha_level(opacity):
     return level if level > 0.0 else 0.0
 
 
-# error_model="numpy": a division that checks for zero (Python's model) is a branch that keeps
-# its loop scalar.
-@njit(cache=True, error_model="numpy")
-def _boxes(means2d, covariances2d, radii, opacities, levels, width, height, start, stop, bounds):
-    """``splat_boxes``'s boxes of the Gaussians ``start:stop``, into ``bounds``. No branch: a
-    culled box is a select, where a culled Gaussian, in no order a predictor learns, would miss."""
-    for i in range(start, stop):
+# error_model="numpy": natural_log divides by 2 + f ≥ 1.7, and a division that checks for zero
+# (Python's model) is a branch that keeps its loop scalar.
+@njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy")
+def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
+    """Per Gaussian: the inclusive pixel box (x0, x1, y0, y1) as ``pixel_bounds`` with opacities
+    computes it (empty, (0, −1, 0, −1), where culled), and the power level ln(255·o) ≥ 0 below
+    which α ≥ 1/255. Opacities are in [0, 1]; a NaN or infinite one culls its Gaussian.
+
+    The arithmetic is float64. ``pixel_bounds`` on float32 tensors rounds in float32, so where
+    u ± r − ½ lands within float32 rounding of an integer, a box edge can differ by one pixel:
+    the box here is the exact one, and the forward and backward kernels use the same."""
+    count = means2d.shape[0]
+    bounds = np.empty((count, 4), dtype=np.int64)
+    levels = np.empty(count)
+    # Two loops: the log alone in the first, where it runs as SIMD (natural_log); the box loop
+    # after it has no branch (a culled box is a select), which a culled Gaussian in no order a
+    # predictor learns would miss.
+    for i in prange(count):
+        levels[i] = alpha_level(opacities[i])
+    for i in prange(count):
         level, u, v, radius = levels[i], means2d[i, 0], means2d[i, 1], np.float64(radii[i])
         half_x = min(radius, math.sqrt(2.0 * level * covariances2d[i, 0]))
         half_y = min(radius, math.sqrt(2.0 * level * covariances2d[i, 2]))
@@ -172,104 +181,63 @@ def _boxes(means2d, covariances2d, radii, opacities, levels, width, height, star
         bounds[i, 1] = np.int64(x1 if kept else -1.0)
         bounds[i, 2] = np.int64(y0 if kept else 0.0)
         bounds[i, 3] = np.int64(y1 if kept else -1.0)
-
-
-@njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy")
-def splat_boxes(means2d, covariances2d, radii, opacities, depths, width, height):
-    """Per Gaussian: the inclusive pixel box (x0, x1, y0, y1) as ``pixel_bounds`` with opacities
-    computes it (empty, (0, −1, 0, −1), where culled), and the power level ln(255·o) ≥ 0 below
-    which α ≥ 1/255; and every Gaussian's index in depth order, ties in index order (culled
-    ones too: they have no tile). Opacities are in [0, 1]; a NaN or infinite one culls its
-    Gaussian.
-
-    The sort is serial, and needs only the depths: one thread sorts while the others compute
-    boxes, then joins them. The threads take the boxes in pieces of ``BOX_PIECE`` from a shared
-    counter, so that the work evens out whatever a sort costs against a box on the machine.
-
-    The arithmetic is float64. ``pixel_bounds`` on float32 tensors rounds in float32, so where
-    u ± r − ½ lands within float32 rounding of an integer, a box edge can differ by one pixel:
-    the box here is the exact one, and the forward and backward kernels use the same."""
-    count = means2d.shape[0]
-    bounds = np.empty((count, 4), dtype=np.int64)
-    levels = np.empty(count)
-    order = np.empty(count, dtype=np.int64)
-    pieces = -(-count // BOX_PIECE)
-    next_piece = np.zeros(1, dtype=np.int64)
-    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    spans = np.empty((3, count), dtype=np.int64)
-    differences = np.zeros((pieces, tiles_y + 1, tiles_x + 1), dtype=np.int64)
-    # One task more than there are pieces, whatever the thread count (numba's get_num_threads
-    # would keep the kernel from its cache): the first sorts, and each takes pieces until none
-    # is left, so a thread's later tasks find the pieces gone.
-    for task in prange(pieces + 1):
-        if task == 0:
-            order[:] = stable_depth_order(np.arange(count), depths)
-        piece = fetch_add(next_piece, 0, 1)
-        while piece < pieces:
-            start, stop = piece * BOX_PIECE, min(count, (piece + 1) * BOX_PIECE)
-            for i in range(start, stop):  # the log in a loop of its own, where it runs as SIMD (natural_log)
-                levels[i] = alpha_level(opacities[i])
-            _boxes(means2d, covariances2d, radii, opacities, levels, width, height, start, stop, bounds)
-            _tile_spans(bounds, tiles_x, start, stop, spans, differences[piece])
-            piece = fetch_add(next_piece, 0, 1)
-    return bounds, levels, order, spans, differences
+    return bounds, levels
 
 
 @njit(cache=True)
-def _tile_spans(bounds, tiles_x, start, stop, spans, difference):
-    """For the Gaussians ``start:stop``: the first tile each box touches (row-major index), how
-    many tile columns it spans and how many tiles in all (0 for an empty box), as ``spans``'
-    three rows; and their counts per tile, as a difference array (tiles_y + 1, tiles_x + 1)
-    whose 2D prefix sum is the counts: a box adds one over a rectangle of tiles, four updates
-    and no loop over its tiles."""
-    for g in range(start, stop):
+def _tile_spans(bounds, tiles_x, tiles_y):
+    """Per Gaussian: the first tile its box touches (row-major index), how many tile columns it
+    spans, and how many tiles in all (0 for an empty box); the Gaussians with a non-empty box,
+    in index order; and the CSR offsets of the per-tile lists. One pass over the boxes. The
+    offsets come without a loop over each box's tiles: a box adds one over a rectangle of
+    tiles, four updates of a difference array whose 2D prefix sum is the counts."""
+    count = bounds.shape[0]
+    corner = np.empty(count, dtype=np.int64)
+    columns = np.empty(count, dtype=np.int64)
+    tiles = np.empty(count, dtype=np.int64)
+    nonempty = np.empty(count, dtype=np.int64)
+    kept = 0
+    difference = np.zeros((tiles_y + 1, tiles_x + 1), dtype=np.int64)
+    for g in range(count):
         x0, x1 = bounds[g, 0] >> TILE_SHIFT, bounds[g, 1] >> TILE_SHIFT
         y0, y1 = bounds[g, 2] >> TILE_SHIFT, bounds[g, 3] >> TILE_SHIFT
         filled = (bounds[g, 1] >= bounds[g, 0]) & (bounds[g, 3] >= bounds[g, 2])
-        spans[0, g] = y0 * tiles_x + x0
-        spans[1, g] = x1 - x0 + 1
-        spans[2, g] = (x1 - x0 + 1) * (y1 - y0 + 1) if filled else 0
-    for g in range(start, stop):
-        x0, x1 = bounds[g, 0] >> TILE_SHIFT, bounds[g, 1] >> TILE_SHIFT
-        y0, y1 = bounds[g, 2] >> TILE_SHIFT, bounds[g, 3] >> TILE_SHIFT
+        corner[g] = y0 * tiles_x + x0
+        columns[g] = x1 - x0 + 1
+        tiles[g] = (x1 - x0 + 1) * (y1 - y0 + 1) if filled else 0
+        nonempty[kept] = g
+        kept += filled
         # an empty box adds zero, at corners clamped into the array
-        step = np.int64((bounds[g, 1] >= bounds[g, 0]) & (bounds[g, 3] >= bounds[g, 2]))
+        step = np.int64(filled)
         x0, x1, y0, y1 = max(x0, 0), max(x1 + 1, 0), max(y0, 0), max(y1 + 1, 0)
         difference[y0, x0] += step
         difference[y0, x1] -= step
         difference[y1, x0] -= step
         difference[y1, x1] += step
-
-
-@njit(cache=True)
-def _tile_offsets(differences, tiles_x, tiles_y):
-    """The CSR offsets of the per-tile lists, from the pieces' difference arrays."""
     offsets = np.empty(tiles_x * tiles_y + 1, dtype=np.int64)
     offsets[0] = 0
     column_sums = np.zeros(tiles_x, dtype=np.int64)  # each column's prefix over the rows so far
     for ty in range(tiles_y):
         running = 0
         for tx in range(tiles_x):
-            for piece in range(differences.shape[0]):
-                running += differences[piece, ty, tx]
+            running += difference[ty, tx]
             column_sums[tx] += running
             offsets[ty * tiles_x + tx + 1] = offsets[ty * tiles_x + tx] + column_sums[tx]
-    return offsets
+    return corner, columns, tiles, nonempty[:kept], offsets
 
 
 @njit(cache=True)
-def bin_tiles(order, spans, differences, tiles_x, tiles_y):
-    """Per-tile lists of the Gaussians with a non-empty box, in ``order`` (front to back: CSR,
-    offsets and entries), from ``splat_boxes``' tile spans and counts. Also a Gaussian-major numbering of the same entries, for gradients:
-    ``slots[k]`` is entry k's row there, and the Gaussian of rank r (``order[r]``) owns rows
-    ``first[r]:first[r + 1]`` (none for an empty box), so its gradients are summed from
-    contiguous memory.
+def bin_tiles(bounds, depths, tiles_x, tiles_y):
+    """Per-tile lists of the Gaussians with a non-empty box, front to back (CSR: offsets, entries),
+    ties in depth kept in index order. Also a Gaussian-major numbering of the same entries, for
+    gradients: ``slots[k]`` is entry k's row there, and the Gaussian of depth rank r (``order[r]``)
+    owns rows ``first[r]:first[r + 1]``, so its gradients are summed from contiguous memory.
 
     Serial: on two threads, each of these passes measured slower than on one, the second
     thread's wake and cold caches costing more than half of a pass (docs/results.md)."""
-    corner, columns, tiles = spans[0], spans[1], spans[2]
-    offsets = _tile_offsets(differences, tiles_x, tiles_y)
-    ranked = order.size
+    corner, columns, tiles, nonempty, offsets = _tile_spans(bounds, tiles_x, tiles_y)
+    kept = nonempty.size
+    order = stable_depth_order(nonempty, depths)
     # Gaussians front to back, each one's tiles row by row, straight into their tiles' lists:
     # every list comes out front to back. The wrap to the next tile row is a select (two
     # nested loops of one or two trips each are a branch miss apiece).
@@ -279,13 +247,13 @@ def bin_tiles(order, spans, differences, tiles_x, tiles_y):
     # entries: 111k at 50k Gaussians and 128²)
     entries = np.empty(total, dtype=np.int32)
     slots = np.empty(total, dtype=np.int32)
-    first = np.empty(ranked + 1, dtype=np.int64)
+    first = np.empty(kept + 1, dtype=np.int64)
     first[0] = 0
     slot = 0
-    for rank in range(ranked):
+    for rank in range(kept):
         g = order[rank]
         # the spans are read in depth order, which the hardware prefetcher cannot follow
-        ahead = order[min(rank + SPANS_AHEAD, ranked - 1)]
+        ahead = order[min(rank + SPANS_AHEAD, kept - 1)]
         prefetch(tiles, ahead)
         prefetch(columns, ahead)
         prefetch(corner, ahead)
@@ -301,7 +269,7 @@ def bin_tiles(order, spans, differences, tiles_x, tiles_y):
             column = 0 if wrap else column + 1
             row_start = row_start + tiles_x if wrap else row_start
         first[rank + 1] = slot
-    return offsets, entries, slots, first
+    return offsets, entries, slots, order, first
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
