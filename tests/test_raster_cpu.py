@@ -285,41 +285,8 @@ def test_splat_boxes_are_the_oracles_pixel_bounds():
     np.testing.assert_allclose(levels, np.log(np.maximum(255 * opacities.numpy(), 1e-30)).clip(min=0))
 
 
-def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
-    projected, opacities = projected_scene(count=500, seed=4)
-    bounds = pixel_bounds(projected, W, H, opacities).numpy()
-    depths = projected.depths.detach().numpy().copy()
-    depths[10:20] = depths[10]  # ties keep index order
-    tiles_x, tiles_y = -(-W // TILE), -(-H // TILE)
-    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
-    by_depth = np.argsort(depths, kind="stable")
-    for tile in range(tiles_x * tiles_y):
-        left, top = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
-        touches = [
-            g
-            for g in by_depth
-            if bounds[g, 1] >= max(bounds[g, 0], left)
-            and bounds[g, 0] <= left + TILE - 1
-            and bounds[g, 3] >= max(bounds[g, 2], top)
-            and bounds[g, 2] <= top + TILE - 1
-        ]
-        assert entries[offsets[tile] : offsets[tile + 1]].tolist() == touches
-    values = np.random.default_rng(0).normal(size=(entries.size, 6 + 2))  # two colour channels
-    written = np.random.default_rng(1).random(entries.size) < 0.3
-    expected = np.zeros((500, 8))
-    np.add.at(expected, entries[written], values[written])
-    gaussian_major = np.full_like(values, np.nan)  # a row not written holds garbage, never summed
-    gaussian_major[slots[written]] = values[written]
-    written_by_slot = np.zeros(entries.size, dtype=bool)
-    written_by_slot[slots[written]] = True
-    grads = (np.zeros((500, 2)), np.zeros((500, 3)), np.zeros(500), np.zeros((500, 2)))
-    sum_per_gaussian(gaussian_major, written_by_slot, order, first, *grads)
-    sums = np.concatenate([grads[0], grads[1], grads[2][:, None], grads[3]], axis=1)
-    np.testing.assert_allclose(sums, expected, atol=1e-12)
-    assert sorted(slots.tolist()) == list(range(entries.size))
-
-
 def brute_force_tile_lists(bounds, depths, tiles_x, tiles_y):
+    """Each tile's Gaussians in stable depth order, by testing every box against every tile."""
     by_depth = np.argsort(depths, kind="stable")
     lists = []
     for tile in range(tiles_x * tiles_y):
@@ -335,6 +302,30 @@ def brute_force_tile_lists(bounds, depths, tiles_x, tiles_y):
             ]
         )
     return lists
+
+
+def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
+    projected, opacities = projected_scene(count=500, seed=4)
+    bounds = pixel_bounds(projected, W, H, opacities).numpy()
+    depths = projected.depths.detach().numpy().copy()
+    depths[10:20] = depths[10]  # ties keep index order
+    tiles_x, tiles_y = -(-W // TILE), -(-H // TILE)
+    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
+    lists = brute_force_tile_lists(bounds, depths, tiles_x, tiles_y)
+    assert [entries[offsets[t] : offsets[t + 1]].tolist() for t in range(tiles_x * tiles_y)] == lists
+    values = np.random.default_rng(0).normal(size=(entries.size, 6 + 2))  # two colour channels
+    written = np.random.default_rng(1).random(entries.size) < 0.3
+    expected = np.zeros((500, 8))
+    np.add.at(expected, entries[written], values[written])
+    gaussian_major = np.full_like(values, np.nan)  # a row not written holds garbage, never summed
+    gaussian_major[slots[written]] = values[written]
+    written_by_slot = np.zeros(entries.size, dtype=bool)
+    written_by_slot[slots[written]] = True
+    grads = (np.zeros((500, 2)), np.zeros((500, 3)), np.zeros(500), np.zeros((500, 2)))
+    sum_per_gaussian(gaussian_major, written_by_slot, order, first, *grads)
+    sums = np.concatenate([grads[0], grads[1], grads[2][:, None], grads[3]], axis=1)
+    np.testing.assert_allclose(sums, expected, atol=1e-12)
+    assert sorted(slots.tolist()) == list(range(entries.size))
 
 
 @st.composite
