@@ -185,11 +185,11 @@ def splat_boxes(means2d, covariances2d, radii, opacities, width, height):
 
 
 @njit(cache=True)
-def _tile_spans(bounds, tiles_x, tiles_y):
-    """Per Gaussian: the first tile its box touches (row-major index), how many tile columns it
-    spans, and how many tiles in all (0 for an empty box); the Gaussians with a non-empty box,
-    in index order; and the CSR offsets of the per-tile lists. One pass over the boxes. The
-    offsets come without a loop over each box's tiles: a box adds one over a rectangle of
+def _spans_and_offsets(bounds, tiles_x, tiles_y):
+    """In one pass over the boxes: per Gaussian, the first tile its box touches (row-major
+    index), how many tile columns it spans and how many tiles in all (0 for an empty box); the
+    Gaussians with a non-empty box, in index order; and the CSR offsets of the per-tile lists.
+    The offsets come without a loop over each box's tiles: a box adds one over a rectangle of
     tiles, four updates of a difference array whose 2D prefix sum is the counts."""
     count = bounds.shape[0]
     corner = np.empty(count, dtype=np.int64)
@@ -204,7 +204,7 @@ def _tile_spans(bounds, tiles_x, tiles_y):
         filled = (bounds[g, 1] >= bounds[g, 0]) & (bounds[g, 3] >= bounds[g, 2])
         corner[g] = y0 * tiles_x + x0
         columns[g] = x1 - x0 + 1
-        tiles[g] = (x1 - x0 + 1) * (y1 - y0 + 1) if filled else 0
+        tiles[g] = columns[g] * (y1 - y0 + 1) if filled else 0
         nonempty[kept] = g
         kept += filled
         # an empty box adds zero, at corners clamped into the array
@@ -235,7 +235,7 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
 
     Serial: on two threads, each of these passes measured slower than on one, the second
     thread's wake and cold caches costing more than half of a pass (docs/results.md)."""
-    corner, columns, tiles, nonempty, offsets = _tile_spans(bounds, tiles_x, tiles_y)
+    corner, columns, tiles, nonempty, offsets = _spans_and_offsets(bounds, tiles_x, tiles_y)
     kept = nonempty.size
     order = stable_depth_order(nonempty, depths)
     # Gaussians front to back, each one's tiles row by row, straight into their tiles' lists:
