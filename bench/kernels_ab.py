@@ -1,0 +1,218 @@
+"""The compositing kernels of the working tree against those of a git revision, in one process:
+the way issue 21's kernel changes were measured (docs/results.md), where separate runs of
+`bench/raster.py` swing with the host by more than the change.
+
+    python bench/kernels_ab.py                          # HEAD against the working tree, bench frame
+    python bench/kernels_ab.py --base HEAD~3 --threads 1
+    python bench/kernels_ab.py --work work              # and 12 training views of a trained `fast` scene
+
+The revision's `cubecloud_cli` is copied under another name (git archive) into a cache folder, so
+both import side by side. The inputs of the kernels (projection, boxes, binning) are computed
+once, by the working tree; then the forward and backward kernels of each side run on the same
+inputs, in the order base, new, new, base, for --rounds rounds. Prints the medians, the 10th
+percentiles, their ratios (new / base: below 1 is faster) and whether both sides give the same
+bits (image, transmittance, and the gradient rows they write).
+
+Run it twice after changing a kernel: the first process compiles the new kernel, and a kernel
+compiled in the process ran 4-8 % slower than one loaded from numba's cache (docs/results.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+import torch
+
+REPOSITORY = Path(__file__).resolve().parent.parent
+CACHE = REPOSITORY / "bench" / ".kernels_ab"  # ignored by git: copies of past revisions
+
+
+def revision_package(revision: str) -> str:
+    """Import name of ``cubecloud_cli`` at ``revision``, copied and renamed under CACHE."""
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short=12", revision], cwd=REPOSITORY, check=True, capture_output=True, text=True
+    ).stdout.strip()
+    name = f"cubecloud_{commit}"
+    folder = CACHE / commit
+    if not (folder / name).is_dir():
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile() as archive:
+            subprocess.run(["git", "archive", commit, "cubecloud_cli"], cwd=REPOSITORY, check=True, stdout=archive)
+            archive.seek(0)
+            with tarfile.open(fileobj=archive) as tar:
+                tar.extractall(folder / "unpacked", filter="data")
+        for source in (folder / "unpacked" / "cubecloud_cli").rglob("*"):
+            target = folder / name / source.relative_to(folder / "unpacked" / "cubecloud_cli")
+            if source.is_dir():
+                target.mkdir(parents=True, exist_ok=True)
+            elif source.suffix == ".py":
+                target.parent.mkdir(parents=True, exist_ok=True)
+                target.write_text(source.read_text().replace("cubecloud_cli", name))
+            else:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                target.write_bytes(source.read_bytes())
+    sys.path.insert(0, str(folder))
+    return name
+
+
+def kernel_inputs(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height, seed):
+    """What the compositing kernels take for one view, computed by the working tree's setup."""
+    from cubecloud_cli.raster import cpu_binning, cpu_projection
+    from cubecloud_cli.raster.constants import TILE
+    from cubecloud_cli.raster.cpu import _numpy
+    from cubecloud_cli.raster.projection import dilation
+
+    arrays = tuple(_numpy(x) for x in (means, scales, quaternions, rotation, translation))
+    means2d, conics, covariances2d, depths, radii, _ = cpu_projection.project_forward(
+        *arrays, focal, width, height, 0.01, dilation(False), False
+    )
+    opacities, colours = _numpy(opacities), _numpy(colours)
+    bounds, levels = cpu_binning.splat_boxes(means2d, covariances2d, radii, opacities, width, height)
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    offsets, entries, slots, _, _ = cpu_binning.bin_tiles(bounds, depths, tiles_x, tiles_y)
+    background = np.zeros(colours.shape[1], np.float32)
+    grad = np.random.default_rng(seed).standard_normal((width * height, colours.shape[1])).astype(np.float32)
+    return (
+        offsets,
+        entries,
+        slots,
+        (bounds, means2d, conics, colours, opacities, levels, background),
+        width,
+        height,
+        tiles_x,
+        grad,
+    )
+
+
+def bench_frames():
+    sys.path.insert(0, str(REPOSITORY / "bench"))
+    from raster import random_scene
+
+    from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+
+    means, log_scales, quaternions, opacities, colours = random_scene(50_000)
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=128))
+    rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
+    translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
+    view = (rotation, translation, float(cameras.focal), 128, 128, 0)
+    return [kernel_inputs(means, torch.exp(log_scales), quaternions, opacities, colours, *view)]
+
+
+def trained_frames(work: Path, views: int):
+    """``views`` training views, evenly spaced, of the splat trained in ``work``."""
+    from cubecloud_cli.splat.data import load_scene
+    from cubecloud_cli.splat.ply import read_gaussians_ply
+
+    gaussians = read_gaussians_ply(work / "splat" / "point_cloud.ply")
+    scene = load_scene(work / "export")
+    cameras = scene.cameras
+    opacities = torch.sigmoid(gaussians.opacity_logits).reshape(-1)
+    colours = gaussians.sh_dc[:, 0, :].contiguous()
+    frames = []
+    step = max(1, len(scene.train) // views)
+    for number in range(0, step * views, step):
+        index = scene.train[number]
+        rotation = torch.tensor(cameras.rotations[index], dtype=torch.float32)
+        translation = torch.tensor(cameras.translations[index], dtype=torch.float32)
+        view = (rotation, translation, float(cameras.focal), int(cameras.width), int(cameras.height), number)
+        frames.append(
+            kernel_inputs(
+                gaussians.means, torch.exp(gaussians.log_scales), gaussians.quaternions, opacities, colours, *view
+            )
+        )
+    return frames
+
+
+def same_bits(base, new, frames) -> tuple[bool, bool]:
+    """Whether both sides' forward (image, transmittance) and backward (the gradient rows they
+    write, and which) agree bit for bit on every frame. Unwritten rows hold no value."""
+    forward_same = backward_same = True
+    for offsets, entries, slots, arrays, width, height, tiles_x, grad in frames:
+        results = []
+        for kernels in (base, new):
+            forward = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
+            rows, written = kernels.backward(
+                offsets, entries, slots, *arrays, width, height, tiles_x, *forward[1:], grad
+            )
+            results.append((forward[0], forward[1], rows, written))
+        (image_a, t_a, rows_a, written_a), (image_b, t_b, rows_b, written_b) = results
+        forward_same &= np.array_equal(image_a, image_b) and np.array_equal(t_a, t_b)
+        backward_same &= np.array_equal(written_a, written_b) and np.array_equal(rows_a[written_a], rows_b[written_b])
+    return forward_same, backward_same
+
+
+def timed_rounds(base, new, frames, rounds: int) -> dict[tuple[str, str], list[float]]:
+    """Milliseconds per frame of each side's forward and backward, round by round, ABBA."""
+    times: dict[tuple[str, str], list[float]] = {
+        (side, part): [] for side in ("base", "new") for part in ("fwd", "bwd")
+    }
+    for _ in range(rounds):
+        for side, kernels in (("base", base), ("new", new), ("new", new), ("base", base)):
+            forward_time = backward_time = 0.0
+            for offsets, entries, slots, arrays, width, height, tiles_x, grad in frames:
+                start = time.perf_counter()
+                forward = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
+                middle = time.perf_counter()
+                kernels.backward(offsets, entries, slots, *arrays, width, height, tiles_x, *forward[1:], grad)
+                forward_time += middle - start
+                backward_time += time.perf_counter() - middle
+            times[(side, "fwd")].append(1000 * forward_time / len(frames))
+            times[(side, "bwd")].append(1000 * backward_time / len(frames))
+    return times
+
+
+def report(label: str, times, same: tuple[bool, bool]) -> None:
+    print(f"{label}: same bits forward {same[0]}, backward {same[1]}")
+    for part, name in (("fwd", "forward"), ("bwd", "backward")):
+        base, new = times[("base", part)], times[("new", part)]
+        median_base, median_new = statistics.median(base), statistics.median(new)
+        low_base, low_new = sorted(base)[len(base) // 10], sorted(new)[len(new) // 10]
+        print(
+            f"  {name:8s} median {median_base:.3f} -> {median_new:.3f} ms ({median_new / median_base:.3f}); "
+            f"10th percentile {low_base:.3f} -> {low_new:.3f} ms ({low_new / low_base:.3f})"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--base", default="HEAD", help="the git revision to compare against (default: HEAD)")
+    parser.add_argument("--threads", type=int, default=2, help="numba's and torch's threads")
+    parser.add_argument("--rounds", type=int, default=60, help="ABBA rounds on the bench frame (a quarter on --work)")
+    parser.add_argument("--work", type=Path, help="a `cubecloud run` work directory: also its trained splat's views")
+    parser.add_argument("--views", type=int, default=12, help="training views of --work")
+    args = parser.parse_args()
+    numba.set_num_threads(args.threads)
+    torch.set_num_threads(args.threads)
+
+    from cubecloud_cli.runtime import keep_freed_memory
+
+    keep_freed_memory()
+    new = importlib.import_module("cubecloud_cli.raster.cpu_kernels")
+    base = importlib.import_module(f"{revision_package(args.base)}.raster.cpu_kernels")
+    print(f"{args.base} (base) against the working tree (new), {args.threads} threads")
+    sets = [("bench frame (50 000 random Gaussians, 128²)", bench_frames(), args.rounds)]
+    if args.work:
+        sets.append(
+            (
+                f"{args.views} training views of {args.work}",
+                trained_frames(args.work, args.views),
+                max(3, args.rounds // 4),
+            )
+        )
+    for label, frames, rounds in sets:
+        same = same_bits(base, new, frames)
+        report(label, timed_rounds(base, new, frames, rounds), same)
+
+
+if __name__ == "__main__":
+    main()
