@@ -46,21 +46,22 @@ def revision_package(revision: str) -> str:
     folder = CACHE / commit
     if not (folder / name).is_dir():
         folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile() as archive:
+        with tempfile.TemporaryDirectory(dir=folder) as scratch, tempfile.TemporaryFile() as archive:
             subprocess.run(["git", "archive", commit, "cubecloud_cli"], cwd=REPOSITORY, check=True, stdout=archive)
             archive.seek(0)
             with tarfile.open(fileobj=archive) as tar:
-                tar.extractall(folder / "unpacked", filter="data")
-        for source in (folder / "unpacked" / "cubecloud_cli").rglob("*"):
-            target = folder / name / source.relative_to(folder / "unpacked" / "cubecloud_cli")
-            if source.is_dir():
-                target.mkdir(parents=True, exist_ok=True)
-            elif source.suffix == ".py":
-                target.parent.mkdir(parents=True, exist_ok=True)
-                target.write_text(source.read_text().replace("cubecloud_cli", name))
-            else:
-                target.parent.mkdir(parents=True, exist_ok=True)
-                target.write_bytes(source.read_bytes())
+                tar.extractall(scratch, filter="data")
+            unpacked, renamed = Path(scratch) / "cubecloud_cli", Path(scratch) / name
+            for source in unpacked.rglob("*"):
+                if source.is_file():
+                    target = renamed / source.relative_to(unpacked)
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    if source.suffix == ".py":
+                        target.write_text(source.read_text().replace("cubecloud_cli", name))
+                    else:
+                        target.write_bytes(source.read_bytes())
+            # renamed whole once complete: an interrupted copy is never taken for a finished one
+            renamed.rename(folder / name)
     sys.path.insert(0, str(folder))
     return name
 
@@ -120,7 +121,7 @@ def trained_frames(work: Path, views: int):
     colours = gaussians.sh_dc[:, 0, :].contiguous()
     frames = []
     step = max(1, len(scene.train) // views)
-    for number in range(0, step * views, step):
+    for number in range(0, len(scene.train), step)[:views]:
         index = scene.train[number]
         rotation = torch.tensor(cameras.rotations[index], dtype=torch.float32)
         translation = torch.tensor(cameras.translations[index], dtype=torch.float32)
