@@ -5,6 +5,7 @@ the way issue 21's kernel changes were measured (docs/results.md), where separat
     python bench/kernels_ab.py                          # HEAD against the working tree, bench frame
     python bench/kernels_ab.py --base HEAD~3 --threads 1
     python bench/kernels_ab.py --work work              # and 12 training views of a trained `fast` scene
+    python bench/kernels_ab.py --whole-frame            # whole bench frames, as bench/raster.py times them
 
 The revision's `cubecloud_cli` is copied under another name (git archive) into a cache folder, so
 both import side by side. The inputs of the kernels (projection, boxes, binning) are computed
@@ -12,6 +13,11 @@ once, by the working tree; then the forward and backward kernels of each side ru
 inputs, in the order base, new, new, base, for --rounds rounds. Prints the medians, the 10th
 percentiles, their ratios (new / base: below 1 is faster) and whether both sides give the same
 bits (image, transmittance, and the gradient rows they write).
+
+--whole-frame times instead the bench frame as `bench/raster.py` does (projection, boxes,
+binning, both kernels, the per-Gaussian sums and autograd's work around them) through each
+side's `raster.cpu`: for changes outside the two kernels, whose gain a part's own timing can show
+and the frame not (docs/results.md).
 
 Run it twice after changing a kernel: the first process compiles the new kernel, and a kernel
 compiled in the process ran 4-8 % slower than one loaded from numba's cache (docs/results.md).
@@ -95,18 +101,60 @@ def kernel_inputs(means, scales, quaternions, opacities, colours, rotation, tran
     )
 
 
-def bench_frames():
+def bench_scene():
+    """``bench/raster.py``'s scene (means, log-scales, quaternions, opacities, colours) and its
+    view (rotation, translation, focal, width, height)."""
     sys.path.insert(0, str(REPOSITORY / "bench"))
     from raster import random_scene
 
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 
-    means, log_scales, quaternions, opacities, colours = random_scene(50_000)
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=128))
     rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
     translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
-    view = (rotation, translation, float(cameras.focal), 128, 128, 0)
-    return [kernel_inputs(means, torch.exp(log_scales), quaternions, opacities, colours, *view)]
+    return random_scene(50_000), (rotation, translation, float(cameras.focal), 128, 128)
+
+
+def bench_frames():
+    (means, log_scales, quaternions, opacities, colours), view = bench_scene()
+    return [kernel_inputs(means, torch.exp(log_scales), quaternions, opacities, colours, *view, 0)]
+
+
+def whole_frame(cpu, scene, view):
+    """One forward and backward of the bench frame through ``cpu`` (a side's ``raster.cpu``), as
+    ``bench/raster.py`` times it: seconds of the forward (projection and compositing) and of the
+    backward, the image, and the scene's gradients."""
+    means, log_scales, quaternions, opacities, colours = (t.clone().requires_grad_(True) for t in scene)
+    rotation, translation, focal, width, height = view
+    start = time.perf_counter()
+    projected = cpu.project_cpu(means, torch.exp(log_scales), quaternions, rotation, translation, focal, width, height)
+    image, _ = cpu.composite_cpu(projected, colours, projected.effective_opacities(opacities), width, height)
+    middle = time.perf_counter()
+    image.sum().backward()
+    end = time.perf_counter()
+    grads = [t.grad for t in (means, log_scales, quaternions, opacities, colours)]
+    return middle - start, end - middle, image.detach(), grads
+
+
+def compare_whole_frames(base_cpu, new_cpu, rounds: int) -> None:
+    """Both sides' whole bench frames, ABBA, after two frames each that are not timed."""
+    scene, view = bench_scene()
+    results = [whole_frame(cpu, scene, view) for cpu in (base_cpu, new_cpu, base_cpu, new_cpu)]
+    (_, _, image_a, grads_a), (_, _, image_b, grads_b) = results[2:]
+    same_grads = all(torch.equal(a, b) for a, b in zip(grads_a, grads_b))
+    times: dict[tuple[str, str], list[float]] = {
+        (side, part): [] for side in ("base", "new") for part in ("fwd", "bwd", "frame")
+    }
+    for _ in range(rounds):
+        for side, cpu in (("base", base_cpu), ("new", new_cpu), ("new", new_cpu), ("base", base_cpu)):
+            forward_time, backward_time, _, _ = whole_frame(cpu, scene, view)
+            for part, seconds in (
+                ("fwd", forward_time),
+                ("bwd", backward_time),
+                ("frame", forward_time + backward_time),
+            ):
+                times[(side, part)].append(1000 * seconds)
+    report("whole bench frame (50 000 random Gaussians, 128²)", times, (torch.equal(image_a, image_b), same_grads))
 
 
 def trained_frames(work: Path, views: int):
@@ -174,7 +222,9 @@ def timed_rounds(base, new, frames, rounds: int) -> dict[tuple[str, str], list[f
 
 def report(label: str, times, same: tuple[bool, bool]) -> None:
     print(f"{label}: same bits forward {same[0]}, backward {same[1]}")
-    for part, name in (("fwd", "forward"), ("bwd", "backward")):
+    for part, name in (("fwd", "forward"), ("bwd", "backward"), ("frame", "frame")):
+        if ("base", part) not in times:
+            continue
         base, new = times[("base", part)], times[("new", part)]
         median_base, median_new = statistics.median(base), statistics.median(new)
         low_base, low_new = sorted(base)[len(base) // 10], sorted(new)[len(new) // 10]
@@ -191,16 +241,27 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=60, help="ABBA rounds on the bench frame (a quarter on --work)")
     parser.add_argument("--work", type=Path, help="a `cubecloud run` work directory: also its trained splat's views")
     parser.add_argument("--views", type=int, default=12, help="training views of --work")
+    parser.add_argument(
+        "--whole-frame",
+        action="store_true",
+        help="time whole bench frames (projection to per-Gaussian sums, autograd included) instead of the kernels",
+    )
     args = parser.parse_args()
+    if args.whole_frame and args.work:
+        parser.error("--whole-frame times the bench frame only: leave out --work")
     numba.set_num_threads(args.threads)
     torch.set_num_threads(args.threads)
 
     from cubecloud_cli.runtime import keep_freed_memory
 
     keep_freed_memory()
+    print(f"{args.base} (base) against the working tree (new), {args.threads} threads")
+    if args.whole_frame:
+        base_cpu = importlib.import_module(f"{revision_package(args.base)}.raster.cpu")
+        compare_whole_frames(base_cpu, importlib.import_module("cubecloud_cli.raster.cpu"), args.rounds)
+        return
     new = importlib.import_module("cubecloud_cli.raster.cpu_kernels")
     base = importlib.import_module(f"{revision_package(args.base)}.raster.cpu_kernels")
-    print(f"{args.base} (base) against the working tree (new), {args.threads} threads")
     sets = [("bench frame (50 000 random Gaussians, 128²)", bench_frames(), args.rounds)]
     if args.work:
         sets.append(
