@@ -170,9 +170,9 @@ def _binned_scene():
     effective = _numpy(projected.effective_opacities(opacities))
     means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
     bounds, levels = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
-    offsets, entries, slots, *_ = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
+    offsets, entries = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
     per_gaussian = (bounds, means2d, _numpy(projected.conics), _numpy(colours), effective, levels)
-    return offsets, entries, slots, per_gaussian, tiles_x
+    return offsets, entries, per_gaussian, tiles_x
 
 
 def _fresh_then_cached(script, arrays, tmp_path):
@@ -198,7 +198,7 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
     from it: the same bits. A render where they differed by one float32 ulp in 92 of 960 pixels.
     Both the RGB rows and the grey ones (training's, narrow rows included). The compositing
     backward has a test of its own; the projection's kernels take no fast-math freedom."""
-    offsets, entries, _, per_gaussian, tiles_x = _binned_scene()
+    offsets, entries, per_gaussian, tiles_x = _binned_scene()
     forward = (offsets, entries, *per_gaussian)
     rng = np.random.default_rng(0)
     mlp = [rng.normal(size=shape).astype(np.float32) for shape in ((3000, 6), (6, 32), (32,), (2, 32), (2,))]
@@ -214,21 +214,21 @@ import numpy as np
 from cubecloud_cli.raster import cpu_kernels
 inputs = np.load(sys.argv[1])
 width, height, tiles_x = inputs["sizes"]
-head, tail = [inputs[f"head_{i}"] for i in range(10)], [inputs[f"tail_{i}"] for i in range(6)]
-slot_grads, written = cpu_kernels.backward(*head, width, height, tiles_x, *tail)
-print(hashlib.sha256(np.ascontiguousarray(slot_grads[written]).tobytes()).hexdigest())
+head, tail = [inputs[f"head_{i}"] for i in range(9)], [inputs[f"tail_{i}"] for i in range(6)]
+row_grads, gaussian_rows = cpu_kernels.backward(*head, width, height, tiles_x, *tail)
+print(hashlib.sha256(np.ascontiguousarray(row_grads).tobytes() + gaussian_rows.tobytes()).hexdigest())
 """
 
 
 def test_the_compositing_backward_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
     """As above for the compositing backward, on one frame's gradients: its conic terms, as
     products of three factors, were grouped one way in each copy (cpu_kernels.pair_geometry_gradients)."""
-    offsets, entries, slots, (bounds, means2d, conics, colours, effective, levels), tiles_x = _binned_scene()
+    offsets, entries, (bounds, means2d, conics, colours, effective, levels), tiles_x = _binned_scene()
     grey = np.ascontiguousarray(colours[:, :1])  # training's case (CT), whose rows take the vector loops
     arrays = (bounds, means2d, conics, grey, effective, levels, np.zeros(1, np.float32))
     _, transmittance, *blended = cpu_kernels.forward(offsets, entries, *arrays, W, H, tiles_x)
     grad = np.random.default_rng(0).standard_normal((W * H, 1)).astype(np.float32)
-    head, tail = (offsets, entries, slots, *arrays), (transmittance, *blended, grad)
+    head, tail = (offsets, entries, *arrays), (transmittance, *blended, grad)
     inputs = {f"head_{i}": a for i, a in enumerate(head)} | {f"tail_{i}": a for i, a in enumerate(tail)}
     runs = _fresh_then_cached(BACKWARD_FRESH_OR_CACHED, inputs | {"sizes": np.array([W, H, tiles_x])}, tmp_path)
     assert len(runs[0].split()) == 1 and runs[0] == runs[1]

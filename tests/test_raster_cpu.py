@@ -29,6 +29,7 @@ from cubecloud_cli.raster.cpu_kernels import (
     exp_negative,
     narrow_row_masks,
     narrow_window,
+    number_gradient_rows,
     polynomial_falloff,
     row_masks,
 )
@@ -310,22 +311,32 @@ def test_tile_lists_are_the_brute_force_lists_and_gradients_sum_per_gaussian():
     depths = projected.depths.detach().numpy().copy()
     depths[10:20] = depths[10]  # ties keep index order
     tiles_x, tiles_y = -(-W // TILE), -(-H // TILE)
-    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
+    offsets, entries = bin_tiles(bounds, depths, tiles_x, tiles_y)
     lists = brute_force_tile_lists(bounds, depths, tiles_x, tiles_y)
     assert [entries[offsets[t] : offsets[t + 1]].tolist() for t in range(tiles_x * tiles_y)] == lists
+    # a forward's record of the entries that blended: per tile, some of its entries, front to back,
+    # from the tile's offset on (the slots after them hold whatever was there)
+    blended = np.random.default_rng(1).random(entries.size) < 0.3
+    blended_entries = np.full(entries.size, -1, dtype=np.int32)
+    blended_counts = np.zeros(tiles_x * tiles_y, dtype=np.int64)
+    for t in range(tiles_x * tiles_y):
+        listed = np.flatnonzero(blended[offsets[t] : offsets[t + 1]]) + offsets[t]
+        blended_entries[offsets[t] : offsets[t] + listed.size] = listed
+        blended_counts[t] = listed.size
+    gaussian_rows, entry_rows = number_gradient_rows(offsets, entries, blended_entries, blended_counts, 500)
+    # each Gaussian's rows are its blended entries', one stretch, in the order of its tiles
+    for g in range(500):
+        mine = np.flatnonzero(blended & (entries == g))  # entry order is tile order
+        assert entry_rows[mine].tolist() == list(range(gaussian_rows[g], gaussian_rows[g + 1]))
     values = np.random.default_rng(0).normal(size=(entries.size, 6 + 2))  # two colour channels
-    written = np.random.default_rng(1).random(entries.size) < 0.3
     expected = np.zeros((500, 8))
-    np.add.at(expected, entries[written], values[written])
-    gaussian_major = np.full_like(values, np.nan)  # a row not written holds garbage, never summed
-    gaussian_major[slots[written]] = values[written]
-    written_by_slot = np.zeros(entries.size, dtype=bool)
-    written_by_slot[slots[written]] = True
-    grads = (np.zeros((500, 2)), np.zeros((500, 3)), np.zeros(500), np.zeros((500, 2)))
-    sum_per_gaussian(gaussian_major, written_by_slot, order, first, *grads)
+    np.add.at(expected, entries[blended], values[blended])
+    row_grads = np.empty((gaussian_rows[-1], 8))
+    row_grads[entry_rows[blended]] = values[blended]
+    grads = (np.full((500, 2), np.nan), np.full((500, 3), np.nan), np.full(500, np.nan), np.full((500, 2), np.nan))
+    sum_per_gaussian(row_grads, gaussian_rows, *grads)  # every Gaussian's row written, 0 where it has none
     sums = np.concatenate([grads[0], grads[1], grads[2][:, None], grads[3]], axis=1)
     np.testing.assert_allclose(sums, expected, atol=1e-12)
-    assert sorted(slots.tolist()) == list(range(entries.size))
 
 
 @st.composite
@@ -358,14 +369,10 @@ def test_tile_lists_of_any_boxes_are_the_brute_force_lists(scene):
     of tiles, empty ones and ties in depth: each tile's list, in order, and its CSR offsets."""
     bounds, depths, width, height = scene
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    offsets, entries, slots, order, first = bin_tiles(bounds, depths, tiles_x, tiles_y)
+    offsets, entries = bin_tiles(bounds, depths, tiles_x, tiles_y)
     lists = brute_force_tile_lists(bounds, depths, tiles_x, tiles_y)
     assert offsets.tolist() == np.cumsum([0] + [len(tile_list) for tile_list in lists]).tolist()
     assert [entries[offsets[t] : offsets[t + 1]].tolist() for t in range(tiles_x * tiles_y)] == lists
-    assert sorted(slots.tolist()) == list(range(entries.size))
-    # each Gaussian's slots are its rows first[r]:first[r + 1], in depth rank r
-    for rank, g in enumerate(order):
-        assert sorted(slots[entries == g].tolist()) == list(range(first[rank], first[rank + 1]))
 
 
 def test_the_backend_follows_the_device(monkeypatch):

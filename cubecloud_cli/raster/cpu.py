@@ -97,14 +97,12 @@ class _Composite(torch.autograd.Function):
         bounds, levels = binning.splat_boxes(
             means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np, width, height
         )
-        offsets, entries, slots, *owners = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
+        offsets, entries = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
         arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
         image, final_transmittance, *blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
         ctx.saved = (
             offsets,
             entries,
-            slots,
-            owners,
             arrays,
             final_transmittance,
             blended,
@@ -122,17 +120,17 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_coverage):
-        offsets, entries, slots, owners, arrays, final_transmittance, blended, width, height, tiles_x = ctx.saved
+        offsets, entries, arrays, final_transmittance, blended, width, height, tiles_x = ctx.saved
         grad = _numpy(grad_image.reshape(height * width, -1)).astype(arrays[2].dtype, copy=False)
-        slot_grads, written = kernels.backward(
-            offsets, entries, slots, *arrays, width, height, tiles_x, final_transmittance, *blended, grad
+        row_grads, gaussian_rows = kernels.backward(
+            offsets, entries, *arrays, width, height, tiles_x, final_transmittance, *blended, grad
         )
         dtype, device = grad_image.dtype, grad_image.device
         real = np.float64 if dtype == torch.float64 else np.float32
-        count, channels = ctx.count, slot_grads.shape[1] - 6
+        count, channels = ctx.count, row_grads.shape[1] - 6
         # contiguous: the projection's backward reads the first two as they are, uncopied
-        grads = [np.zeros(shape, real) for shape in ((count, 2), (count, 3), count, (count, channels))]
-        binning.sum_per_gaussian(slot_grads, written, *owners, *grads)
+        grads = [np.empty(shape, real) for shape in ((count, 2), (count, 3), count, (count, channels))]
+        binning.sum_per_gaussian(row_grads, gaussian_rows, *grads)
         means2d_grad, conics_grad, opacities_grad, colours_grad = (
             torch.from_numpy(g).to(dtype=dtype, device=device) for g in grads
         )

@@ -229,9 +229,7 @@ def _spans_and_offsets(bounds, tiles_x, tiles_y):
 @njit(cache=True)
 def bin_tiles(bounds, depths, tiles_x, tiles_y):
     """Per-tile lists of the Gaussians with a non-empty box, front to back (CSR: offsets, entries),
-    ties in depth kept in index order. Also a Gaussian-major numbering of the same entries, for
-    gradients: ``slots[k]`` is entry k's row there, and the Gaussian of depth rank r (``order[r]``)
-    owns rows ``first[r]:first[r + 1]``, so its gradients are summed from contiguous memory.
+    ties in depth kept in index order.
 
     Serial: on two threads, each of these passes measured slower than on one, the second
     thread's wake and cold caches costing more than half of a pass (docs/results.md)."""
@@ -242,14 +240,9 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     # every list comes out front to back. The wrap to the next tile row is a select (two
     # nested loops of one or two trips each are a branch miss apiece).
     fill = offsets[:-1].copy()
-    total = offsets[-1]
     # int32 entries: half the memory the kernels move (a frame holds far fewer than 2³¹
     # entries: 111k at 50k Gaussians and 128²)
-    entries = np.empty(total, dtype=np.int32)
-    slots = np.empty(total, dtype=np.int32)
-    first = np.empty(kept + 1, dtype=np.int64)
-    first[0] = 0
-    slot = 0
+    entries = np.empty(offsets[-1], dtype=np.int32)
     for rank in range(kept):
         g = order[rank]
         # the spans are read in depth order, which the hardware prefetcher cannot follow
@@ -262,47 +255,38 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
             tile = row_start + column
             at = fill[tile]
             entries[at] = g
-            slots[at] = slot
             fill[tile] = at + 1
-            slot += 1
             wrap = column + 1 == width
             column = 0 if wrap else column + 1
             row_start = row_start + tiles_x if wrap else row_start
-        first[rank + 1] = slot
-    return offsets, entries, slots, order, first
+    return offsets, entries
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def sum_per_gaussian(slot_values, written, order, first, means2d_grad, conics_grad, opacities_grad, colours_grad):
-    """Each Gaussian's sums of its ``written`` rows of the Gaussian-major (entries, 6 + C)
-    ``slot_values`` (rows not written hold no value and count as zero), in parallel over Gaussians
-    (each owns its rows: no two threads write the same memory). The columns are the compositing
-    backward's: mean2d (2), conic (3), opacity, colour (C); each group goes to its own output,
-    (count, 2), (count, 3), (count,) and (count, C), which the caller has zeroed. The sums are
-    taken in float64, row by row, and stored in the outputs' type: the gradients come out as
-    the contiguous arrays autograd takes, without a copy per column group.
-
-    A row is read once for its first seven columns, and whether it was written is a select, not
-    a branch: about one row in four is, in no order a branch predictor learns, and a branch per
-    row and column made the sums 2.3 times slower (docs/results.md)."""
-    for rank in prange(order.size):
-        g = order[rank]
+def sum_per_gaussian(row_grads, gaussian_rows, means2d_grad, conics_grad, opacities_grad, colours_grad):
+    """Each Gaussian's sums of its rows ``gaussian_rows[g]:gaussian_rows[g + 1]`` of the
+    (rows, 6 + C) ``row_grads``: the compositing backward's columns mean2d (2), conic (3), opacity,
+    colour (C), each group into its own output, (count, 2), (count, 3), (count,) and (count, C),
+    every Gaussian's row written (0 where it has none). The sums are taken in float64, row by row,
+    and stored in the outputs' type: the gradients come out as the contiguous arrays autograd
+    takes, without a copy per column group. In parallel over Gaussians by index: the rows and the
+    outputs are read and written in order, each thread its own stretch."""
+    for g in prange(means2d_grad.shape[0]):
         mean_x = mean_y = conic_a = conic_b = conic_c = opacity = colour_0 = 0.0
-        for e in range(first[rank], first[rank + 1]):
-            kept = written[e]
-            mean_x += slot_values[e, 0] if kept else 0.0
-            mean_y += slot_values[e, 1] if kept else 0.0
-            conic_a += slot_values[e, 2] if kept else 0.0
-            conic_b += slot_values[e, 3] if kept else 0.0
-            conic_c += slot_values[e, 4] if kept else 0.0
-            opacity += slot_values[e, 5] if kept else 0.0
-            colour_0 += slot_values[e, 6] if kept else 0.0
+        for e in range(gaussian_rows[g], gaussian_rows[g + 1]):
+            mean_x += row_grads[e, 0]
+            mean_y += row_grads[e, 1]
+            conic_a += row_grads[e, 2]
+            conic_b += row_grads[e, 3]
+            conic_c += row_grads[e, 4]
+            opacity += row_grads[e, 5]
+            colour_0 += row_grads[e, 6]
         means2d_grad[g, 0], means2d_grad[g, 1] = mean_x, mean_y
         conics_grad[g, 0], conics_grad[g, 1], conics_grad[g, 2] = conic_a, conic_b, conic_c
         opacities_grad[g] = opacity
         colours_grad[g, 0] = colour_0
         for ch in range(1, colours_grad.shape[1]):
             total = 0.0
-            for e in range(first[rank], first[rank + 1]):
-                total += slot_values[e, 6 + ch] if written[e] else 0.0
+            for e in range(gaussian_rows[g], gaussian_rows[g + 1]):
+                total += row_grads[e, 6 + ch]
             colours_grad[g, ch] = total

@@ -22,8 +22,9 @@ entry four ahead is prefetched while the current one blends.
 
 Backward walks each pixel's list back to front (as the reference CUDA code does), recovering the
 transmittance before each Gaussian by division by (1 − α) ≥ 0.01. Gradients go into one row per
-(tile, Gaussian) entry, numbered Gaussian-major by the binning, so threads never write the same
-memory and the per-Gaussian sums read contiguous rows.
+(tile, Gaussian) entry that blended, numbered from the forward's lists and grouped by Gaussian,
+so threads never write the same memory and the per-Gaussian sums read only rows that hold a
+value, in order.
 """
 
 from __future__ import annotations
@@ -506,11 +507,34 @@ def unblend_colour_row(
     return sums
 
 
+@njit(cache=True)
+def number_gradient_rows(offsets, entries, blended_entries, blended_counts, count):
+    """Rows for the backward's per-entry gradients, one per entry that blended, grouped by
+    Gaussian in index order: Gaussian g's rows are ``gaussian_rows[g]:gaussian_rows[g + 1]``, in the
+    order of its tiles, and entry k's row is ``entry_rows[k]`` (entries that blended nothing have
+    none). Numbered from the forward's lists of the entries that blended, so that the sums read
+    only rows that hold a value, each Gaussian's in one stretch."""
+    gaussian_rows = np.zeros(count + 1, dtype=np.int64)
+    for tile in range(offsets.size - 1):
+        for listed in range(offsets[tile], offsets[tile] + blended_counts[tile]):
+            gaussian_rows[entries[blended_entries[listed]] + 1] += 1
+    for g in range(count):
+        gaussian_rows[g + 1] += gaussian_rows[g]
+    fill = gaussian_rows[:-1].copy()
+    entry_rows = np.empty(entries.size, dtype=np.int32)
+    for tile in range(offsets.size - 1):
+        for listed in range(offsets[tile], offsets[tile] + blended_counts[tile]):
+            k = blended_entries[listed]
+            g = entries[k]
+            entry_rows[k] = fill[g]
+            fill[g] += 1
+    return gaussian_rows, entry_rows
+
+
 @njit(parallel=PRANGE_ONLY, cache=True, fastmath=FASTMATH, error_model="numpy")
 def backward(
     offsets,
     entries,
-    slots,
     bounds,
     means2d,
     conics,
@@ -529,18 +553,21 @@ def backward(
     grad_image,
 ):
     """Per-entry gradients of the loss with respect to mean2d (2), conic (3), opacity (1) and
-    colour (C), in the rows of the Gaussian-major ``slots``, summed per Gaussian afterwards; and
-    which slots were written. The entries that blended are walked back to front
-    (``blended_entries``), each undoing the pairs the forward blended (``blended_rows``,
-    ``blended_pixels``). An entry that blended nothing has no gradient, and its slot row is left
-    unwritten rather than zeroed: in a dense view most entries are such (three in four at 50k
-    Gaussians, 128²), and zeroing and summing their rows cost more than the rows that count.
+    colour (C), one row per entry that blended, grouped by Gaussian (``number_gradient_rows``),
+    and each Gaussian's stretch of rows, to be summed per Gaussian afterwards. The entries that
+    blended are walked back to front (``blended_entries``), each undoing the pairs the forward
+    blended (``blended_rows``, ``blended_pixels``). An entry that blended nothing has no gradient
+    and no row: in a dense view most entries are such (three in four at 50k Gaussians, 128²).
+    With a row for every entry instead, numbered by the binning, the sums read four times the
+    memory, most of it rows never written, and the frame was 5–7 % slower (docs/results.md).
 
     One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]
     real = conics.dtype
-    slot_grads = np.empty((entries.size, 6 + channels))
-    written = np.zeros(entries.size, dtype=np.bool_)
+    gaussian_rows, entry_rows = number_gradient_rows(
+        offsets, entries, blended_entries, blended_counts, means2d.shape[0]
+    )
+    row_grads = np.empty((gaussian_rows[-1], 6 + channels))
     for tile in prange(offsets.size - 1):
         start = offsets[tile]
         ty, tx = tile // tiles_x, tile % tiles_x
@@ -579,7 +606,7 @@ def backward(
             first, final = max(left, bounds[g, 0]) - left, min(right, bounds[g, 1]) - left
             halves = 1 if final - first < NARROW else 2
             window = min(first, TILE - NARROW) if halves == 1 else 0
-            # Sums over this entry's pixels, kept in registers and written to its slot once.
+            # Sums over this entry's pixels, kept in registers and written to its row once.
             entry_sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # mean2d (2), conic (3), opacity
             g_colour_0 = 0.0
             colour_grad[:] = 0.0
@@ -615,13 +642,12 @@ def backward(
                     for j in range(7):
                         lanes[j, i] = 0.0
                 entry_sums = added(entry_sums, lane_sums)
-            slot = slots[k]
-            written[slot] = True
+            row = entry_rows[k]
             for j in range(6):
-                slot_grads[slot, j] = entry_sums[j] * (0.5 if j == 2 or j == 4 else 1.0)  # see pair_geometry_gradients
+                row_grads[row, j] = entry_sums[j] * (0.5 if j == 2 or j == 4 else 1.0)  # see pair_geometry_gradients
             if channels == 1:
-                slot_grads[slot, 6] = g_colour_0
+                row_grads[row, 6] = g_colour_0
             else:
                 for ch in range(channels):
-                    slot_grads[slot, 6 + ch] = colour_grad[ch]
-    return slot_grads, written
+                    row_grads[row, 6 + ch] = colour_grad[ch]
+    return row_grads, gaussian_rows

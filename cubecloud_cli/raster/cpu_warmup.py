@@ -31,7 +31,7 @@ def compile_backward_side() -> None:
 
     index, wide = np.int64, np.float64
     cpu_kernels.backward(
-        np.zeros(1, index), empty(0, dtype=np.int32), empty(0, dtype=np.int32), empty(0, 4, dtype=index),
+        np.zeros(1, index), empty(0, dtype=np.int32), empty(0, 4, dtype=index),
         empty(0, 2), empty(0, 3), empty(0, 1), empty(0), empty(0, dtype=wide), empty(1),
         16, 16, 1, empty(0), empty(0, dtype=np.int32), empty(0, dtype=index), empty(0, dtype=np.int32),
         empty(0, 16, dtype=np.uint16),
@@ -42,8 +42,7 @@ def compile_backward_side() -> None:
         empty(0, 2), empty(0, 3), empty(0),
     )  # fmt: skip
     cpu_binning.sum_per_gaussian(
-        empty(0, 7, dtype=wide), empty(0, dtype=np.bool_), empty(0, dtype=index), empty(0, dtype=index),
-        empty(0, 2), empty(0, 3), empty(0), empty(0, 1),
+        empty(0, 7, dtype=wide), np.zeros(1, index), empty(0, 2), empty(0, 3), empty(0), empty(0, 1),
     )  # fmt: skip
 
 
