@@ -5,7 +5,7 @@ the way issue 21's kernel changes were measured (docs/results.md), where separat
     python bench/kernels_ab.py                          # HEAD against the working tree, bench frame
     python bench/kernels_ab.py --base HEAD~3 --threads 1
     python bench/kernels_ab.py --work work              # and 12 training views of a trained `fast` scene
-    python bench/kernels_ab.py --whole-frame            # whole bench frames, as bench/raster.py times them
+    python bench/kernels_ab.py --whole-frame            # whole frames, as bench/raster.py times them
 
 The revision's `cubecloud_cli` is copied under another name (git archive) into a cache folder, so
 both import side by side. The inputs of the kernels (projection, boxes, binning) are computed
@@ -14,10 +14,11 @@ inputs, in the order base, new, new, base, for --rounds rounds. Prints the media
 percentiles, their ratios (new / base: below 1 is faster) and whether both sides give the same
 bits (image, transmittance, and the gradient rows they write).
 
---whole-frame times instead the bench frame as `bench/raster.py` does (projection, boxes,
-binning, both kernels, the per-Gaussian sums and autograd's work around them) through each
-side's `raster.cpu`: for changes outside the two kernels, whose gain a part's own timing can show
-and the frame not (docs/results.md).
+--whole-frame times instead whole frames as `bench/raster.py` does (projection, boxes, binning,
+both kernels, the per-Gaussian sums and autograd's work around them) through each side's
+`raster.cpu`, on the bench frame and with --work on the trained views: for changes outside the two
+kernels, whose gain a part's own timing can show and the frame not, and for changes to what the
+kernels take (docs/results.md).
 
 Run it twice after changing a kernel: the first process compiles the new kernel, and a kernel
 compiled in the process ran 4-8 % slower than one loaded from numba's cache (docs/results.md).
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import statistics
 import subprocess
 import sys
@@ -86,13 +88,12 @@ def kernel_inputs(means, scales, quaternions, opacities, colours, rotation, tran
     opacities, colours = _numpy(opacities), _numpy(colours)
     bounds, levels = cpu_binning.splat_boxes(means2d, covariances2d, radii, opacities, width, height)
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    offsets, entries, slots, _, _ = cpu_binning.bin_tiles(bounds, depths, tiles_x, tiles_y)
+    offsets, entries = cpu_binning.bin_tiles(bounds, depths, tiles_x, tiles_y)
     background = np.zeros(colours.shape[1], np.float32)
     grad = np.random.default_rng(seed).standard_normal((width * height, colours.shape[1])).astype(np.float32)
     return (
         offsets,
         entries,
-        slots,
         (bounds, means2d, conics, colours, opacities, levels, background),
         width,
         height,
@@ -102,7 +103,7 @@ def kernel_inputs(means, scales, quaternions, opacities, colours, rotation, tran
 
 
 def bench_scene():
-    """``bench/raster.py``'s scene (means, log-scales, quaternions, opacities, colours) and its
+    """``bench/raster.py``'s scene (means, log-scales, quaternions, opacities, colours) and its one
     view (rotation, translation, focal, width, height)."""
     sys.path.insert(0, str(REPOSITORY / "bench"))
     from raster import random_scene
@@ -112,19 +113,49 @@ def bench_scene():
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=128))
     rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
     translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
-    return random_scene(50_000), (rotation, translation, float(cameras.focal), 128, 128)
+    return random_scene(50_000), [(rotation, translation, float(cameras.focal), 128, 128)]
 
 
-def bench_frames():
-    (means, log_scales, quaternions, opacities, colours), view = bench_scene()
-    return [kernel_inputs(means, torch.exp(log_scales), quaternions, opacities, colours, *view, 0)]
+def trained_scene(work: Path, views: int):
+    """The splat trained in ``work`` as ``bench_scene`` gives its scene, and ``views`` of its
+    training views, evenly spaced."""
+    from cubecloud_cli.splat.data import load_scene
+    from cubecloud_cli.splat.ply import read_gaussians_ply
+
+    gaussians = read_gaussians_ply(work / "splat" / "point_cloud.ply")
+    scene = load_scene(work / "export")
+    cameras = scene.cameras
+    opacities = torch.sigmoid(gaussians.opacity_logits).reshape(-1)
+    colours = gaussians.sh_dc[:, 0, :].contiguous()
+    step = max(1, len(scene.train) // views)
+    chosen = [scene.train[number] for number in range(0, len(scene.train), step)[:views]]
+    poses = [
+        (
+            torch.tensor(cameras.rotations[index], dtype=torch.float32),
+            torch.tensor(cameras.translations[index], dtype=torch.float32),
+            float(cameras.focal),
+            int(cameras.width),
+            int(cameras.height),
+        )
+        for index in chosen
+    ]
+    return (gaussians.means, gaussians.log_scales, gaussians.quaternions, opacities, colours), poses
+
+
+def kernel_frames(scene, views):
+    """The compositing kernels' inputs for each view of ``scene``."""
+    means, log_scales, quaternions, opacities, colours = scene
+    return [
+        kernel_inputs(means, torch.exp(log_scales), quaternions, opacities, colours, *view, number)
+        for number, view in enumerate(views)
+    ]
 
 
 def whole_frame(cpu, scene, view):
-    """One forward and backward of the bench frame through ``cpu`` (a side's ``raster.cpu``), as
+    """One forward and backward of a view through ``cpu`` (a side's ``raster.cpu``), as
     ``bench/raster.py`` times it: seconds of the forward (projection and compositing) and of the
     backward, the image, and the scene's gradients."""
-    means, log_scales, quaternions, opacities, colours = (t.clone().requires_grad_(True) for t in scene)
+    means, log_scales, quaternions, opacities, colours = (t.detach().clone().requires_grad_(True) for t in scene)
     rotation, translation, focal, width, height = view
     start = time.perf_counter()
     projected = cpu.project_cpu(means, torch.exp(log_scales), quaternions, rotation, translation, focal, width, height)
@@ -136,67 +167,48 @@ def whole_frame(cpu, scene, view):
     return middle - start, end - middle, image.detach(), grads
 
 
-def compare_whole_frames(base_cpu, new_cpu, rounds: int) -> None:
-    """Both sides' whole bench frames, ABBA, after two frames each that are not timed."""
-    scene, view = bench_scene()
-    results = [whole_frame(cpu, scene, view) for cpu in (base_cpu, new_cpu, base_cpu, new_cpu)]
-    (_, _, image_a, grads_a), (_, _, image_b, grads_b) = results[2:]
-    same_grads = all(torch.equal(a, b) for a, b in zip(grads_a, grads_b))
+def compare_whole_frames(label, base_cpu, new_cpu, scene, views, rounds: int) -> None:
+    """Both sides' whole frames of every view, ABBA, after two rounds that are not timed."""
+    same_image = same_grads = True
+    for view in views:
+        results = [whole_frame(cpu, scene, view) for cpu in (base_cpu, new_cpu, base_cpu, new_cpu)]
+        (_, _, image_a, grads_a), (_, _, image_b, grads_b) = results[2:]
+        same_image &= torch.equal(image_a, image_b)
+        same_grads &= all(torch.equal(a, b) for a, b in zip(grads_a, grads_b))
     times: dict[tuple[str, str], list[float]] = {
         (side, part): [] for side in ("base", "new") for part in ("fwd", "bwd", "frame")
     }
     for _ in range(rounds):
         for side, cpu in (("base", base_cpu), ("new", new_cpu), ("new", new_cpu), ("base", base_cpu)):
-            forward_time, backward_time, _, _ = whole_frame(cpu, scene, view)
+            forward_time = backward_time = 0.0
+            for view in views:
+                forward_seconds, backward_seconds, _, _ = whole_frame(cpu, scene, view)
+                forward_time += forward_seconds
+                backward_time += backward_seconds
             for part, seconds in (
                 ("fwd", forward_time),
                 ("bwd", backward_time),
                 ("frame", forward_time + backward_time),
             ):
-                times[(side, part)].append(1000 * seconds)
-    report("whole bench frame (50 000 random Gaussians, 128²)", times, (torch.equal(image_a, image_b), same_grads))
-
-
-def trained_frames(work: Path, views: int):
-    """``views`` training views, evenly spaced, of the splat trained in ``work``."""
-    from cubecloud_cli.splat.data import load_scene
-    from cubecloud_cli.splat.ply import read_gaussians_ply
-
-    gaussians = read_gaussians_ply(work / "splat" / "point_cloud.ply")
-    scene = load_scene(work / "export")
-    cameras = scene.cameras
-    opacities = torch.sigmoid(gaussians.opacity_logits).reshape(-1)
-    colours = gaussians.sh_dc[:, 0, :].contiguous()
-    frames = []
-    step = max(1, len(scene.train) // views)
-    for number in range(0, len(scene.train), step)[:views]:
-        index = scene.train[number]
-        rotation = torch.tensor(cameras.rotations[index], dtype=torch.float32)
-        translation = torch.tensor(cameras.translations[index], dtype=torch.float32)
-        view = (rotation, translation, float(cameras.focal), int(cameras.width), int(cameras.height), number)
-        frames.append(
-            kernel_inputs(
-                gaussians.means, torch.exp(gaussians.log_scales), gaussians.quaternions, opacities, colours, *view
-            )
-        )
-    return frames
+                times[(side, part)].append(1000 * seconds / len(views))
+    report(label, times, (same_image, same_grads))
 
 
 def same_bits(base, new, frames) -> tuple[bool, bool]:
-    """Whether both sides' forward (image, transmittance) and backward (the gradient rows they
-    write, and which) agree bit for bit on every frame. Unwritten rows hold no value."""
+    """Whether both sides' forward (image, transmittance) and backward (the gradient rows, and
+    each Gaussian's stretch of them) agree bit for bit on every frame."""
     forward_same = backward_same = True
-    for offsets, entries, slots, arrays, width, height, tiles_x, grad in frames:
+    for offsets, entries, arrays, width, height, tiles_x, grad in frames:
         results = []
         for kernels in (base, new):
             forward = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
-            rows, written = kernels.backward(
-                offsets, entries, slots, *arrays, width, height, tiles_x, *forward[1:], grad
+            rows, gaussian_rows = kernels.backward(
+                offsets, entries, *arrays, width, height, tiles_x, *forward[1:], grad
             )
-            results.append((forward[0], forward[1], rows, written))
-        (image_a, t_a, rows_a, written_a), (image_b, t_b, rows_b, written_b) = results
+            results.append((forward[0], forward[1], rows, gaussian_rows))
+        (image_a, t_a, rows_a, owners_a), (image_b, t_b, rows_b, owners_b) = results
         forward_same &= np.array_equal(image_a, image_b) and np.array_equal(t_a, t_b)
-        backward_same &= np.array_equal(written_a, written_b) and np.array_equal(rows_a[written_a], rows_b[written_b])
+        backward_same &= np.array_equal(owners_a, owners_b) and np.array_equal(rows_a, rows_b)
     return forward_same, backward_same
 
 
@@ -208,11 +220,11 @@ def timed_rounds(base, new, frames, rounds: int) -> dict[tuple[str, str], list[f
     for _ in range(rounds):
         for side, kernels in (("base", base), ("new", new), ("new", new), ("base", base)):
             forward_time = backward_time = 0.0
-            for offsets, entries, slots, arrays, width, height, tiles_x, grad in frames:
+            for offsets, entries, arrays, width, height, tiles_x, grad in frames:
                 start = time.perf_counter()
                 forward = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
                 middle = time.perf_counter()
-                kernels.backward(offsets, entries, slots, *arrays, width, height, tiles_x, *forward[1:], grad)
+                kernels.backward(offsets, entries, *arrays, width, height, tiles_x, *forward[1:], grad)
                 forward_time += middle - start
                 backward_time += time.perf_counter() - middle
             times[(side, "fwd")].append(1000 * forward_time / len(frames))
@@ -244,11 +256,9 @@ def main() -> None:
     parser.add_argument(
         "--whole-frame",
         action="store_true",
-        help="time whole bench frames (projection to per-Gaussian sums, autograd included) instead of the kernels",
+        help="time whole frames (projection to per-Gaussian sums, autograd included) instead of the kernels",
     )
     args = parser.parse_args()
-    if args.whole_frame and args.work:
-        parser.error("--whole-frame times the bench frame only: leave out --work")
     numba.set_num_threads(args.threads)
     torch.set_num_threads(args.threads)
 
@@ -256,24 +266,32 @@ def main() -> None:
 
     keep_freed_memory()
     print(f"{args.base} (base) against the working tree (new), {args.threads} threads")
-    if args.whole_frame:
-        base_cpu = importlib.import_module(f"{revision_package(args.base)}.raster.cpu")
-        compare_whole_frames(base_cpu, importlib.import_module("cubecloud_cli.raster.cpu"), args.rounds)
-        return
-    new = importlib.import_module("cubecloud_cli.raster.cpu_kernels")
-    base = importlib.import_module(f"{revision_package(args.base)}.raster.cpu_kernels")
-    sets = [("bench frame (50 000 random Gaussians, 128²)", bench_frames(), args.rounds)]
+    scenes = [("bench frame (50 000 random Gaussians, 128²)", *bench_scene(), args.rounds)]
     if args.work:
-        sets.append(
+        scenes.append(
             (
                 f"{args.views} training views of {args.work}",
-                trained_frames(args.work, args.views),
+                *trained_scene(args.work, args.views),
                 max(3, args.rounds // 4),
             )
         )
-    for label, frames, rounds in sets:
-        same = same_bits(base, new, frames)
-        report(label, timed_rounds(base, new, frames, rounds), same)
+    package = revision_package(args.base)
+    if args.whole_frame:
+        base_cpu = importlib.import_module(f"{package}.raster.cpu")
+        new_cpu = importlib.import_module("cubecloud_cli.raster.cpu")
+        for label, scene, views, rounds in scenes:
+            compare_whole_frames(f"whole frames, {label}", base_cpu, new_cpu, scene, views, rounds)
+        return
+    new = importlib.import_module("cubecloud_cli.raster.cpu_kernels")
+    base = importlib.import_module(f"{package}.raster.cpu_kernels")
+    if "slots" in inspect.signature(base.backward.py_func).parameters:
+        sys.exit(
+            f"{args.base}'s compositing backward still takes the binning's slots (its gradient rows were "
+            "numbered before the forward): compare the two with --whole-frame"
+        )
+    for label, scene, views, rounds in scenes:
+        frames = kernel_frames(scene, views)
+        report(label, timed_rounds(base, new, frames, rounds), same_bits(base, new, frames))
 
 
 if __name__ == "__main__":
