@@ -559,7 +559,7 @@ def backward(
     blended (``blended_rows``, ``blended_pixels``). An entry that blended nothing has no gradient
     and no row: in a dense view most entries are such (three in four at 50k Gaussians, 128²).
     With a row for every entry instead, numbered by the binning, the sums read four times the
-    memory, most of it rows never written, and the frame was 5–7 % slower (docs/results.md).
+    memory, most of it rows never written, and the frame was 3–7 % slower (docs/results.md).
 
     One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]
