@@ -74,32 +74,23 @@ def revision_package(revision: str) -> str:
     return name
 
 
-def kernel_inputs(means, scales, quaternions, opacities, colours, rotation, translation, focal, width, height, seed):
-    """What the compositing kernels take for one view, computed by the working tree's setup."""
-    from cubecloud_cli.raster import cpu_binning, cpu_projection
-    from cubecloud_cli.raster.constants import TILE
-    from cubecloud_cli.raster.cpu import _numpy
-    from cubecloud_cli.raster.projection import dilation
+def view_inputs(scene, view, seed):
+    """What the compositing kernels take for ``view`` of ``scene`` (``raster.cpu.kernel_inputs``,
+    computed by the working tree), and a random gradient of the image."""
+    from cubecloud_cli.raster.cpu import kernel_inputs, project_cpu
 
-    arrays = tuple(_numpy(x) for x in (means, scales, quaternions, rotation, translation))
-    means2d, conics, covariances2d, depths, radii, _ = cpu_projection.project_forward(
-        *arrays, focal, width, height, 0.01, dilation(False), False
+    means, log_scales, quaternions, opacities, colours = scene
+    rotation, translation, focal, width, height = view
+    projected = project_cpu(
+        means, torch.exp(log_scales), quaternions, rotation, translation, focal, width, height, 0.01
     )
-    opacities, colours = _numpy(opacities), _numpy(colours)
-    bounds, levels = cpu_binning.splat_boxes(means2d, covariances2d, radii, opacities, width, height)
-    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    offsets, entries = cpu_binning.bin_tiles(bounds, depths, tiles_x, tiles_y)
-    background = np.zeros(colours.shape[1], np.float32)
+    background = torch.zeros(colours.shape[1])
+    offsets, entries, arrays, tiles_x = kernel_inputs(
+        projected.means2d, projected.conics, colours, opacities, background, projected.covariances2d,
+        projected.radii, projected.depths, width, height,
+    )  # fmt: skip
     grad = np.random.default_rng(seed).standard_normal((width * height, colours.shape[1])).astype(np.float32)
-    return (
-        offsets,
-        entries,
-        (bounds, means2d, conics, colours, opacities, levels, background),
-        width,
-        height,
-        tiles_x,
-        grad,
-    )
+    return offsets, entries, arrays, width, height, tiles_x, grad
 
 
 def bench_scene():
@@ -142,29 +133,29 @@ def trained_scene(work: Path, views: int):
     return (gaussians.means, gaussians.log_scales, gaussians.quaternions, opacities, colours), poses
 
 
-def kernel_frames(scene, views):
-    """The compositing kernels' inputs for each view of ``scene``."""
-    means, log_scales, quaternions, opacities, colours = scene
-    return [
-        kernel_inputs(means, torch.exp(log_scales), quaternions, opacities, colours, *view, number)
-        for number, view in enumerate(views)
-    ]
-
-
 def whole_frame(cpu, scene, view):
-    """One forward and backward of a view through ``cpu`` (a side's ``raster.cpu``), as
-    ``bench/raster.py`` times it: seconds of the forward (projection and compositing) and of the
-    backward, the image, and the scene's gradients."""
-    means, log_scales, quaternions, opacities, colours = (t.detach().clone().requires_grad_(True) for t in scene)
-    rotation, translation, focal, width, height = view
-    start = time.perf_counter()
-    projected = cpu.project_cpu(means, torch.exp(log_scales), quaternions, rotation, translation, focal, width, height)
-    image, _ = cpu.composite_cpu(projected, colours, projected.effective_opacities(opacities), width, height)
-    middle = time.perf_counter()
-    image.sum().backward()
-    end = time.perf_counter()
-    grads = [t.grad for t in (means, log_scales, quaternions, opacities, colours)]
-    return middle - start, end - middle, image.detach(), grads
+    """One frame of ``view`` through ``cpu`` (a side's ``raster.cpu``) as ``bench/raster.py`` times
+    it (``timed_frame``): seconds of the forward (projection and compositing) and of the backward,
+    the image, and the scene's gradients."""
+    from raster import timed_frame
+
+    seconds, _, image, leaves = timed_frame(cpu.project_cpu, cpu.composite_cpu, scene, *view)
+    return seconds[0] + seconds[1], seconds[2], image.detach(), [leaf.grad for leaf in leaves]
+
+
+def abba(base_frames, new_frames, rounds: int) -> dict[tuple[str, str], list[float]]:
+    """Milliseconds per frame of each side's forward and backward, round by round, in the order
+    base, new, new, base; ``*_frames()`` runs a side over every frame, returning its seconds of
+    forward and of backward."""
+    times: dict[tuple[str, str], list[float]] = {
+        (side, part): [] for side in ("base", "new") for part in ("fwd", "bwd")
+    }
+    for _ in range(rounds):
+        for side, frames in (("base", base_frames), ("new", new_frames), ("new", new_frames), ("base", base_frames)):
+            forward_seconds, backward_seconds = frames()
+            times[(side, "fwd")].append(1000 * forward_seconds)
+            times[(side, "bwd")].append(1000 * backward_seconds)
+    return times
 
 
 def compare_whole_frames(label, base_cpu, new_cpu, scene, views, rounds: int) -> None:
@@ -175,22 +166,14 @@ def compare_whole_frames(label, base_cpu, new_cpu, scene, views, rounds: int) ->
         (_, _, image_a, grads_a), (_, _, image_b, grads_b) = results[2:]
         same_image &= torch.equal(image_a, image_b)
         same_grads &= all(torch.equal(a, b) for a, b in zip(grads_a, grads_b))
-    times: dict[tuple[str, str], list[float]] = {
-        (side, part): [] for side in ("base", "new") for part in ("fwd", "bwd", "frame")
-    }
-    for _ in range(rounds):
-        for side, cpu in (("base", base_cpu), ("new", new_cpu), ("new", new_cpu), ("base", base_cpu)):
-            forward_time = backward_time = 0.0
-            for view in views:
-                forward_seconds, backward_seconds, _, _ = whole_frame(cpu, scene, view)
-                forward_time += forward_seconds
-                backward_time += backward_seconds
-            for part, seconds in (
-                ("fwd", forward_time),
-                ("bwd", backward_time),
-                ("frame", forward_time + backward_time),
-            ):
-                times[(side, part)].append(1000 * seconds / len(views))
+
+    def frames(cpu):
+        seconds = np.sum([whole_frame(cpu, scene, view)[:2] for view in views], axis=0) / len(views)
+        return tuple(seconds)
+
+    times = abba(lambda: frames(base_cpu), lambda: frames(new_cpu), rounds)
+    for side in ("base", "new"):
+        times[(side, "frame")] = [f + b for f, b in zip(times[(side, "fwd")], times[(side, "bwd")])]
     report(label, times, (same_image, same_grads))
 
 
@@ -213,23 +196,20 @@ def same_bits(base, new, frames) -> tuple[bool, bool]:
 
 
 def timed_rounds(base, new, frames, rounds: int) -> dict[tuple[str, str], list[float]]:
-    """Milliseconds per frame of each side's forward and backward, round by round, ABBA."""
-    times: dict[tuple[str, str], list[float]] = {
-        (side, part): [] for side in ("base", "new") for part in ("fwd", "bwd")
-    }
-    for _ in range(rounds):
-        for side, kernels in (("base", base), ("new", new), ("new", new), ("base", base)):
-            forward_time = backward_time = 0.0
-            for offsets, entries, arrays, width, height, tiles_x, grad in frames:
-                start = time.perf_counter()
-                forward = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
-                middle = time.perf_counter()
-                kernels.backward(offsets, entries, *arrays, width, height, tiles_x, *forward[1:], grad)
-                forward_time += middle - start
-                backward_time += time.perf_counter() - middle
-            times[(side, "fwd")].append(1000 * forward_time / len(frames))
-            times[(side, "bwd")].append(1000 * backward_time / len(frames))
-    return times
+    """Milliseconds per frame of each side's forward and backward kernels, ABBA."""
+
+    def run(kernels):
+        forward_time = backward_time = 0.0
+        for offsets, entries, arrays, width, height, tiles_x, grad in frames:
+            start = time.perf_counter()
+            forward = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
+            middle = time.perf_counter()
+            kernels.backward(offsets, entries, *arrays, width, height, tiles_x, *forward[1:], grad)
+            forward_time += middle - start
+            backward_time += time.perf_counter() - middle
+        return forward_time / len(frames), backward_time / len(frames)
+
+    return abba(lambda: run(base), lambda: run(new), rounds)
 
 
 def report(label: str, times, same: tuple[bool, bool]) -> None:
@@ -290,7 +270,7 @@ def main() -> None:
             "numbered before the forward): compare the two with --whole-frame"
         )
     for label, scene, views, rounds in scenes:
-        frames = kernel_frames(scene, views)
+        frames = [view_inputs(scene, view, number) for number, view in enumerate(views)]
         report(label, timed_rounds(base, new, frames, rounds), same_bits(base, new, frames))
 
 

@@ -110,37 +110,34 @@ def print_split(splits: dict[str, list[float]]) -> None:
     print(f"  the rest (autograd, torch operators, conversions): {frame - sum(parts.values()):.2f} of {frame:.2f}")
 
 
+def timed_frame(projector, compositor, scene, rotation, translation, focal, width, height, antialias=False):
+    """One forward and backward of ``scene`` (means, log-scales, quaternions, opacities, colours,
+    cloned as leaves) through a backend: seconds of the projection, the compositing and the
+    backward, the projection, the image and the leaves (their ``.grad`` filled)."""
+    inputs = [t.detach().clone().requires_grad_(True) for t in scene]
+    means, log_scales, quaternions, opacities, colours = inputs
+    start = time.perf_counter()
+    projected = projector(
+        means, torch.exp(log_scales), quaternions, rotation, translation, focal, width, height, antialias=antialias
+    )
+    projected_at = time.perf_counter()
+    image, _ = compositor(projected, colours, projected.effective_opacities(opacities), width, height)
+    forward_at = time.perf_counter()
+    image.sum().backward()
+    end = time.perf_counter()
+    return (projected_at - start, forward_at - projected_at, end - forward_at), projected, image, inputs
+
+
 def time_backend(projector, compositor, scene, cameras, width, repeats, antialias=False, splits=None):
-    means, log_scales, quaternions, opacities, colours = scene
     rotation = torch.tensor(cameras.rotations[0], dtype=torch.float32)
     translation = torch.tensor(cameras.translations[0], dtype=torch.float32)
     splits = {} if splits is None else splits
     splits.update({"project": [], "forward": [], "backward": [], "total": []})
     for _ in range(repeats + 1):
-        inputs = [t.clone().requires_grad_(True) for t in (means, log_scales, quaternions, opacities, colours)]
-        start = time.perf_counter()
-        projected = projector(
-            inputs[0],
-            torch.exp(inputs[1]),
-            inputs[2],
-            rotation,
-            translation,
-            float(cameras.focal),
-            width,
-            width,
-            antialias=antialias,
+        seconds, projected, _, _ = timed_frame(
+            projector, compositor, scene, rotation, translation, float(cameras.focal), width, width, antialias
         )
-        projected_at = time.perf_counter()
-        image, _ = compositor(projected, inputs[4], projected.effective_opacities(inputs[3]), width, width)
-        forward_at = time.perf_counter()
-        image.sum().backward()
-        end = time.perf_counter()
-        for key, value in (
-            ("project", projected_at - start),
-            ("forward", forward_at - projected_at),
-            ("backward", end - forward_at),
-            ("total", end - start),
-        ):
+        for key, value in zip(("project", "forward", "backward", "total"), (*seconds, sum(seconds))):
             splits[key].append(value)
     times = {key: 1000 * statistics.median(splits[key][1:]) for key in ("project", "forward", "backward", "total")}
     times["fastest"] = 1000 * min(splits["total"][1:])

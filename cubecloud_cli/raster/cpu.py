@@ -89,16 +89,26 @@ def project_cpu(
     )
 
 
+def kernel_inputs(means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height):
+    """What the compositing kernels take for one view: the tile lists (CSR offsets, entries), the
+    per-Gaussian arrays (pixel boxes, means, conics, colours, opacities, α levels, background) and
+    the tile count across. Also what ``bench/kernels_ab.py`` times the kernels on."""
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    means2d_np, opacities_np = _numpy(means2d), _numpy(opacities)
+    bounds, levels = binning.splat_boxes(
+        means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np, width, height
+    )
+    offsets, entries = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
+    arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
+    return offsets, entries, arrays, tiles_x
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height):
-        tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-        means2d_np, opacities_np = _numpy(means2d), _numpy(opacities)
-        bounds, levels = binning.splat_boxes(
-            means2d_np, _numpy(covariances2d), radii.cpu().numpy(), opacities_np, width, height
+        offsets, entries, arrays, tiles_x = kernel_inputs(
+            means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height
         )
-        offsets, entries = binning.bin_tiles(bounds, _numpy(depths), tiles_x, tiles_y)
-        arrays = (bounds, means2d_np, _numpy(conics), _numpy(colours), opacities_np, levels, _numpy(background))
         image, final_transmittance, *blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
         ctx.saved = (
             offsets,
