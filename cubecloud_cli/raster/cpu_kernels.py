@@ -147,6 +147,28 @@ def narrow_window(columns):
     return min(lowest, TILE - NARROW) if highest - lowest < NARROW else -1
 
 
+# Each tile column as a float of either precision, read by the row loops from read-only data (as
+# LANE_FLAGS is) for a pixel's dx = dx0 + column: one rounding in every row loop. A float counter
+# stepped by one, as the loops kept before, is an induction that ``reassoc`` lets LLVM rewrite as
+# (dx0 + window) + lane: two roundings where the window is not 0, which gave the 8-pixel loop
+# other bits than the 16-pixel one (one ulp of dx, some thirty of a pair's weight through the
+# exp's squarings). A conversion from int32 in each lane also gives one rounding, and made the
+# kernels 4-6 % slower.
+COLUMNS_32 = np.arange(TILE, dtype=np.float32)
+COLUMNS_64 = np.arange(TILE, dtype=np.float64)
+
+
+def column_offset(column, like):
+    """Tile column ``column`` as a number of ``like``'s float type, exactly."""
+    return np.asarray(like).dtype.type(column)
+
+
+@overload(column_offset, inline="always")
+def _column_offset(column, like):
+    table = COLUMNS_32 if like == types.float32 else COLUMNS_64
+    return lambda column, like: table[column]
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def polynomial_falloff(power):
     """exp(−power) of a pair, for Gaussians whose power level is within the polynomial's range."""
@@ -188,10 +210,9 @@ def blend_row(
     transmittance before the stop), so the sign says which pixels are live (``row_masks``)."""
     zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
     min_alpha, stop_level = as_real(MIN_ALPHA, dx0), as_real(TRANSMITTANCE_STOP, dx0)
-    column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
     for lane in range(lanes):
         i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
-        dx = dx0 + column
+        dx = dx0 + column_offset(i, dx0)
         before = transmittance[r, i]
         power, _, alpha = pair_alpha(dx, dy, a, b, c, opacity, falloff)
         valid = (dx >= low) & (dx <= high) & (power <= cut) & (alpha >= min_alpha) & (before > zero)
@@ -202,7 +223,6 @@ def blend_row(
         transmittance[r, i] = -before if stop else (after if blend else before)
         colour[r, i] = fused_multiply_add(weight, colour_0, colour[r, i])
         weights[r, i] = weight
-        column += one
 
 
 @njit(cache=True, inline="always")
@@ -411,12 +431,11 @@ def unblend_grey_row(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b,
     """One Gaussian's gradients over row ``r`` of a tile of one channel, back to front, at the
     columns of the bit mask ``pixels`` (those it blended): the sums for mean2d (2), conic (3),
     opacity and colour. ``behind`` is the colour composited behind it."""
-    zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
+    zero = as_real(0.0, dx0)
     sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
     g_colour = zero
-    column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
-        dx = dx0 + column
+        dx = dx0 + column_offset(i, dx0)
         valid = pixels & LANE_FLAGS[i] != 0
         before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], valid, dx, dy, a, b, c, opacity, falloff
@@ -427,7 +446,6 @@ def unblend_grey_row(transmittance, behind, tile_grad, r, pixels, dx0, dy, a, b,
         g_colour += weight * grad
         behind[r, i] += weight * colour_0
         sums = added(sums, pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c))
-        column += one
     return sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], g_colour
 
 
@@ -440,11 +458,10 @@ def unblend_grey_row_into_lanes(
     of ``lanes`` (7 × 16) instead of summing the row: the entry's sums are then taken across
     lanes once, after its last row, rather than seven times a row. A column's bit is tested in
     int32, as wide as a float32 lane."""
-    zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
-    column = as_real(window, dx0)  # an exact small integer, so dx is one rounding whatever the window
+    zero = as_real(0.0, dx0)
     for lane in range(width):
         i = np.uint64(window + lane)  # unsigned: no wrap-around test, which would keep the loop scalar
-        dx = dx0 + column
+        dx = dx0 + column_offset(i, dx0)
         valid = pixels & LANE_FLAGS[i] != 0
         before, weight, survive, gaussian, raw = unblend_pair(
             transmittance[r, i], valid, dx, dy, a, b, c, opacity, polynomial_falloff
@@ -462,7 +479,6 @@ def unblend_grey_row_into_lanes(
         lanes[4, i] = fused_multiply_add(grad_power, dy_dy, lanes[4, i])
         lanes[5, i] = fused_multiply_add(moving, gaussian, lanes[5, i])
         lanes[6, i] = fused_multiply_add(weight, grad, lanes[6, i])
-        column += one
 
 
 @njit(cache=True, fastmath=FASTMATH, error_model="numpy")
@@ -480,12 +496,10 @@ def unblend_colour_row(
     """``unblend_grey_row`` for several channels (``behind`` and ``tile_grad`` per channel first;
     the colour gradients added into ``colour_grad``; libm's exp where ``exact``). Scalar and out
     of line: RGB scenes are not CT's, and the kernel's first compilation stays short."""
-    zero, one = as_real(0.0, dx0), as_real(1.0, dx0)
+    zero = as_real(0.0, dx0)
     sums = (zero, zero, zero, zero, zero, zero)  # mean2d (2), conic (3), opacity
-    column = zero  # dx as one rounding of dx0 + column, the bits blend_row gives it
     for i in range(TILE):
-        dx = dx0 + column
-        column += one
+        dx = dx0 + column_offset(i, dx0)
         if pixels & LANE_FLAGS[i] == 0:
             continue
         if exact:
