@@ -25,14 +25,14 @@ from pathlib import Path
 CHILD = r"""
 import json, math, resource, sys, time
 import numpy as np, torch
-from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices, voxel_centres
+from cubecloud_cli.cunerf.supervision import TrainingVoxels, holdout_slices, voxel_centres
 from cubecloud_cli.cunerf.model import CubeModel, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.training import Trainer
 from cubecloud_cli.cunerf.grid_init import initialise_from_volume
 from cubecloud_cli.cunerf.api import CunerfField
-from cubecloud_cli.runtime import resolve_device
-from cubecloud_cli.metrics import psnr, volume_metrics
+from cubecloud_cli.core.runtime import resolve_device
+from cubecloud_cli.numerics.metrics import psnr, volume_metrics
 from cubecloud_cli.presets import resolve_cunerf
 
 volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale, preset, grid_init = sys.argv[1:11]

@@ -62,7 +62,7 @@ def time_renders(volume: np.ndarray, manifest: dict, args) -> None:
 def step_trade(volume: np.ndarray, manifest: dict, args) -> None:
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
     from cubecloud_cli.export.transfer import resolve_transfer
-    from cubecloud_cli.metrics import psnr
+    from cubecloud_cli.numerics.metrics import psnr
     from cubecloud_cli.render import GridField, ImageModel, render_views
 
     size = volume.shape[0]

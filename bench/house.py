@@ -17,12 +17,12 @@ sys.path.insert(0, str(ROOT))
 import typer  # noqa: E402
 
 from cubecloud_cli.cli import app  # noqa: E402
+from cubecloud_cli.core.runtime import Runtime  # noqa: E402
 from cubecloud_cli.cunerf import CunerfSettings  # noqa: E402
 from cubecloud_cli.eval import EvalSettings  # noqa: E402
 from cubecloud_cli.export import ExportSettings  # noqa: E402
 from cubecloud_cli.preprocess import PreprocessSettings  # noqa: E402
 from cubecloud_cli.presets import is_preset_key  # noqa: E402
-from cubecloud_cli.runtime import Runtime  # noqa: E402
 from cubecloud_cli.splat.settings import SplatSettings  # noqa: E402
 
 SETTINGS = (PreprocessSettings, CunerfSettings, ExportSettings, SplatSettings, EvalSettings, Runtime)

@@ -77,7 +77,7 @@ def revision_package(revision: str) -> str:
 def view_inputs(scene, view, seed):
     """What the compositing kernels take for ``view`` of ``scene`` (``raster.cpu.kernel_inputs``,
     computed by the working tree), and a random gradient of the image."""
-    from cubecloud_cli.raster.cpu import kernel_inputs, project_cpu
+    from cubecloud_cli.raster.cpu.autograd import kernel_inputs, project_cpu
 
     means, log_scales, quaternions, opacities, colours = scene
     rotation, translation, focal, width, height = view
@@ -110,8 +110,8 @@ def bench_scene():
 def trained_scene(work: Path, views: int):
     """The splat trained in ``work`` as ``bench_scene`` gives its scene, and ``views`` of its
     training views, evenly spaced."""
-    from cubecloud_cli.splat.data import load_scene
-    from cubecloud_cli.splat.ply import read_gaussians_ply
+    from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply
+    from cubecloud_cli.splat.training_views import load_scene
 
     gaussians = read_gaussians_ply(work / "splat" / "point_cloud.ply")
     scene = load_scene(work / "export")
@@ -156,6 +156,15 @@ def abba(base_frames, new_frames, rounds: int) -> dict[tuple[str, str], list[flo
             times[(side, "fwd")].append(1000 * forward_seconds)
             times[(side, "bwd")].append(1000 * backward_seconds)
     return times
+
+
+def revision_module(package: str, name: str, before_the_move: str):
+    """A module of the revision's copy, by its name today or, in a revision from before the CPU
+    kernels moved into ``raster/cpu/``, by the name it had then."""
+    try:
+        return importlib.import_module(f"{package}.{name}")
+    except ModuleNotFoundError:
+        return importlib.import_module(f"{package}.{before_the_move}")
 
 
 def compare_whole_frames(label, base_cpu, new_cpu, scene, views, rounds: int) -> None:
@@ -242,7 +251,7 @@ def main() -> None:
     numba.set_num_threads(args.threads)
     torch.set_num_threads(args.threads)
 
-    from cubecloud_cli.runtime import keep_freed_memory
+    from cubecloud_cli.core.runtime import keep_freed_memory
 
     keep_freed_memory()
     print(f"{args.base} (base) against the working tree (new), {args.threads} threads")
@@ -257,13 +266,13 @@ def main() -> None:
         )
     package = revision_package(args.base)
     if args.whole_frame:
-        base_cpu = importlib.import_module(f"{package}.raster.cpu")
-        new_cpu = importlib.import_module("cubecloud_cli.raster.cpu")
+        base_cpu = revision_module(package, "raster.cpu.autograd", "raster.cpu")
+        new_cpu = importlib.import_module("cubecloud_cli.raster.cpu.autograd")
         for label, scene, views, rounds in scenes:
             compare_whole_frames(f"whole frames, {label}", base_cpu, new_cpu, scene, views, rounds)
         return
-    new = importlib.import_module("cubecloud_cli.raster.cpu_kernels")
-    base = importlib.import_module(f"{package}.raster.cpu_kernels")
+    new = importlib.import_module("cubecloud_cli.raster.cpu.compositing")
+    base = revision_module(package, "raster.cpu.compositing", "raster.cpu_kernels")
     if "slots" in inspect.signature(base.backward.py_func).parameters:
         sys.exit(
             f"{args.base}'s compositing backward still takes the binning's slots (its gradient rows were "

@@ -24,10 +24,10 @@ import time
 import torch
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
+from cubecloud_cli.core.runtime import keep_freed_memory
 from cubecloud_cli.raster import composite, project, splat_pairs
-from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
+from cubecloud_cli.raster.cpu.autograd import composite_cpu, project_cpu
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA
-from cubecloud_cli.runtime import keep_freed_memory
 
 
 def random_scene(count: int, seed: int = 0):
@@ -71,23 +71,23 @@ def useful_pairs(projected, opacities, width, height) -> int:
     return int((alpha >= MIN_ALPHA).sum())
 
 
-# The compiled parts of a numba frame, as cubecloud_cli.raster.cpu calls them (module, name), and
+# The compiled parts of a numba frame, as cubecloud_cli.raster.cpu.autograd calls them (module, name), and
 # what the split calls them.
 FRAME_PARTS = (
-    ("cpu_projection", "project_forward", "projection forward"),
+    ("projection_kernels", "project_forward", "projection forward"),
     ("binning", "splat_boxes", "splat boxes"),
     ("binning", "bin_tiles", "binning"),
-    ("kernels", "forward", "compositing forward"),
-    ("kernels", "backward", "compositing backward"),
+    ("compositing", "forward", "compositing forward"),
+    ("compositing", "backward", "compositing backward"),
     ("binning", "sum_per_gaussian", "per-Gaussian sums"),
-    ("cpu_projection", "project_backward", "projection backward"),
+    ("projection_kernels", "project_backward", "projection backward"),
 )
 
 
 def timed_parts(splits: dict[str, list[float]]) -> None:
-    """Wrap each compiled part where ``cubecloud_cli.raster.cpu`` looks it up, adding its time in
+    """Wrap each compiled part where ``cubecloud_cli.raster.cpu.autograd`` looks it up, adding its time in
     seconds to ``splits[label]`` at every call."""
-    from cubecloud_cli.raster import cpu
+    from cubecloud_cli.raster.cpu import autograd as cpu
 
     for module_name, name, label in FRAME_PARTS:
         module = getattr(cpu, module_name)

@@ -25,14 +25,14 @@ from pathlib import Path
 
 import torch
 
+from cubecloud_cli.core.runtime import keep_freed_memory
 from cubecloud_cli.presets import PRESET_NAMES, resolve
-from cubecloud_cli.runtime import keep_freed_memory
 from cubecloud_cli.scene import read_point_cloud_ply
-from cubecloud_cli.splat.data import load_scene
 from cubecloud_cli.splat.gaussians import gaussians_from_points
 from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.splat.training import SplatTrainer, render
+from cubecloud_cli.splat.trainer import SplatTrainer, render
+from cubecloud_cli.splat.training_views import load_scene
 
 
 def main() -> None:

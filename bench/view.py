@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cubecloud_cli.splat.gaussian_ply import write_gaussians_ply
 from cubecloud_cli.splat.gaussians import Gaussians
-from cubecloud_cli.splat.ply import write_gaussians_ply
 from cubecloud_cli.view.browser import SETTLED_GREY_LEVELS, Chromium, background_in, frame_change
 from cubecloud_cli.view.delivery import COARSE_GAUSSIANS
 from cubecloud_cli.view.server import SceneViewer
@@ -110,12 +110,12 @@ def time_frames(
 def detail_trade(work: Path, percents=(100, 50, 30, 10, 3)) -> None:
     """Held-out PSNR of the splat run drawn with each share of its Gaussians (importance_order),
     rendered by our rasterizer as eval renders it, against the export's reference renders."""
-    from cubecloud_cli.artifacts import read_manifest
+    from cubecloud_cli.core.artifacts import read_manifest
     from cubecloud_cli.eval.runs import SplatRun, load_scored_scene, resolve_scene
-    from cubecloud_cli.metrics import psnr
+    from cubecloud_cli.numerics.metrics import psnr
     from cubecloud_cli.raster.backends import NUMBA
-    from cubecloud_cli.splat.ply import read_gaussians_ply
-    from cubecloud_cli.splat.training import render_camera
+    from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply
+    from cubecloud_cli.splat.trainer import render_camera
     from cubecloud_cli.view.splats import detail_count, importance_order, view_splats
 
     run = SplatRun("splat", work / "splat", read_manifest(work / "splat"))

@@ -31,8 +31,9 @@ import subprocess
 import time
 from pathlib import Path
 
-from cubecloud_cli.artifacts import is_complete as complete
+from cubecloud_cli.cli.cohort import CUBECLOUD_JOBS
 from cubecloud_cli.cohort.job_server import JobServerOnDemand
+from cubecloud_cli.core.artifacts import is_complete as complete
 
 # (run name in eval, setting, images, cameras, initialisation)
 RUNS = (
@@ -166,7 +167,7 @@ def main() -> None:
         help='options every command of a stage gets, e.g. "splat=--iterations 4000"',
     )
     args = parser.parse_args()
-    with JobServerOnDemand() as jobs:
+    with JobServerOnDemand(CUBECLOUD_JOBS) as jobs:
         study = run_study(args, jobs)
     markdown, rows = table(study)
     (args.out / "table_one.md").write_text(markdown)

@@ -51,8 +51,9 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
-from cubecloud_cli.artifacts import is_complete
+from cubecloud_cli.cli.cohort import CUBECLOUD_JOBS
 from cubecloud_cli.cohort.job_server import JobServerOnDemand
+from cubecloud_cli.core.artifacts import is_complete
 
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")
 
@@ -227,7 +228,7 @@ def link_stage(source: Path, work: Path, stage: str, key: tuple) -> None:
 def base_mismatches(base: Path, scan: str | None, preset: str, window: str | None) -> list[str]:
     """Why a finished `cubecloud run` work directory is not the study's base configuration
     (none: it is). It must hold every stage, run on the same scan with the preset's parameters."""
-    from cubecloud_cli.artifacts import read_manifest, sha256_of_path
+    from cubecloud_cli.core.artifacts import read_manifest, sha256_of_path
     from cubecloud_cli.presets import PRESETS, resolve_cunerf
     from cubecloud_cli.sample_data import sample_ct_path
 
@@ -373,7 +374,7 @@ def main() -> None:
     done: dict[tuple, Path] = {}
     rows = []
     base = preset_values(args.preset, extra)
-    with JobServerOnDemand() as jobs:
+    with JobServerOnDemand(CUBECLOUD_JOBS) as jobs:
         for name, overrides in configurations(knobs, base, values):
             work = args.out / name.replace("=", "-")
             commands = stage_commands(args.scan, work, args.preset, args.window, overrides, extra)

@@ -8,8 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cubecloud_cli import adam as adam_module
-from cubecloud_cli.adam import FusedAdam, adam
+from cubecloud_cli.numerics import adam as adam_module
+from cubecloud_cli.numerics.adam import FusedAdam, adam
 
 
 def parameters(seed: int) -> list[torch.Tensor]:
@@ -118,8 +118,8 @@ def test_a_process_that_trains_imports_no_dynamo():
     probe = (
         "import sys\n"
         "import torch\n"
-        "import cubecloud_cli.pipeline\n"  # every stage's module
-        "from cubecloud_cli.adam import adam\n"
+        "import cubecloud_cli.pipeline.runner\n"  # every stage's module
+        "from cubecloud_cli.numerics.adam import adam\n"
         "parameter = torch.zeros(3, requires_grad=True)\n"
         "optimizer = adam([{'params': [parameter], 'lr': 0.1}])\n"
         "parameter.sum().backward()\n"

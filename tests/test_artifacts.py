@@ -3,8 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from cubecloud_cli.artifacts import StageWriter, require_stage, sha256_of_file, stage_dir_name
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.artifacts import StageWriter, require_stage, sha256_of_file, stage_dir_name
+from cubecloud_cli.core.errors import CubecloudError
 
 
 def _write_stage(work, value="a", force=False, name=None):

@@ -303,7 +303,7 @@ def test_a_second_ctrl_c_before_any_checkpoint_leaves_nothing_to_resume(preproce
 
 
 def test_an_interrupt_while_committing_resumes_without_retraining(preprocessed, tmp_path, monkeypatch):
-    from cubecloud_cli.artifacts import StageWriter
+    from cubecloud_cli.core.artifacts import StageWriter
     from cubecloud_cli.cunerf.training import Trainer
 
     work = _copy_preprocess(preprocessed, tmp_path)

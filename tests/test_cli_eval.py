@@ -200,7 +200,7 @@ def test_bad_input(work, tmp_path):
     moved = copy("moved", ("eval", "export"))
     assert_one_line_error(invoke("eval", moved), r"export is gone or has changed")
     nan_run = copy("nan_run")  # the same size, non-finite values
-    from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
+    from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply, write_gaussians_ply
 
     gaussians = read_gaussians_ply(nan_run / "splat" / "point_cloud.ply")
     gaussians.sh_dc[:] = float("nan")

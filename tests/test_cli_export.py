@@ -11,8 +11,8 @@ from cli_helpers import assert_one_line_error, invoke
 from PIL import Image
 from plyfile import PlyData
 
-from cubecloud_cli.export.images import to_uint8
-from cubecloud_cli.metrics import psnr
+from cubecloud_cli.core.pictures import to_uint8
+from cubecloud_cli.numerics.metrics import psnr
 from cubecloud_cli.scene import read_point_cloud_ply
 
 SMALL = ["--resolution", "32", "--views", "9", "--cube", "8", "--points-per-cube", "64", "--max-points", "1500"]
@@ -189,7 +189,7 @@ def test_presets_and_overrides():
 
 
 def test_a_step_as_long_as_the_volume_is_refused():
-    from cubecloud_cli.errors import CubecloudError
+    from cubecloud_cli.core.errors import CubecloudError
     from cubecloud_cli.export import ExportSettings
 
     ExportSettings(step=7.5, cube=4).validate(8)

@@ -7,14 +7,14 @@ import pytest
 import typer
 
 from cubecloud_cli.cli import app
-from cubecloud_cli.cli.fields import build_settings, default_note, field_docs
+from cubecloud_cli.cli.options import build_settings, default_note, field_docs
 from cubecloud_cli.cli.reference import option_annotation
+from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.presets import DEFAULT_PRESET, PRESET_NAMES, is_preset_key, preset_default, preset_note, resolve
-from cubecloud_cli.runtime import Runtime
 from cubecloud_cli.splat.settings import SplatSettings
 
 COMMANDS = typer.main.get_command(app).commands  # type: ignore[attr-defined]

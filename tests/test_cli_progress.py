@@ -1,6 +1,6 @@
 """The terminal progress display every command draws through."""
 
-from cubecloud_cli.cli.progress import PipelineProgress, ProgressBar, stage_bar, stage_progress
+from cubecloud_cli.cli.progress_bar import PipelineProgress, ProgressBar, stage_bar, stage_progress
 
 
 def test_progress_bar_draws_and_ignores_when_disabled(capsys):

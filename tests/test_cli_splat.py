@@ -17,10 +17,10 @@ from cli_helpers import assert_one_line_error, invoke
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
-from cubecloud_cli.splat.data import TrainingScene
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
-from cubecloud_cli.splat.training import SplatTrainer, render
+from cubecloud_cli.splat.trainer import SplatTrainer, render
+from cubecloud_cli.splat.training_views import TrainingScene
 
 # These tests are of the CPU trainer (the numba kernels, bits repeated on resume), also on a
 # machine with a GPU, where --device auto would pick it: tests/test_cuda.py covers the GPU.
@@ -32,7 +32,7 @@ def interrupt_splat_at_step(monkeypatch, step: int, ctrl_c: bool = True) -> None
     """Interrupt training step ``step`` inside its loss: by a real SIGINT (Ctrl-C), which the stage
     handles by saving that step, or with ``ctrl_c=False`` by a bare KeyboardInterrupt, which
     leaves only the last periodic checkpoint."""
-    import cubecloud_cli.splat.training as training
+    import cubecloud_cli.splat.trainer as training
 
     original, calls = training.photometric_loss, []
 
@@ -261,7 +261,7 @@ def test_resume_refuses_another_scene(exported, tmp_path, monkeypatch):
 def test_foreign_images_of_other_kinds(exported, tmp_path, mode, dtype, expected):
     from PIL import Image
 
-    from cubecloud_cli.splat.data import load_scene
+    from cubecloud_cli.splat.training_views import load_scene
 
     scene = tmp_path / "scene"
     shutil.copytree(exported / "export" / "sparse", scene / "sparse")
@@ -310,7 +310,7 @@ def test_degenerate_scenes_are_refused(exported, tmp_path):
 
 def test_a_nan_gaussian_is_culled_not_a_crash():
     from cubecloud_cli.raster import project
-    from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
+    from cubecloud_cli.raster.cpu.autograd import composite_cpu, project_cpu
 
     cameras = orbit_cameras(OrbitSpec(views=2, resolution=16))
     means = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [0.1, 0.1, 0.1]])

@@ -1,5 +1,5 @@
 """The command line reads its options without the stages: `--help` and `--version` import no
-torch, numba or scipy, which took seconds per process (cubecloud_cli/lazy.py)."""
+torch, numba or scipy, which took seconds per process (cubecloud_cli/core/lazy.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import types
 
 import pytest
 
-from cubecloud_cli.lazy import lazy_exports
+from cubecloud_cli.core.lazy import lazy_exports
 
 COMMANDS = ("preprocess", "cunerf", "export", "splat", "eval", "run", "view", "cohort")
 HEAVY = ("torch", "numba", "scipy", "nibabel", "skimage", "viser", "snakemake")

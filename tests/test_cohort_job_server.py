@@ -2,17 +2,20 @@
 (its streams, folder, exit code and one-line errors, the same bits out), a killed job saves and
 stops, and the server goes when its cohort goes."""
 
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
 from cli_helpers import invoke
 
+from cubecloud_cli.cli.cohort import CUBECLOUD_JOBS
 from cubecloud_cli.cohort.job_server import job_server
 
 PLAIN = [sys.executable, "-m", "cubecloud_cli"]
@@ -20,7 +23,7 @@ PLAIN = [sys.executable, "-m", "cubecloud_cli"]
 
 @pytest.fixture(scope="module")
 def server_command():
-    with job_server() as command:
+    with job_server(CUBECLOUD_JOBS) as command:
         yield command
 
 
@@ -119,7 +122,7 @@ def test_the_server_stops_when_the_cohort_that_started_it_is_gone(tmp_path):
         [sys.executable, "-c",
          "import os, subprocess, sys\n"
          f"server = subprocess.Popen([sys.executable, '-m', 'cubecloud_cli.cohort.job_server', {str(socket_path)!r},"
-         " str(os.getpid())], stdout=subprocess.PIPE, text=True)\n"
+         f" str(os.getpid()), {json.dumps(asdict(CUBECLOUD_JOBS))!r}], stdout=subprocess.PIPE, text=True)\n"
          "assert server.stdout.readline().strip() == 'ready'\n"
          "print(server.pid)\n"],
         capture_output=True, text=True, timeout=300,

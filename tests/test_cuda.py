@@ -172,7 +172,7 @@ def test_splat_and_eval_on_cuda_score_as_on_the_cpu(works):
 
 
 def test_volume_ssim_on_cuda_is_the_cpu_one():
-    from cubecloud_cli.metrics import volume_metrics
+    from cubecloud_cli.numerics.metrics import volume_metrics
 
     rng = np.random.default_rng(11)
     reference = rng.random((70, 40, 33)).astype(np.float32)  # 70 slices: more than one pass on the device

@@ -4,7 +4,6 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cubecloud_cli.cunerf.data import TrainingVoxels, voxel_centres
 from cubecloud_cli.cunerf.grid_init import (
     damped_inverse,
     fit_vertex_logits,
@@ -15,6 +14,7 @@ from cubecloud_cli.cunerf.grid_init import (
 )
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.supervision import TrainingVoxels, voxel_centres
 
 coordinates = st.lists(st.floats(-50, 50, allow_nan=False), min_size=2, max_size=6, unique=True).map(sorted)
 
@@ -149,7 +149,7 @@ def test_the_solve_is_finite_never_worse_than_no_solve_and_exact_where_the_rende
 
 
 def test_grid_init_volume_needs_the_grid_model():
-    from cubecloud_cli.errors import CubecloudError
+    from cubecloud_cli.core.errors import CubecloudError
 
     with pytest.raises(CubecloudError, match="--model fast"):
         CunerfSettings(model="cunerf", grid_init="volume").validate()

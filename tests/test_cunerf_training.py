@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices, voxel_centres
 from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.supervision import TrainingVoxels, holdout_slices, voxel_centres
 from cubecloud_cli.cunerf.training import Trainer, adaptive_mse, learning_rate
-from cubecloud_cli.metrics import psnr
+from cubecloud_cli.numerics.metrics import psnr
 
 
 def _settings(**changes) -> CunerfSettings:

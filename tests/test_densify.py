@@ -161,9 +161,9 @@ def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
 
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
     from cubecloud_cli.splat import gaussians_from_points
-    from cubecloud_cli.splat.data import TrainingScene
     from cubecloud_cli.splat.settings import SplatSettings
-    from cubecloud_cli.splat.training import SplatTrainer
+    from cubecloud_cli.splat.trainer import SplatTrainer
+    from cubecloud_cli.splat.training_views import TrainingScene
 
     cameras = orbit_cameras(OrbitSpec(views=4, resolution=16))
     scene = TrainingScene(Path("."), cameras, list("abcd"), torch.rand(4, 16, 16, 1), [1, 2, 3], [0], None)

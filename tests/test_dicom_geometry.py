@@ -14,7 +14,7 @@ from dicom_phantoms import (
 )
 from pydicom.uid import generate_uid
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.volume.dicom import LPS_TO_RAS
 from cubecloud_cli.volume.readers import read_scan
 

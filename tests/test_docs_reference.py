@@ -65,7 +65,9 @@ def slug(heading: str) -> str:
     not a letter, mark, number, connector, hyphen or space removed, and spaces turned into hyphens."""
     text = re.sub(r"!?\[([^\]]*)\]\([^)]*\)", r"\1", heading)  # a link counts by its text
     text = re.sub(r"<[^>]+>", "", text).lower()
-    kept = "".join(c for c in text if c in "- " or unicodedata.category(c)[0] in "LMN" or unicodedata.category(c) == "Pc")
+    kept = "".join(
+        c for c in text if c in "- " or unicodedata.category(c)[0] in "LMN" or unicodedata.category(c) == "Pc"
+    )
     return kept.replace(" ", "-")
 
 
@@ -147,8 +149,14 @@ def test_history_has_an_index_of_its_files():
         ("The paper's Table I, under our protocol", "the-papers-table-i-under-our-protocol"),
         ("The `cunerf_iterations` trade", "the-cunerf_iterations-trade"),
         ("Starting from the volume (`--grid-init volume`)", "starting-from-the-volume---grid-init-volume"),
-        ("Time, each stage (`cubecloud run --device cuda`, bundled CT)", "time-each-stage-cubecloud-run---device-cuda-bundled-ct"),
-        ("The paper's splat: 30 000 iterations at 512², no Gaussian budget", "the-papers-splat-30-000-iterations-at-512²-no-gaussian-budget"),
+        (
+            "Time, each stage (`cubecloud run --device cuda`, bundled CT)",
+            "time-each-stage-cubecloud-run---device-cuda-bundled-ct",
+        ),
+        (
+            "The paper's splat: 30 000 iterations at 512², no Gaussian budget",
+            "the-papers-splat-30-000-iterations-at-512²-no-gaussian-budget",
+        ),
         ("7. Where the code lives", "7-where-the-code-lives"),
     ],
 )

@@ -9,10 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from plyfile import PlyData
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.splat import gaussians_from_points, random_points, read_gaussians_ply, write_gaussians_ply
+from cubecloud_cli.splat.gaussian_ply import attribute_names
 from cubecloud_cli.splat.gaussians import neighbour_log_scales
-from cubecloud_cli.splat.ply import attribute_names
 from cubecloud_cli.splat.spherical_harmonics import SH_C0, SH_C1, rgb_to_sh, sh_to_colour
 
 

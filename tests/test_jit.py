@@ -1,4 +1,4 @@
-"""Every parallel CPU kernel parallelises its prange loops only (cubecloud_cli/jit.py)."""
+"""Every parallel CPU kernel parallelises its prange loops only (cubecloud_cli/numerics/jit.py)."""
 
 import os
 import platform
@@ -16,7 +16,7 @@ from numba.core.registry import CPUDispatcher
 from test_raster import H, W, camera, scene
 
 from cubecloud_cli.cunerf import grid_kernels
-from cubecloud_cli.jit import (
+from cubecloud_cli.numerics.jit import (
     EXACT_FASTMATH,
     FASTMATH,
     PRANGE_ONLY,
@@ -26,15 +26,15 @@ from cubecloud_cli.jit import (
     positive_lanes_16,
     prefetch,
 )
-from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
 from cubecloud_cli.raster.constants import TILE
-from cubecloud_cli.raster.cpu import _numpy, project_cpu
+from cubecloud_cli.raster.cpu import binning, compositing, projection_kernels
+from cubecloud_cli.raster.cpu.autograd import _numpy, project_cpu
 from cubecloud_cli.splat import smoothing
 
 
 def test_parallel_kernels_convert_no_numpy_call_into_a_loop_of_its_own():
     parallel = {}
-    for module in (cpu_binning, cpu_kernels, cpu_projection, grid_kernels, smoothing):
+    for module in (binning, compositing, projection_kernels, grid_kernels, smoothing):
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value.targetoptions.get("parallel"):
                 parallel[f"{module.__name__}.{name}"] = value.targetoptions["parallel"]
@@ -46,7 +46,7 @@ def test_parallel_kernels_convert_no_numpy_call_into_a_loop_of_its_own():
 def test_as_real_keeps_a_kernels_arithmetic_in_its_inputs_precision():
     from numba import njit
 
-    from cubecloud_cli.jit import as_real
+    from cubecloud_cli.numerics.jit import as_real
 
     @njit
     def scaled(values):
@@ -63,7 +63,7 @@ def test_as_real_keeps_a_kernels_arithmetic_in_its_inputs_precision():
 @pytest.mark.parametrize("dtype, step", [(np.float64, 2.0**-30), (np.float32, 2.0**-13)])
 def test_fused_multiply_add_rounds_once(dtype, step):
     """(1 + s)² − 1 = 2s + s²: the product alone rounds s² away, the fused operation keeps it."""
-    from cubecloud_cli.jit import fused_multiply_add
+    from cubecloud_cli.numerics.jit import fused_multiply_add
 
     @njit
     def fused(a, b, c):
@@ -126,9 +126,9 @@ def test_prefetch_is_a_hint_that_changes_nothing_and_never_faults():
 
 def test_no_kernel_lets_llvm_fuse_multiply_and_add():
     """``contract`` (FMA) rounded the copy of a prange loop that a kernel compiled in the process
-    runs otherwise than the copy a kernel loaded from the cache runs (cubecloud_cli/jit.py)."""
+    runs otherwise than the copy a kernel loaded from the cache runs (cubecloud_cli/numerics/jit.py)."""
     flags = {}
-    for module in (cpu_binning, cpu_kernels, cpu_projection, grid_kernels, smoothing):
+    for module in (binning, compositing, projection_kernels, grid_kernels, smoothing):
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value.targetoptions.get("fastmath"):
                 flags[f"{module.__name__}.{name}"] = value.targetoptions["fastmath"]
@@ -143,13 +143,13 @@ FRESH_OR_CACHED = """
 import hashlib, sys
 import numpy as np
 from cubecloud_cli.cunerf import grid_kernels
-from cubecloud_cli.raster import cpu_kernels
+from cubecloud_cli.raster.cpu import compositing
 inputs = np.load(sys.argv[1])
 forward = [inputs[f"forward_{i}"] for i in range(9)]
 grey = forward[:5] + [np.ascontiguousarray(forward[5][:, :1])] + forward[6:]  # narrow rows: grey only
 mlp = grid_kernels.mlp_forward(*[inputs[f"mlp_{i}"] for i in range(5)])
 for colours in (forward, grey):
-    image, transmittance, listed, counts, rows, pixels = cpu_kernels.forward(*colours, *inputs["sizes"])
+    image, transmittance, listed, counts, rows, pixels = compositing.forward(*colours, *inputs["sizes"])
     recorded = np.where((rows[:, None] >> np.arange(16)) & 1 == 1, pixels, 0)  # the rest is never written
     offsets = colours[0]
     walked = np.concatenate([listed[start : start + n] for start, n in zip(offsets[:-1], counts)])
@@ -169,8 +169,8 @@ def _binned_scene():
     )
     effective = _numpy(projected.effective_opacities(opacities))
     means2d, tiles_x = _numpy(projected.means2d), -(-W // TILE)
-    bounds, levels = cpu_binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
-    offsets, entries = cpu_binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
+    bounds, levels = binning.splat_boxes(means2d, _numpy(projected.covariances2d), projected.radii.numpy(), effective, W, H)  # fmt: skip
+    offsets, entries = binning.bin_tiles(bounds, _numpy(projected.depths), tiles_x, -(-H // TILE))
     per_gaussian = (bounds, means2d, _numpy(projected.conics), _numpy(colours), effective, levels)
     return offsets, entries, per_gaussian, tiles_x
 
@@ -211,22 +211,22 @@ def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_
 BACKWARD_FRESH_OR_CACHED = """
 import hashlib, sys
 import numpy as np
-from cubecloud_cli.raster import cpu_kernels
+from cubecloud_cli.raster.cpu import compositing
 inputs = np.load(sys.argv[1])
 width, height, tiles_x = inputs["sizes"]
 head, tail = [inputs[f"head_{i}"] for i in range(9)], [inputs[f"tail_{i}"] for i in range(6)]
-row_grads, gaussian_rows = cpu_kernels.backward(*head, width, height, tiles_x, *tail)
+row_grads, gaussian_rows = compositing.backward(*head, width, height, tiles_x, *tail)
 print(hashlib.sha256(np.ascontiguousarray(row_grads).tobytes() + gaussian_rows.tobytes()).hexdigest())
 """
 
 
 def test_the_compositing_backward_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
     """As above for the compositing backward, on one frame's gradients: its conic terms, as
-    products of three factors, were grouped one way in each copy (cpu_kernels.pair_geometry_gradients)."""
+    products of three factors, were grouped one way in each copy (compositing.pair_geometry_gradients)."""
     offsets, entries, (bounds, means2d, conics, colours, effective, levels), tiles_x = _binned_scene()
     grey = np.ascontiguousarray(colours[:, :1])  # training's case (CT), whose rows take the vector loops
     arrays = (bounds, means2d, conics, grey, effective, levels, np.zeros(1, np.float32))
-    _, transmittance, *blended = cpu_kernels.forward(offsets, entries, *arrays, W, H, tiles_x)
+    _, transmittance, *blended = compositing.forward(offsets, entries, *arrays, W, H, tiles_x)
     grad = np.random.default_rng(0).standard_normal((W * H, 1)).astype(np.float32)
     head, tail = (offsets, entries, *arrays), (transmittance, *blended, grad)
     inputs = {f"head_{i}": a for i, a in enumerate(head)} | {f"tail_{i}": a for i, a in enumerate(tail)}
@@ -258,9 +258,9 @@ def test_a_narrow_row_of_the_compositing_kernels_vectorizes():
 
     @njit(fastmath=FASTMATH)
     def narrow_row(transmittance, colour, weights, window):
-        return cpu_kernels.blend_row(
-            transmittance, colour, weights, 0, window, cpu_kernels.NARROW, real(-8.0), real(8.0), real(-4.5),
-            real(0.3), real(0.2), real(0.01), real(0.2), real(5.0), real(0.5), real(1.0), cpu_kernels.polynomial_falloff,
+        return compositing.blend_row(
+            transmittance, colour, weights, 0, window, compositing.NARROW, real(-8.0), real(8.0), real(-4.5),
+            real(0.3), real(0.2), real(0.01), real(0.2), real(5.0), real(0.5), real(1.0), compositing.polynomial_falloff,
         )  # fmt: skip
 
     narrow_row(np.ones((TILE, TILE), real), np.zeros((TILE, TILE), real), np.zeros((TILE, TILE), real), 3)

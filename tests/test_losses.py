@@ -3,7 +3,7 @@
 import torch
 import torch.nn.functional as F
 
-from cubecloud_cli.metrics import gaussian_window
+from cubecloud_cli.numerics.metrics import gaussian_window
 from cubecloud_cli.splat.losses import photometric_loss, training_ssim
 
 

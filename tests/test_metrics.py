@@ -11,8 +11,8 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from skimage.metrics import structural_similarity
 
-from cubecloud_cli import metrics as metrics_module
-from cubecloud_cli.metrics import SSIM_RADIUS, ssim, ssim_and_masked, ssim_maps, volume_metrics
+from cubecloud_cli.numerics import metrics as metrics_module
+from cubecloud_cli.numerics.metrics import SSIM_RADIUS, ssim, ssim_and_masked, ssim_maps, volume_metrics
 
 
 def skimage_map(reference: np.ndarray, estimate: np.ndarray) -> np.ndarray:

@@ -8,9 +8,9 @@ import torch
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet
-from cubecloud_cli.eval.novel import NovelTest, angle_bin, annotate, pictured_views, summarize_novel
-from cubecloud_cli.eval.report import cell_table
-from cubecloud_cli.export.novel import pixel_area_render, subpixel_points
+from cubecloud_cli.eval.novel_scores import NovelTest, angle_bin, annotate, pictured_views, summarize_novel
+from cubecloud_cli.eval.outputs import cell_table
+from cubecloud_cli.export.novel_references import pixel_area_render, subpixel_points
 from cubecloud_cli.render import GridField, ImageModel, TransferFunction, render_view
 
 

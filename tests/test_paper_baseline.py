@@ -9,10 +9,10 @@ import pytest
 from cli_helpers import assert_one_line_error, invoke
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, stack_cameras, stack_offsets
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.render import GridField, ImageModel, render_views
-from cubecloud_cli.splat.data import TrainingScene
+from cubecloud_cli.splat.training_views import TrainingScene
 
 
 @pytest.mark.parametrize("axis, looking", [("lr", (1, 0, 0)), ("ap", (0, -1, 0)), ("si", (0, 0, 1))])
@@ -81,7 +81,7 @@ def test_a_stack_slices_sagittally_unless_told_otherwise():
 
 
 def test_run_accepts_exports_made_before_the_cameras_option():
-    from cubecloud_cli.pipeline import _differences
+    from cubecloud_cli.pipeline.runner import _differences
 
     assert _differences({"views": 60}, {"views": 60, "cameras": "orbit"}) == []
     assert _differences({"views": 60}, {"views": 60, "cameras": "stack"}) == ["cameras: 'orbit' -> 'stack'"]

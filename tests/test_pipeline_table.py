@@ -1,6 +1,6 @@
 """run_stages, the loop over the stage table, with stand-in stages: what is skipped, resumed and redone."""
 
-from cubecloud_cli.pipeline import PipelineStage, run_stages
+from cubecloud_cli.pipeline.runner import PipelineStage, run_stages
 
 
 def table(tmp_path, current: set[str], checkpoints: set[str] = frozenset(), ran: list | None = None):

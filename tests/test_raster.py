@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster import composite, covariances, project
 from cubecloud_cli.raster.backends import NUMBA, TORCH
-from cubecloud_cli.raster.cpu import composite_cpu
-from cubecloud_cli.raster.cpu_binning import stable_depth_order
+from cubecloud_cli.raster.cpu.autograd import composite_cpu
+from cubecloud_cli.raster.cpu.binning import stable_depth_order
 from cubecloud_cli.raster.pairs import MAX_ALPHA, MIN_ALPHA, TRANSMITTANCE_STOP
 
 COMPOSITORS = {"torch": composite, "numba": composite_cpu}

@@ -17,13 +17,13 @@ from hypothesis import strategies as st
 from numba import njit
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-from cubecloud_cli.jit import FASTMATH
+from cubecloud_cli.numerics.jit import FASTMATH
 from cubecloud_cli.raster import project
 from cubecloud_cli.raster.backends import GSPLAT, NUMBA, TORCH, gsplat_available, gsplat_inputs, rasterizer_for
 from cubecloud_cli.raster.constants import TILE
-from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
-from cubecloud_cli.raster.cpu_binning import alpha_level, bin_tiles, natural_log, splat_boxes, sum_per_gaussian
-from cubecloud_cli.raster.cpu_kernels import (
+from cubecloud_cli.raster.cpu.autograd import composite_cpu, project_cpu
+from cubecloud_cli.raster.cpu.binning import alpha_level, bin_tiles, natural_log, splat_boxes, sum_per_gaussian
+from cubecloud_cli.raster.cpu.compositing import (
     NARROW,
     blend_row,
     exp_negative,

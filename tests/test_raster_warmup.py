@@ -8,13 +8,13 @@ import sys
 import numba
 from cli_helpers import invoke
 
-from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
-from cubecloud_cli.raster.cpu_warmup import BackwardCompile, compile_backward_side
+from cubecloud_cli.raster.cpu import binning, compositing, projection_kernels
+from cubecloud_cli.raster.cpu.backward_compile import BackwardCompile, compile_backward_side
 
 BACKWARD_KERNELS = {
-    (cpu_kernels, "backward"): "composite backward",
-    (cpu_projection, "project_backward"): "projection backward",
-    (cpu_binning, "sum_per_gaussian"): "per-Gaussian sums",
+    (compositing, "backward"): "composite backward",
+    (projection_kernels, "project_backward"): "projection backward",
+    (binning, "sum_per_gaussian"): "per-Gaussian sums",
 }
 
 
@@ -52,11 +52,11 @@ def test_the_helper_compiles_the_backward_signatures_that_training_calls(tmp_pat
 
 
 def test_the_helper_runs_as_its_own_process():
-    helper = subprocess.run([sys.executable, "-m", "cubecloud_cli.raster.cpu_warmup"], timeout=600)
+    helper = subprocess.run([sys.executable, "-m", "cubecloud_cli.raster.cpu.backward_compile"], timeout=600)
     assert helper.returncode == 0
 
 
 def test_no_helper_once_this_process_has_the_backward_compiled():
     compile_backward_side()  # as a first splat run in this process would have
-    assert cpu_kernels.backward.signatures
+    assert compositing.backward.signatures
     assert BackwardCompile.start() is None

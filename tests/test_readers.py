@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import body_phantom, shared_scan, write_nifti
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.volume.readers import read_scan
 
 

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from cubecloud_cli.runtime import Runtime, keep_freed_memory
+from cubecloud_cli.core.runtime import Runtime, keep_freed_memory
 
 
 def _faults_over_steps(steps: int) -> int:

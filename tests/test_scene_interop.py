@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from plyfile import PlyData
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.scene import (
     opengl_camera_to_world,
     quaternion_to_rotation,

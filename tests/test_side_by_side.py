@@ -9,16 +9,16 @@ import numba
 import pytest
 from cli_helpers import invoke
 
-from cubecloud_cli import side_by_side
-from cubecloud_cli.cli.fields import build_settings
+from cubecloud_cli.cli.options import build_settings
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.cunerf import CunerfSettings
-from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
-from cubecloud_cli.pipeline import run_stages, stage_table
+from cubecloud_cli.pipeline import side_by_side
+from cubecloud_cli.pipeline.runner import run_stages, stage_table
+from cubecloud_cli.pipeline.side_by_side import available_cores, threads_each, without_main_module
 from cubecloud_cli.preprocess import PreprocessSettings
-from cubecloud_cli.runtime import Runtime
-from cubecloud_cli.side_by_side import available_cores, threads_each, without_main_module
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras
 from cubecloud_cli.raster.backends import NUMBA, TORCH
+from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply, write_gaussians_ply
 from cubecloud_cli.splat.gaussians import Gaussians
-from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
 from cubecloud_cli.splat.smoothing import (
     FILTER_SCALE,
     filter_variances,
@@ -20,7 +20,7 @@ from cubecloud_cli.splat.smoothing import (
     smoothed_scales,
     smoothing_attenuation,
 )
-from cubecloud_cli.splat.training import render_camera
+from cubecloud_cli.splat.trainer import render_camera
 
 
 def two_cameras_on_z(near: float, far: float, focal: float = 100.0) -> PinholeCameras:

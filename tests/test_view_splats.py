@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.raster.projection import dilation, project
+from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply, write_gaussians_ply
 from cubecloud_cli.splat.gaussians import Gaussians
-from cubecloud_cli.splat.ply import read_gaussians_ply, write_gaussians_ply
 from cubecloud_cli.view.splats import (
     FLOAT16_MAX,
     ViewSplats,

@@ -5,9 +5,9 @@ argument types), and when it starts only where a stage will compile them."""
 import subprocess
 import sys
 
-from cubecloud_cli.pipeline import PipelineStage, _kernels_ahead
+from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob
+from cubecloud_cli.pipeline.runner import PipelineStage, _kernels_ahead
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.warmup import Warmup, WarmupJob
 
 # In a process of its own, so that no kernel compiled by another test hides one the helper
 # missed: compile ahead, note every kernel's signatures, run the stages as `run` does, and print
@@ -16,15 +16,15 @@ SCRIPT = r"""
 import sys
 from pathlib import Path
 from numba.core.registry import CPUDispatcher
-from cubecloud_cli import pipeline
+from cubecloud_cli.pipeline import runner as pipeline
 from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.preprocess import PreprocessSettings
-from cubecloud_cli.runtime import Runtime
+from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.sample_data import sample_ct_path
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.warmup import Warmup, WarmupJob, warm_up
+from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, warm_up
 
 def signatures():
     found = {}
@@ -84,13 +84,13 @@ def test_the_helper_takes_the_kernels_of_the_stages_that_will_run_and_only_behin
 
 
 def test_only_runs_long_enough_to_repay_the_helper_compile_ahead(tmp_path):
+    from cubecloud_cli.core.runtime import Runtime
     from cubecloud_cli.cunerf import CunerfSettings
     from cubecloud_cli.eval import EvalSettings
     from cubecloud_cli.export import ExportSettings
-    from cubecloud_cli.pipeline import stage_table
+    from cubecloud_cli.pipeline.kernels_ahead import MIN_ITERATIONS
+    from cubecloud_cli.pipeline.runner import stage_table
     from cubecloud_cli.preprocess import PreprocessSettings
-    from cubecloud_cli.runtime import Runtime
-    from cubecloud_cli.warmup import MIN_ITERATIONS
 
     def splat_compiles(iterations: int):
         stages = stage_table(

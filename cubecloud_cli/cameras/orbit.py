@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cubecloud_cli.cameras.pinhole import PinholeCameras
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 # Orbit axis and the direction of the first camera from the origin, in RAS world coordinates.
 ORBIT_AXES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {

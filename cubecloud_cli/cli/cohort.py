@@ -29,13 +29,23 @@ from cubecloud_cli.cli.common import (
     configure_logging,
     reports_errors,
 )
-from cubecloud_cli.cli.fields import settings_option
+from cubecloud_cli.cli.options import settings_option
+from cubecloud_cli.cohort.job_server import JobEntry
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.cunerf import CunerfSettings
-from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.presets import DEFAULT_PRESET
 from cubecloud_cli.splat.settings import SplatSettings
 
 log = logging.getLogger("cubecloud")
+
+# What the cohort's job server on this machine runs: this command line, with the stages and eval's
+# comparison imported once ahead of the jobs (torch, numba), which the command line itself imports
+# only when a stage runs.
+CUBECLOUD_JOBS = JobEntry(
+    program="cubecloud",
+    main="cubecloud_cli.cli:main",
+    preload=("cubecloud_cli.cli", "cubecloud_cli.eval.compare", "cubecloud_cli.pipeline.runner"),
+)
 
 ScansArgument = Annotated[
     Optional[list[Path]],
@@ -114,7 +124,7 @@ def cohort_command(
 
       cubecloud cohort scans/ -o out --profile examples/slurm
     """
-    from cubecloud_cli.cohort.run import run_cohort, scan_list
+    from cubecloud_cli.cohort.workflow import run_cohort, scan_list
 
     configure_logging(quiet)
     given = {"size": size, "fit": fit, "window": window, "hu_min": hu_min, "hu_max": hu_max, "modality": modality,
@@ -128,4 +138,4 @@ def cohort_command(
             run_options += [f"--{name.replace('_', '-')}", str(value)]
     if cores < 1:
         raise CubecloudError(f"--cores {cores} must be at least 1")
-    run_cohort(scan_list(scans or [], scans_csv), output, run_options, cores, executor, profile, jobs)
+    run_cohort(scan_list(scans or [], scans_csv), output, run_options, CUBECLOUD_JOBS, cores, executor, profile, jobs)

@@ -10,13 +10,13 @@ from typing import Annotated, Callable, Literal, Optional, TypeVar
 
 import typer
 
-from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.cli.options import build_settings, settings_option
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.runtime import DEVICES, Runtime
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.preprocess.settings import Fit, Interpolation, Modality, PreprocessSettings
 from cubecloud_cli.presets import PRESET_NAMES
 from cubecloud_cli.render.image_model_names import IMAGE_MODELS
-from cubecloud_cli.runtime import DEVICES, Runtime
 from cubecloud_cli.sample_data import SAMPLE_CT_ATTRIBUTION, sample_ct_path
 from cubecloud_cli.volume.intensity import CT_WINDOWS, WINDOW_NAMES
 

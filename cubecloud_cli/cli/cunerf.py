@@ -8,7 +8,6 @@ from typing import Annotated, Literal, Optional
 
 import typer
 
-from cubecloud_cli.artifacts import stage_dir_name
 from cubecloud_cli.cli.common import (
     DeviceOption,
     ForceOption,
@@ -20,8 +19,9 @@ from cubecloud_cli.cli.common import (
     reports_errors,
     runtime_from_options,
 )
-from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import stage_bar
+from cubecloud_cli.cli.options import build_settings, settings_option
+from cubecloud_cli.cli.progress_bar import stage_bar
+from cubecloud_cli.core.artifacts import stage_dir_name
 from cubecloud_cli.cunerf.settings import DENSITY_ACTIVATIONS, CunerfSettings, GridInit, Model, TrainLayout
 from cubecloud_cli.presets import DEFAULT_PRESET
 

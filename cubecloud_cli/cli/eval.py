@@ -17,11 +17,11 @@ from cubecloud_cli.cli.common import (
     reports_errors,
     runtime_from_options,
 )
-from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import stage_bar
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.cli.options import build_settings, settings_option
+from cubecloud_cli.cli.progress_bar import stage_bar
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.eval.settings import EvalSettings
-from cubecloud_cli.runtime import Runtime
 
 log = logging.getLogger("cubecloud")
 

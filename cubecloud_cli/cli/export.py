@@ -8,7 +8,6 @@ from typing import Annotated, Literal, Optional
 
 import typer
 
-from cubecloud_cli.artifacts import stage_dir_name
 from cubecloud_cli.cameras import ORBIT_AXES
 from cubecloud_cli.cli.common import (
     DeviceOption,
@@ -23,8 +22,9 @@ from cubecloud_cli.cli.common import (
     reports_errors,
     runtime_from_options,
 )
-from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import stage_bar
+from cubecloud_cli.cli.options import build_settings, settings_option
+from cubecloud_cli.cli.progress_bar import stage_bar
+from cubecloud_cli.core.artifacts import stage_dir_name
 from cubecloud_cli.export.settings import CameraPath, ExportSettings, RenderSource
 from cubecloud_cli.export.transfer import TRANSFER_PRESETS
 from cubecloud_cli.presets import DEFAULT_PRESET

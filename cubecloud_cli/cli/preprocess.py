@@ -27,7 +27,7 @@ from cubecloud_cli.cli.common import (
     reports_errors,
     scan_or_sample,
 )
-from cubecloud_cli.cli.progress import stage_bar
+from cubecloud_cli.cli.progress_bar import stage_bar
 from cubecloud_cli.presets import DEFAULT_PRESET
 
 log = logging.getLogger("cubecloud")

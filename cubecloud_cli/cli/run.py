@@ -10,7 +10,6 @@ from typing import Annotated, Optional
 
 import typer
 
-from cubecloud_cli.artifacts import read_manifest
 from cubecloud_cli.cli.common import (
     DeviceOption,
     FitOption,
@@ -41,9 +40,10 @@ from cubecloud_cli.cli.common import (
 )
 from cubecloud_cli.cli.cunerf import describe_metrics
 from cubecloud_cli.cli.export import describe_export
-from cubecloud_cli.cli.fields import build_settings, settings_option
-from cubecloud_cli.cli.progress import PipelineProgress, stage_bar
+from cubecloud_cli.cli.options import build_settings, settings_option
+from cubecloud_cli.cli.progress_bar import PipelineProgress, stage_bar
 from cubecloud_cli.cli.splat import describe_splat
+from cubecloud_cli.core.artifacts import read_manifest
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.export.settings import ExportSettings
@@ -117,7 +117,7 @@ def run_command(
         volume_index=volume_index,
         series=series,
     )
-    from cubecloud_cli.pipeline import only_stage, run_stages, stage_table  # the stages: torch
+    from cubecloud_cli.pipeline.runner import only_stage, run_stages, stage_table  # the stages: torch
 
     cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})
@@ -160,7 +160,7 @@ def _report(outcomes: list, output: Path, wall_seconds: float, whole: bool = Tru
     log.info(f"splat: {describe_splat(read_manifest(Path(output) / 'splat'))}")
     log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
-    from cubecloud_cli.eval.report import table_rows
+    from cubecloud_cli.eval.outputs import table_rows
 
     table = "\n".join(table_rows(results))
     log.info(

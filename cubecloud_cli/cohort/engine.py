@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cubecloud_cli.cohort.scans import CohortScan
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 SNAKEFILE = Path(__file__).with_name("Snakefile")
 STAGES = ("preprocess", "cunerf", "export", "splat", "splat-random", "eval")

@@ -3,8 +3,11 @@ stages) once and forks a child for each job that job_client.py hands it, so that
 spend 2–3 s starting Python and importing torch. Thirty jobs of five scans paid that 30 times.
 The studies in examples/ (table_one.py, trade_study.py) start their stages through it too.
 
-A forked child is the job: it takes the client's standard streams (passed over the socket), folder
-and environment, runs ``cubecloud ARGS...`` and sends its exit code back. The server runs nothing of
+What the jobs run is passed in (:class:`JobEntry`: a program's ``main`` and the modules to import
+ahead), so that this module knows nothing of the command line above it; the cohort passes
+cubecloud's (``cubecloud_cli/cli/cohort.py``). A forked child is the job: it takes the client's
+standard streams (passed over the socket), folder and environment, runs ``main`` with the client's
+arguments and sends its exit code back. The server runs nothing of
 torch or numba itself, so it holds no thread pool that a fork would break, and each job sets its own
 thread count as a fresh process would. If the client dies (a killed job), the child is interrupted
 as Ctrl-C would: the stage saves its checkpoint and stops. The server stops when the cohort that
@@ -14,6 +17,7 @@ started it does. The socket lives in a folder only this user can enter.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import os
 import shutil
@@ -26,14 +30,31 @@ import tempfile
 import threading
 import time
 import traceback
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 READY = "ready"
 STARTUP_SECONDS = 120.0  # importing torch on a cold, busy machine
 JOB_EXIT_SECONDS = 5.0  # a finished job's process flushing and exiting
+
+
+@dataclass(frozen=True)
+class JobEntry:
+    """What a job server's jobs run, named by module paths because the server is a process of its
+    own: ``main`` ("module:function") is called with ``sys.argv`` = [``program``, *the client's
+    arguments*], and ``preload`` lists the modules the server imports once, before the first job,
+    which is what each job then saves."""
+
+    program: str
+    main: str
+    preload: tuple[str, ...] = ()
+
+    def load_main(self) -> Callable[[], object]:
+        module, _, function = self.main.partition(":")
+        return getattr(importlib.import_module(module), function)
 
 
 def _receive_request(connection: socket.socket) -> tuple[dict, list[int]]:
@@ -71,7 +92,9 @@ def _interrupt_when_client_leaves(connection: socket.socket) -> None:
     os.kill(os.getpid(), signal.SIGINT)
 
 
-def _run_job(listener: socket.socket, connection: socket.socket, request: dict, fds: list[int]) -> None:
+def _run_job(
+    entry: JobEntry, listener: socket.socket, connection: socket.socket, request: dict, fds: list[int]
+) -> None:
     """In the forked child: become the job, run it, report its exit code. Never returns."""
     code = 1
     try:
@@ -90,9 +113,8 @@ def _run_job(listener: socket.socket, connection: socket.socket, request: dict, 
         os.environ.update(request["env"])
         connection.sendall(f"pid {os.getpid()}\n".encode())
         threading.Thread(target=_interrupt_when_client_leaves, args=(connection,), daemon=True).start()
-        sys.argv = ["cubecloud", *request["argv"]]
-        from cubecloud_cli.cli import main
-
+        sys.argv = [entry.program, *request["argv"]]
+        main = entry.load_main()
         try:
             main()
             code = 0
@@ -142,17 +164,11 @@ def _wait_for_jobs(seconds: float) -> None:
             return
 
 
-def warm_imports() -> None:
-    """Import what every job would otherwise import for itself, without starting a thread: the CLI
-    and the stages (torch, numba), which the CLI itself imports only when a stage runs."""
-    import cubecloud_cli.cli  # noqa: F401
-    import cubecloud_cli.eval.compare  # noqa: F401  (eval --compare)
-    import cubecloud_cli.pipeline  # noqa: F401  (every stage's module, eval's report among them)
-
-
-def serve(path: str, parent: int) -> None:
-    """Accept jobs at ``path`` until ``parent``, the cohort that started the server, is gone."""
-    warm_imports()
+def serve(entry: JobEntry, path: str, parent: int) -> None:
+    """Accept jobs at ``path`` until ``parent``, the cohort that started the server, is gone.
+    ``entry.preload`` is imported first (it starts no thread: a fork would break one)."""
+    for module in entry.preload:
+        importlib.import_module(module)
 
     signal.signal(signal.SIGCHLD, _reap_finished_jobs)
     signal.signal(signal.SIGTERM, _stop)
@@ -162,14 +178,14 @@ def serve(path: str, parent: int) -> None:
     listener.settimeout(1.0)
     print(READY, flush=True)
     try:
-        _accept_jobs(listener, parent)
+        _accept_jobs(entry, listener, parent)
     except _Stopped:
         pass
     finally:
         _wait_for_jobs(JOB_EXIT_SECONDS)
 
 
-def _accept_jobs(listener: socket.socket, parent: int) -> None:
+def _accept_jobs(entry: JobEntry, listener: socket.socket, parent: int) -> None:
     while os.getppid() == parent:
         try:
             connection, _ = listener.accept()
@@ -186,7 +202,7 @@ def _accept_jobs(listener: socket.socket, parent: int) -> None:
         sys.stderr.flush()
         if os.fork() == 0:
             try:
-                _run_job(listener, connection, request, fds)
+                _run_job(entry, listener, connection, request, fds)
             finally:
                 os._exit(1)  # a child never returns to the accept loop
         connection.close()
@@ -195,14 +211,14 @@ def _accept_jobs(listener: socket.socket, parent: int) -> None:
 
 
 @contextlib.contextmanager
-def job_server() -> Iterator[list[str]]:
+def job_server(entry: JobEntry) -> Iterator[list[str]]:
     """Start a job server for the calling process (a cohort, a study); yield the command prefix
-    its jobs start cubecloud with (the client and the server's socket). The server stops when the
+    its jobs start ``entry`` with (the client and the server's socket). The server stops when the
     block ends."""
     folder = tempfile.mkdtemp(prefix="cubecloud-jobs-")  # mode 0700; short, for the socket path limit
     path = str(Path(folder) / "socket")
     server = subprocess.Popen(
-        [sys.executable, "-m", "cubecloud_cli.cohort.job_server", path, str(os.getpid())],
+        [sys.executable, "-m", "cubecloud_cli.cohort.job_server", path, str(os.getpid()), json.dumps(asdict(entry))],
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -235,16 +251,17 @@ def _wait_until_ready(server: subprocess.Popen) -> bool:
 
 class JobServerOnDemand:
     """A job server that starts with the first job asking for it, so that a study with nothing
-    left to run starts none: ``with JobServerOnDemand() as jobs: run([*jobs.command(), ...])``."""
+    left to run starts none: ``with JobServerOnDemand(entry) as jobs: run([*jobs.command(), ...])``."""
 
-    def __init__(self) -> None:
+    def __init__(self, entry: JobEntry) -> None:
+        self._entry = entry
         self._stack = contextlib.ExitStack()
         self._command: list[str] | None = None
 
     def command(self) -> list[str]:
         """The command prefix that starts cubecloud through the server."""
         if self._command is None:
-            self._command = self._stack.enter_context(job_server())
+            self._command = self._stack.enter_context(job_server(self._entry))
         return self._command
 
     def __enter__(self) -> JobServerOnDemand:
@@ -255,11 +272,13 @@ class JobServerOnDemand:
 
 
 def main() -> None:
-    if len(sys.argv) != 3 or not sys.argv[2].isdigit():
-        print("usage: python -m cubecloud_cli.cohort.job_server SOCKET PARENT-PID", file=sys.stderr)
+    if len(sys.argv) != 4 or not sys.argv[2].isdigit():
+        print("usage: python -m cubecloud_cli.cohort.job_server SOCKET PARENT-PID ENTRY-JSON", file=sys.stderr)
         sys.exit(2)
+    values = json.loads(sys.argv[3])
+    entry = JobEntry(values["program"], values["main"], tuple(values.get("preload", ())))
     with contextlib.suppress(KeyboardInterrupt):
-        serve(sys.argv[1], int(sys.argv[2]))
+        serve(entry, sys.argv[1], int(sys.argv[2]))
 
 
 if __name__ == "__main__":

@@ -14,9 +14,9 @@ import json
 import math
 from pathlib import Path
 
-from cubecloud_cli.artifacts import to_jsonable
 from cubecloud_cli.cohort.statistics import PairedSummary, mean_std, paired_summary
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.artifacts import to_jsonable
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.compare import describe_work
 from cubecloud_cli.eval.figures import line_plot_svg
 

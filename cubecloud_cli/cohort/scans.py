@@ -13,7 +13,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.volume.readers import is_dicom_file
 
 NIFTI_SUFFIXES = (".nii.gz", ".nii")

@@ -1,7 +1,7 @@
 """The cunerf stage: a cube-based neural field of the preprocessed volume (docs/cunerf.md)."""
 
-from cubecloud_cli.lazy import lazy_exports
-from cubecloud_cli.runtime import Runtime
+from cubecloud_cli.core.lazy import lazy_exports
+from cubecloud_cli.core.runtime import Runtime
 
 _EXPORTS = {
     "CunerfField": "api",

@@ -19,12 +19,12 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import require_stage, stage_dir_name
-from cubecloud_cli.cunerf.data import Occupancy, voxel_centres
-from cubecloud_cli.cunerf.fields import FieldConfig
-from cubecloud_cli.cunerf.model import CubeModel, RenderConfig, render_many
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.runtime import resolve_device
+from cubecloud_cli.core.artifacts import require_stage, stage_dir_name
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.runtime import resolve_device
+from cubecloud_cli.cunerf.config import FieldConfig, RenderConfig
+from cubecloud_cli.cunerf.model import CubeModel, render_many
+from cubecloud_cli.cunerf.supervision import Occupancy, voxel_centres
 
 MODEL_FILE = "model.pt"
 MODEL_FORMAT = 1

@@ -18,7 +18,6 @@ ReLU (the official code; it can die and render black, official issue #18).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
 
 import numba
 import numpy as np
@@ -27,35 +26,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from cubecloud_cli.cunerf import grid_kernels
-from cubecloud_cli.cunerf.settings import DENSITY_ACTIVATIONS
+from cubecloud_cli.cunerf.config import DENSITY_ACTIVATIONS, FieldConfig
 
 POINT_LIMIT = 16.0
-
-
-@dataclass(frozen=True)
-class FieldConfig:
-    """Everything needed to rebuild a field (stored in the checkpoint)."""
-
-    kind: str = "grid"  # "cunerf" or "grid"
-    density_activation: str = "softplus"
-    # cunerf
-    frequencies: int = 11
-    width: int = 256
-    depth: int = 7
-    skip_at: int = 4
-    # grid
-    resolutions: tuple[int, ...] = (16, 32, 64, 128)
-    features: int = 4
-    hidden: int = 32
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict) -> "FieldConfig":
-        values = dict(values)
-        values["resolutions"] = tuple(values.get("resolutions", cls.resolutions))
-        return cls(**values)
 
 
 class NeuralField(nn.Module):

@@ -22,11 +22,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from cubecloud_cli.cunerf.data import TrainingVoxels
+from cubecloud_cli.cunerf.config import RenderConfig
 from cubecloud_cli.cunerf.fields import GridField
-from cubecloud_cli.cunerf.model import CubeModel, RenderConfig
+from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.rendering import render_cubes
 from cubecloud_cli.cunerf.sampling import cube_offsets
+from cubecloud_cli.cunerf.supervision import TrainingVoxels
 from cubecloud_cli.volume.resample import resample_axes
 
 # Intensities are clipped to [ε, 1 − ε] before the logit, which is then finite (±6.9) and within

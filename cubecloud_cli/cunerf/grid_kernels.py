@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.jit import EXACT_FASTMATH, PRANGE_ONLY
+from cubecloud_cli.numerics.jit import EXACT_FASTMATH, PRANGE_ONLY
 
 
 @njit(cache=True, inline="always")

@@ -10,33 +10,16 @@ weights clipped only in test renders.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
 from torch import nn
 
-from cubecloud_cli.cunerf.fields import FieldConfig, NeuralField, build_field
+from cubecloud_cli.cunerf.config import FieldConfig, RenderConfig, render_chunk
+from cubecloud_cli.cunerf.fields import NeuralField, build_field
 from cubecloud_cli.cunerf.rendering import render_cubes, shell_edges
 from cubecloud_cli.cunerf.sampling import cube_offsets, sample_radii_from_weights, sphere_directions
-
-
-@dataclass(frozen=True)
-class RenderConfig:
-    cube_half_size: float  # world units
-    samples_per_axis: int = 4  # n: n³ coarse points per cube (official: 4, i.e. 64)
-    importance: int = 64  # fine points drawn from the coarse weights; 0 = coarse only
-    separate_fine: bool = True  # a second network for the fine pass (the paper's)
-    train_layout: str = "stratified"
-    official: bool = False
-
-    @property
-    def half_diagonal(self) -> float:
-        return self.cube_half_size * math.sqrt(3.0)
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass
@@ -99,16 +82,6 @@ class CubeModel(nn.Module):
         if self.render_config.official and not train:
             return value.clamp(0.0, 1.0)
         return value
-
-
-RENDER_POINTS_PER_CHUNK = 1 << 18  # ~1 GB of activations for the 8×256 MLP without gradients
-
-
-def render_chunk(config: RenderConfig) -> int:
-    """Cubes per chunk for test renders, so a chunk holds about 262 k points whatever the
-    model's points per cube (8 for the fast preset, 128 for the paper's)."""
-    points = config.samples_per_axis**3 + max(config.importance, 0)
-    return max(64, min(32768, RENDER_POINTS_PER_CHUNK // points))
 
 
 @torch.no_grad()

@@ -4,16 +4,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, ClassVar, Literal, get_args
+from typing import ClassVar, Literal, get_args
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.cunerf.config import DENSITY_ACTIVATIONS, RENDER_POINTS_PER_CHUNK, FieldConfig, RenderConfig
 from cubecloud_cli.presets import preset_default
-
-if TYPE_CHECKING:  # torch modules: imported where a field is built, not where options are read
-    from cubecloud_cli.cunerf.fields import FieldConfig
-    from cubecloud_cli.cunerf.model import RenderConfig
-
-DENSITY_ACTIVATIONS = ("softplus", "relu")
 
 Model = Literal["fast", "cunerf"]
 MODELS = get_args(Model)
@@ -153,14 +148,10 @@ class CunerfSettings:
             rows = sum(r**3 for r in self.field_config(volume_size).resolutions)
             parameters, per_point = rows * self.grid_features, 1_300
         batch = self.batch_size * self.points_per_cube() * per_point
-        from cubecloud_cli.cunerf.model import RENDER_POINTS_PER_CHUNK
-
         render = RENDER_POINTS_PER_CHUNK * per_point // 3  # test renders keep no gradients
         return volume + 16 * parameters + max(batch, render)
 
     def field_config(self, volume_size: int) -> FieldConfig:
-        from cubecloud_cli.cunerf.fields import FieldConfig
-
         if self.model == "cunerf":
             return FieldConfig(kind="cunerf", density_activation=self.density)
         return FieldConfig(
@@ -173,8 +164,6 @@ class CunerfSettings:
         )
 
     def render_config(self, volume_size: int) -> RenderConfig:
-        from cubecloud_cli.cunerf.model import RenderConfig
-
         voxel = 2.0 / volume_size  # world units per voxel
         return RenderConfig(
             cube_half_size=self.cube_radius * self.train_scale * voxel,

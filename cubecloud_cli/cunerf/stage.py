@@ -22,15 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
-from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
-from cubecloud_cli.cunerf.data import TrainingVoxels, holdout_slices
-from cubecloud_cli.cunerf.grid_init import initialise_from_volume
-from cubecloud_cli.cunerf.model import CubeModel
-from cubecloud_cli.cunerf.settings import CunerfSettings
-from cubecloud_cli.cunerf.training import Trainer
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.interrupts import (
+from cubecloud_cli.core.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.interrupts import (
     CubecloudInterrupted,
     NothingToResume,
     checkpoint_to_resume,
@@ -39,10 +33,16 @@ from cubecloud_cli.interrupts import (
     save_on_schedule,
     saved_iteration,
 )
-from cubecloud_cli.metrics import volume_metrics
-from cubecloud_cli.preprocess.preview import write_preview_rows
-from cubecloud_cli.progress import ProgressCallback, no_progress
-from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.core.pictures import write_preview_rows
+from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
+from cubecloud_cli.cunerf.grid_init import initialise_from_volume
+from cubecloud_cli.cunerf.model import CubeModel
+from cubecloud_cli.cunerf.settings import CunerfSettings
+from cubecloud_cli.cunerf.supervision import TrainingVoxels, holdout_slices
+from cubecloud_cli.cunerf.training import Trainer
+from cubecloud_cli.numerics.metrics import volume_metrics
 from cubecloud_cli.volume.nifti import write_nifti
 
 log = logging.getLogger("cubecloud")

@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from cubecloud_cli.adam import Optimizer, adam
-from cubecloud_cli.cunerf.data import TrainingVoxels, voxel_centres
 from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
 from cubecloud_cli.cunerf.settings import CunerfSettings
-from cubecloud_cli.metrics import psnr, ssim_and_masked
+from cubecloud_cli.cunerf.supervision import TrainingVoxels, voxel_centres
+from cubecloud_cli.numerics.adam import Optimizer, adam
+from cubecloud_cli.numerics.metrics import psnr, ssim_and_masked
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_SEED = 1234

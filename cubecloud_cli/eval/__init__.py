@@ -1,7 +1,7 @@
 """`cubecloud eval`: held-out scores of every splat run and of CuNeRF against the reference renders
 of the volume (docs/design.md §5), pictures, and tables across work directories."""
 
-from cubecloud_cli.lazy import lazy_exports
+from cubecloud_cli.core.lazy import lazy_exports
 
 _EXPORTS = {
     "EvalSettings": "settings",

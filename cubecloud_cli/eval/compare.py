@@ -9,8 +9,8 @@ import math
 import os
 from pathlib import Path
 
-from cubecloud_cli.artifacts import is_complete, read_manifest, to_jsonable
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.artifacts import is_complete, read_manifest, to_jsonable
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.stage import eval_is_current
 
 STAGES = ("preprocess", "cunerf", "export")

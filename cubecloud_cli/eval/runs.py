@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import (
+from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
+from cubecloud_cli.core.artifacts import (
     PARTIAL_SUFFIX,
     is_complete,
     read_manifest,
@@ -21,15 +22,14 @@ from cubecloud_cli.artifacts import (
     sha256_of_path,
     verify_stage_files,
 )
-from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.eval.novel import NovelTest, load_novel_test
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.eval.novel_scores import NovelTest, load_novel_test
 from cubecloud_cli.raster.backends import Rasterizer
 from cubecloud_cli.scene import read_colmap_model
-from cubecloud_cli.splat.data import TrainingScene, load_scene
+from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply
 from cubecloud_cli.splat.gaussians import Gaussians
-from cubecloud_cli.splat.ply import read_gaussians_ply
-from cubecloud_cli.splat.training import render_camera
+from cubecloud_cli.splat.trainer import render_camera
+from cubecloud_cli.splat.training_views import TrainingScene, load_scene
 
 log = logging.getLogger("cubecloud")
 

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from cubecloud_cli.metrics import SSIM_RADIUS, mse, psnr_from_mse, ssim_and_masked
+from cubecloud_cli.numerics.metrics import SSIM_RADIUS, mse, psnr_from_mse, ssim_and_masked
 
 METRICS = ("psnr", "ssim", "mse", "psnr_foreground", "ssim_foreground", "mse_foreground")
 

@@ -13,12 +13,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
-from cubecloud_cli.eval.novel import annotate, pictured_views, summarize_novel, view_angles
-from cubecloud_cli.eval.report import PAPER_TABLE_I, report_markdown, write_per_view_csv
+from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
+from cubecloud_cli.eval.outputs import PAPER_TABLE_I, report_markdown, write_per_view_csv
 from cubecloud_cli.eval.runs import (
     ScoredScene,
     SplatRun,
@@ -32,9 +34,7 @@ from cubecloud_cli.eval.runs import (
 )
 from cubecloud_cli.eval.scoring import score_views, summarize
 from cubecloud_cli.eval.settings import EvalSettings
-from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.raster.backends import rasterizer_for
-from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 
 log = logging.getLogger("cubecloud")
 

@@ -1,6 +1,6 @@
 """The export stage: CuNeRF's cube point cloud, orbit cameras and rendered views as a COLMAP scene."""
 
-from cubecloud_cli.lazy import lazy_exports
+from cubecloud_cli.core.lazy import lazy_exports
 
 _EXPORTS = {
     "ExportSettings": "settings",

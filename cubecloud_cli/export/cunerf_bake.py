@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli import __version__
-from cubecloud_cli.artifacts import sha256_of_path
+from cubecloud_cli.core.artifacts import sha256_of_path
 
 
 def saved_bake(

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cubecloud_cli.core.pictures import to_uint8
+
 THUMBNAIL = 128  # pixels per view on the contact sheet
 
 
@@ -15,10 +17,6 @@ def view_names(count: int) -> list[str]:
     """view_000.png …: zero-padded so that name order is view order (3DGS sorts by name)."""
     digits = max(3, len(str(count - 1)))
     return [f"view_{index:0{digits}d}.png" for index in range(count)]
-
-
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    return np.clip(np.rint(np.nan_to_num(image) * 255.0), 0, 255).astype(np.uint8)
 
 
 def write_views(images: np.ndarray, folder: Path, names: list[str]) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from cubecloud_cli.cameras.novel import MAGNIFICATIONS, SUPERSAMPLING
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.export.settings import ExportSettings
 
 # Per pixel of one view while it renders: ray directions in float64 and float32, the ray

@@ -11,7 +11,7 @@ WORK/export/ holds
   split.json                train and test view names (every 8th view is held out)
   sparse_pc.ply             the same points as plain x y z nx ny nz red green blue (transforms.json's
                             ply_file_path: nerfstudio and OpenSplat read it by position, not by name)
-  novel/                    the novel-view test: views.json and pixel-area reference.npy (export/novel.py)
+  novel/                    the novel-view test: views.json and pixel-area reference.npy (export/novel_references.py)
   contact_sheet.png, contact_sheet_reference.png
   manifest.json             parameters, cameras, image model, timings, point and image metrics
 """
@@ -28,23 +28,23 @@ import numpy as np
 import torch
 
 from cubecloud_cli import __version__
-from cubecloud_cli.artifacts import StageWriter, is_complete, read_manifest, require_stage, stage_dir_name
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import NovelViewSet, nearest_angles_deg
+from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, require_stage, stage_dir_name
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
-from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.export.cunerf_bake import saved_bake
+from cubecloud_cli.export.finished_views import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.images import view_names, write_contact_sheet, write_views
 from cubecloud_cli.export.memory import check_export_memory
-from cubecloud_cli.export.novel import render_novel_references, write_novel
+from cubecloud_cli.export.novel_references import render_novel_references, write_novel
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
-from cubecloud_cli.export.progress import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.export.transfer import resolve_transfer
-from cubecloud_cli.metrics import image_metrics
-from cubecloud_cli.progress import ProgressCallback, no_progress
+from cubecloud_cli.numerics.metrics import image_metrics
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
-from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
 
 log = logging.getLogger("cubecloud")

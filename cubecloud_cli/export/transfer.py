@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 if TYPE_CHECKING:  # the presets are read by the command line, which imports no torch
     from cubecloud_cli.render.image_models import TransferFunction

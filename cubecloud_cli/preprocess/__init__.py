@@ -1,6 +1,6 @@
 """`cubecloud preprocess`: a scan -> the normalized S³ cube volume in WORK/preprocess/."""
 
-from cubecloud_cli.lazy import lazy_exports
+from cubecloud_cli.core.lazy import lazy_exports
 
 _EXPORTS = {
     "PreprocessSettings": "settings",

@@ -18,11 +18,11 @@ from typing import Callable
 
 import numpy as np
 
-from cubecloud_cli.artifacts import StageWriter, check_free_disk, read_manifest
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.preprocess.preview import write_preview
+from cubecloud_cli.core.artifacts import StageWriter, check_free_disk, read_manifest
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.pictures import write_preview
+from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.preprocess.settings import PreprocessSettings
-from cubecloud_cli.progress import ProgressCallback, no_progress
 from cubecloud_cli.volume.cube_frame import CubeFrame, plan_cube
 from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
 from cubecloud_cli.volume.nifti import write_nifti

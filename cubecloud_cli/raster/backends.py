@@ -81,7 +81,7 @@ def _render_with(projector, compositor):
 
 
 def _render_numba(*args, **kwargs) -> Rasterized:
-    from cubecloud_cli.raster.cpu import composite_cpu, project_cpu
+    from cubecloud_cli.raster.cpu.autograd import composite_cpu, project_cpu
 
     return _render_with(project_cpu, composite_cpu)(*args, **kwargs)
 

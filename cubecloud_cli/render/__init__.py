@@ -1,6 +1,6 @@
 """One renderer for every image model of docs/design.md §3, on any scalar field over the world cube."""
 
-from cubecloud_cli.lazy import lazy_exports
+from cubecloud_cli.core.lazy import lazy_exports
 
 _EXPORTS = {
     "IMAGE_MODELS": "image_model_names",

@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.jit import PRANGE_ONLY
+from cubecloud_cli.numerics.jit import PRANGE_ONLY
 
 
 @njit(cache=True, inline="always")

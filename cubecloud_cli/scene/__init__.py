@@ -7,7 +7,7 @@ from cubecloud_cli.scene.colmap import (
     write_colmap_model,
     write_test_list,
 )
-from cubecloud_cli.scene.ply import read_point_cloud_ply, write_point_cloud_ply
+from cubecloud_cli.scene.point_ply import read_point_cloud_ply, write_point_cloud_ply
 from cubecloud_cli.scene.quaternions import quaternion_to_rotation, rotation_to_quaternion
 from cubecloud_cli.scene.transforms import opengl_camera_to_world, transforms_json, write_json
 

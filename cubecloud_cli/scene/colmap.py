@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cubecloud_cli.cameras.pinhole import PinholeCameras
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.scene import colmap_parse as parse
 from cubecloud_cli.scene.quaternions import quaternion_to_rotation, rotation_to_quaternion
 

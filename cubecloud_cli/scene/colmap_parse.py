@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 # COLMAP's camera model ids (src/colmap/sensor/models.h), for names in messages and the text format.
 CAMERA_MODEL_NAMES: dict[int, str] = {

@@ -2,14 +2,14 @@
 
 The SSIM here is the reference's training SSIM: the same 11-tap Gaussian window (σ = 1.5) as
 the evaluation metric, but with zero padding so the map covers the whole image ("same"), and
-its plain mean. Evaluation uses `cubecloud_cli.metrics` (cropped, as scikit-image).
+its plain mean. Evaluation uses `cubecloud_cli.numerics.metrics` (cropped, as scikit-image).
 """
 
 from __future__ import annotations
 
 import torch
 
-from cubecloud_cli.metrics import K1, K2, SSIM_RADIUS, gaussian_window
+from cubecloud_cli.numerics.metrics import K1, K2, SSIM_RADIUS, gaussian_window
 
 DSSIM_WEIGHT = 0.2
 

@@ -7,7 +7,7 @@ from typing import Callable, Iterable
 
 import torch
 
-from cubecloud_cli.adam import Optimizer
+from cubecloud_cli.numerics.adam import Optimizer
 
 MOMENTS = ("exp_avg", "exp_avg_sq")
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import ClassVar, Literal, get_args
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.presets import preset_default
 
 REFERENCE_ITERATIONS = 30_000

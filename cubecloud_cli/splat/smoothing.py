@@ -21,7 +21,7 @@ import torch
 from numba import njit, prange
 
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.jit import PRANGE_ONLY
+from cubecloud_cli.numerics.jit import PRANGE_ONLY
 from cubecloud_cli.raster.projection import NEAR_PLANE
 
 FILTER_SCALE = 0.2  # s: the filter's variance in squared training pixels

@@ -19,10 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.export.images import to_uint8
-from cubecloud_cli.interrupts import (
+from cubecloud_cli.core.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.interrupts import (
     CubecloudInterrupted,
     NothingToResume,
     checkpoint_to_resume,
@@ -30,13 +29,14 @@ from cubecloud_cli.interrupts import (
     interrupted,
     save_on_schedule,
 )
-from cubecloud_cli.progress import ProgressCallback, no_progress
-from cubecloud_cli.runtime import Runtime, peak_memory_mb, reset_peak_memory
-from cubecloud_cli.splat.data import TrainingScene, load_scene
+from cubecloud_cli.core.pictures import to_uint8
+from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.splat.gaussian_ply import write_gaussians_ply
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
-from cubecloud_cli.splat.ply import write_gaussians_ply
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.splat.training import SplatTrainer
+from cubecloud_cli.splat.trainer import SplatTrainer
+from cubecloud_cli.splat.training_views import TrainingScene, load_scene
 
 log = logging.getLogger("cubecloud")
 

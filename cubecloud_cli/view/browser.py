@@ -22,7 +22,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 SETTLED_GREY_LEVELS = 1.0  # mean change between two captures below which the page holds still
 

@@ -14,12 +14,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cubecloud_cli.artifacts import require_stage
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.export.images import to_uint8
+from cubecloud_cli.core.artifacts import require_stage
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.pictures import to_uint8
 from cubecloud_cli.scene import read_colmap_model
-from cubecloud_cli.scene.ply import read_point_cloud_ply
+from cubecloud_cli.scene.point_ply import read_point_cloud_ply
 
 log = logging.getLogger("cubecloud")
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs
-from cubecloud_cli.splat.ply import read_gaussians_ply
+from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply
 from cubecloud_cli.view.context import load_context
 from cubecloud_cli.view.delivery import SplatDelivery
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.volume.dicom_images import DicomImage, PixelReader, read_images
 from cubecloud_cli.volume.dicom_series import choose_stack, group_stacks
 from cubecloud_cli.volume.scan import Scan

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.volume.dicom_images import DicomImage
 
 # A stack whose normal is within 45° of the table axis counts as axial (a tilted gantry included).

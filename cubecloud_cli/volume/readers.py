@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.volume.dicom import read_dicom_file, read_dicom_series
 from cubecloud_cli.volume.scan import (
     Scan,

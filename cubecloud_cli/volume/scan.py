@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 # Voxel sizes outside this range are header errors, not scans: 1 µm covers micro-CT, and no
 # clinical CT or MR has 5 cm voxels.

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
 
 HOLDOUT_EVERY = 8

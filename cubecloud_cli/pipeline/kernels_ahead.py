@@ -2,7 +2,7 @@
 
 A new user's first splat run compiled the rasterizer's kernels at its first step: about 22 s on
 both cores (the forward side in the trainer, the backward side in its helper,
-``raster/cpu_warmup.py``). The stages before splat leave cycles idle: importing, reading the
+``raster/cpu/backward_compile.py``). The stages before splat leave cycles idle: importing, reading the
 scan, numpy passes, compilations on one core. So `run` starts one helper process at the lowest
 priority (nice 19) that takes one training step of a tiny scene through the trainer's own code;
 numba writes what it compiles to its cache, and the splat runs load it from there. At nice 19
@@ -15,7 +15,7 @@ march's kernels ahead too gained nothing: those stages reached them before the h
 The kernels see inputs of the trainer's own dtypes and layouts, so they compile the signatures
 training calls. A kernel called with other types is compiled by its stage as before: the
 helper can save time but never change a result (a kernel compiled in the process and one loaded
-from the cache give the same bits, ``cubecloud_cli/jit.py``).
+from the cache give the same bits, ``cubecloud_cli/numerics/jit.py``).
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ def compile_splat_kernels(settings) -> None:
 
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
     from cubecloud_cli.splat import gaussians_from_points
-    from cubecloud_cli.splat.data import TrainingScene
-    from cubecloud_cli.splat.training import SplatTrainer
+    from cubecloud_cli.splat.trainer import SplatTrainer
+    from cubecloud_cli.splat.training_views import TrainingScene
 
     cameras = orbit_cameras(OrbitSpec(views=4, resolution=TINY_IMAGE))
     images = torch.rand((4, TINY_IMAGE, TINY_IMAGE, settings.channels), generator=torch.Generator().manual_seed(0))
@@ -100,7 +100,7 @@ class Warmup:
 
     @classmethod
     def start(cls, job: WarmupJob | None) -> "Warmup":
-        from cubecloud_cli.side_by_side import without_main_module
+        from cubecloud_cli.pipeline.side_by_side import without_main_module
 
         if job is None or job.is_empty():
             return cls(None)

@@ -16,10 +16,10 @@ from cubecloud_cli.cohort.engine import (
     run_snakemake,
     write_config,
 )
-from cubecloud_cli.cohort.job_server import job_server
+from cubecloud_cli.cohort.job_server import JobEntry, job_server
 from cubecloud_cli.cohort.report import scan_record, write_cohort_report
 from cubecloud_cli.cohort.scans import CohortScan, scans_from_arguments, scans_from_csv
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 log = logging.getLogger("cubecloud")
 
@@ -31,11 +31,12 @@ def scan_list(arguments: list[Path], csv_path: Path | None) -> list[CohortScan]:
 
 
 @contextmanager
-def job_launcher(engine: EngineOptions) -> Iterator[list[str]]:
-    """How jobs start cubecloud: through a job server when they all run on this machine (a job
-    then starts in 0.1 s instead of 2–3 s), plainly when an executor sends them elsewhere."""
+def job_launcher(engine: EngineOptions, entry: JobEntry) -> Iterator[list[str]]:
+    """How jobs start cubecloud: through a job server running ``entry`` when they all run on this
+    machine (a job then starts in 0.1 s instead of 2–3 s), plainly when an executor sends them
+    elsewhere."""
     if engine.on_this_machine:
-        with job_server() as command:
+        with job_server(entry) as command:
             yield command
     else:
         yield PLAIN_COMMAND
@@ -45,12 +46,14 @@ def run_cohort(
     scans: list[CohortScan],
     out: Path,
     run_options: list[str],
+    entry: JobEntry,
     cores: int = 2,
     executor: str | None = None,
     profile: Path | None = None,
     jobs: int | None = None,
 ) -> Path:
-    """Run every scan's pipeline, then write OUT/cohort/. A failed scan is reported, and the
+    """Run every scan's pipeline, then write OUT/cohort/. ``entry`` is what a job server on this
+    machine runs (cubecloud's own command line, passed in by it). A failed scan is reported, and the
     command ends with a one-line error naming the failures once the report is written."""
     require_snakemake()
     out = Path(out).resolve()
@@ -58,7 +61,7 @@ def run_cohort(
         raise CubecloudError(f"--profile {profile} is not a folder: give a Snakemake profile folder (config.yaml)")
     engine = EngineOptions(cores, executor, Path(profile) if profile else None, jobs)
     with cohort_lock(out):
-        with job_launcher(engine) as command:
+        with job_launcher(engine, entry) as command:
             config = write_config(out, scans, run_options, command)
             log.info(f"cohort of {len(scans)} scans in {out}: {len(scans) * 6} jobs on Snakemake")
             code = run_snakemake(out, config, engine)

@@ -1,7 +1,7 @@
 """Progress on the terminal: a bar with rate, elapsed time, ETA and live fields (loss, PSNR).
 
 Stage code stays free of terminal concerns: it calls a plain callback
-(cubecloud_cli/progress.py), and the command line decides whether to draw (only when stderr is
+(cubecloud_cli/core/progress.py), and the command line decides whether to draw (only when stderr is
 a terminal and the run is not --quiet, so logs and CI output stay clean).
 """
 
@@ -25,7 +25,7 @@ from rich.progress import (
 )
 from rich.text import Text
 
-from cubecloud_cli.progress import ProgressCallback, ProgressFields
+from cubecloud_cli.core.progress import ProgressCallback, ProgressFields
 
 
 def terminal_wants_progress() -> bool:

@@ -8,7 +8,7 @@ side by side").
 
 The second run starts once the first has taken a training step: by then the first has compiled
 every rasterizer kernel into numba's cache, so the second loads them instead of compiling them
-again on the same cores. When `run` compiled them ahead (``cubecloud_cli/warmup.py``), both start
+again on the same cores. When `run` compiled them ahead (``cubecloud_cli/pipeline/kernels_ahead.py``), both start
 at once. A run's bits depend on torch's thread count only (never on the
 kernels'), so a run trained here repeats bit for bit with `cubecloud splat --threads N`, N being
 its share of the cores (1 on 2 cores).
@@ -31,9 +31,9 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Iterator
 
-from cubecloud_cli.errors import CubecloudError
-from cubecloud_cli.progress import ProgressCallback
-from cubecloud_cli.runtime import Runtime, resolve_device
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.progress import ProgressCallback
+from cubecloud_cli.core.runtime import Runtime, resolve_device
 from cubecloud_cli.splat.settings import SplatSettings
 
 # Starting a process (importing torch, loading the scene) costs a few seconds; shorter runs are

@@ -1,15 +1,13 @@
-"""The numba kernels as torch autograd functions: projection runs in ``cpu_projection``,
-compositing in ``cpu_kernels``."""
+"""The numba kernels as torch autograd functions: projection runs in ``projection_kernels``,
+compositing in ``compositing``."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from cubecloud_cli.raster import cpu_binning as binning
-from cubecloud_cli.raster import cpu_kernels as kernels
-from cubecloud_cli.raster import cpu_projection
 from cubecloud_cli.raster.constants import NEAR_PLANE, TILE
+from cubecloud_cli.raster.cpu import binning, compositing, projection_kernels
 from cubecloud_cli.raster.projection import Projected, dilation
 
 
@@ -30,7 +28,7 @@ class _Project(torch.autograd.Function):
     def forward(ctx, means, scales, quaternions, rotation, translation, focal, width, height, near, antialias):
         inputs = (_numpy(means), _numpy(scales), _numpy(quaternions), _numpy(rotation), _numpy(translation))
         options = (focal, width, height, near, dilation(antialias), antialias)
-        outputs = cpu_projection.project_forward(*inputs, *options)
+        outputs = projection_kernels.project_forward(*inputs, *options)
         ctx.saved = (inputs, options)
         dtype = means.dtype
         means2d, conics, covariances2d, depths = (torch.from_numpy(a).to(dtype) for a in outputs[:4])
@@ -46,7 +44,7 @@ class _Project(torch.autograd.Function):
         inputs, options = ctx.saved
         if grad_compensations is None:
             grad_compensations = torch.zeros(inputs[0].shape[0], dtype=grad_means2d.dtype)
-        grads = cpu_projection.project_backward(
+        grads = projection_kernels.project_backward(
             *inputs, *options, _numpy(grad_means2d), _numpy(grad_conics), _numpy(grad_compensations)
         )
         dtype = grad_means2d.dtype
@@ -109,7 +107,7 @@ class _Composite(torch.autograd.Function):
         offsets, entries, arrays, tiles_x = kernel_inputs(
             means2d, conics, colours, opacities, background, covariances2d, radii, depths, width, height
         )
-        image, final_transmittance, *blended = kernels.forward(offsets, entries, *arrays, width, height, tiles_x)
+        image, final_transmittance, *blended = compositing.forward(offsets, entries, *arrays, width, height, tiles_x)
         ctx.saved = (
             offsets,
             entries,
@@ -132,7 +130,7 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, grad_image, grad_coverage):
         offsets, entries, arrays, final_transmittance, blended, width, height, tiles_x = ctx.saved
         grad = _numpy(grad_image.reshape(height * width, -1)).astype(arrays[2].dtype, copy=False)
-        row_grads, gaussian_rows = kernels.backward(
+        row_grads, gaussian_rows = compositing.backward(
             offsets, entries, *arrays, width, height, tiles_x, final_transmittance, *blended, grad
         )
         dtype, device = grad_image.dtype, grad_image.device
@@ -166,7 +164,7 @@ def composite_cpu(
     height: int,
     background: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`cubecloud_cli.raster.pairs.composite` computed by the numba kernels."""
+    """:func:`cubecloud_cli.raster.pairs.composite` computed by the numba compositing."""
     if background is None:
         background = torch.zeros(colours.shape[1], dtype=colours.dtype)
     return _Composite.apply(

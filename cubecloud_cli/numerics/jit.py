@@ -64,7 +64,7 @@ PRANGE_ONLY = ParallelOptions(
 # them overlap, and gives up when the checks would exceed 128 (``vectorize-memory-check-threshold``).
 # The projection kernels read up to fifteen columns and write up to ten per Gaussian: a few
 # hundred checks, once per block of 256 Gaussians, and then its forward and backward take 2.7
-# instead of 4.6 ms at 50k Gaussians (cubecloud_cli/raster/cpu_projection_blocks.py). The compositing
+# instead of 4.6 ms at 50k Gaussians (cubecloud_cli/raster/cpu/projection_blocks.py). The compositing
 # kernels give the same bits either way (compared at float32 and float64). Set when the kernels'
 # modules are imported, before numba compiles them; other numba code in the process may be
 # vectorized behind more checks too, which changes no result unless a loop reassociates a sum.
@@ -72,7 +72,7 @@ MEMORY_CHECK_LIMIT = 1024
 llvm.set_option("cubecloud", f"-vectorize-memory-check-threshold={MEMORY_CHECK_LIMIT}")
 # LLVM leaves a loop of a known trip count under 16 scalar (``vectorizer-min-trip-count``) unless
 # its cost model finds no scalar remainder. The compositing kernels' narrow rows are loops of 8
-# pixels: one AVX2 vector of float32 (cubecloud_cli/raster/cpu_kernels.py, NARROW).
+# pixels: one AVX2 vector of float32 (cubecloud_cli/raster/cpu/compositing.py, NARROW).
 MIN_VECTOR_TRIP_COUNT = 8
 llvm.set_option("cubecloud", f"-vectorizer-min-trip-count={MIN_VECTOR_TRIP_COUNT}")
 

@@ -11,7 +11,7 @@ from typing import Callable, Iterator
 
 import torch
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 
 @contextmanager

@@ -1,10 +1,16 @@
-"""A PNG of the three orthogonal mid-slices, in the radiological display convention."""
+"""Pictures for people that several stages make: values in [0, 1] as 8-bit grey, and a PNG of a
+volume's three orthogonal mid-slices in the radiological display convention."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """[0, 1] (NaN as 0) to 0..255, rounded to the nearest level."""
+    return np.clip(np.rint(np.nan_to_num(image) * 255.0), 0, 255).astype(np.uint8)
 
 
 def mid_slices(volume: np.ndarray) -> dict[str, np.ndarray]:

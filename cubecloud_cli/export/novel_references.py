@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras.novel import SUPERSAMPLING, NovelViewSet
+from cubecloud_cli.export.finished_views import ExportProgress
 from cubecloud_cli.export.images import write_contact_sheet
-from cubecloud_cli.export.progress import ExportProgress
 from cubecloud_cli.render import ImageModel, render_view
 from cubecloud_cli.scene import write_json
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement, PlyParseError
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 POSITION = ("x", "y", "z")
 NORMAL = ("nx", "ny", "nz")

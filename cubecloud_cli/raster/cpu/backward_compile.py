@@ -1,6 +1,6 @@
 """The rasterizer's first compilation on both cores. numba compiles on one core, and a new user's
 first splat waited ~15 s for it while the other core sat idle. So the trainer starts a helper
-process that compiles the backward side (``python -m cubecloud_cli.raster.cpu_warmup``: the
+process that compiles the backward side (``python -m cubecloud_cli.raster.cpu.backward_compile``: the
 composite backward, the projection backward and the per-Gaussian sums) into numba's cache, while
 the trainer itself compiles the forward side through its first render; the first backward then
 loads from the cache what the helper compiled.
@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from cubecloud_cli.raster import cpu_binning, cpu_kernels, cpu_projection
+from cubecloud_cli.raster.cpu import binning, compositing, projection_kernels
 
 HELPER_SECONDS = 300.0  # longer than any first compilation; then the trainer compiles itself
 
@@ -30,18 +30,18 @@ def compile_backward_side() -> None:
         return np.zeros(shape, dtype)
 
     index, wide = np.int64, np.float64
-    cpu_kernels.backward(
+    compositing.backward(
         np.zeros(1, index), empty(0, dtype=np.int32), empty(0, 4, dtype=index),
         empty(0, 2), empty(0, 3), empty(0, 1), empty(0), empty(0, dtype=wide), empty(1),
         16, 16, 1, empty(0), empty(0, dtype=np.int32), empty(0, dtype=index), empty(0, dtype=np.int32),
         empty(0, 16, dtype=np.uint16),
         empty(0, 1),
     )  # fmt: skip
-    cpu_projection.project_backward(
+    projection_kernels.project_backward(
         empty(0, 3), empty(0, 3), empty(0, 4), empty(3, 3), empty(3), 1.0, 16, 16, 0.01, 0.3, False,
         empty(0, 2), empty(0, 3), empty(0),
     )  # fmt: skip
-    cpu_binning.sum_per_gaussian(
+    binning.sum_per_gaussian(
         empty(0, 7, dtype=wide), np.zeros(1, index), empty(0, 2), empty(0, 3), empty(0), empty(0, 1),
     )  # fmt: skip
 
@@ -55,10 +55,10 @@ class BackwardCompile:
     @classmethod
     def start(cls) -> "BackwardCompile | None":
         """A helper, unless this process has compiled the backward already (a second run in it)."""
-        if cpu_kernels.backward.signatures:
+        if compositing.backward.signatures:
             return None
         process = subprocess.Popen(
-            [sys.executable, "-m", "cubecloud_cli.raster.cpu_warmup"],
+            [sys.executable, "-m", "cubecloud_cli.raster.cpu.backward_compile"],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -68,7 +68,7 @@ class BackwardCompile:
     def before_backward(self) -> None:
         """Wait for the helper if the forward side had to be compiled (the cache was cold, so the
         helper is compiling too); stop it if the forward side came from the cache."""
-        if cpu_kernels.forward.stats.cache_misses:
+        if compositing.forward.stats.cache_misses:
             try:
                 self.process.wait(timeout=HELPER_SECONDS)
                 return

@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit, prange
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
-from cubecloud_cli.jit import PRANGE_ONLY, fused_multiply_add, prefetch
+from cubecloud_cli.numerics.jit import PRANGE_ONLY, fused_multiply_add, prefetch
 from cubecloud_cli.raster.constants import ALPHA_LEVEL_SCALE, TILE_SHIFT
 
 # A radix sort pass sorts on up to this many bits: its 4096 counts (int32) stay in the L1 cache,

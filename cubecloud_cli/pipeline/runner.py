@@ -14,24 +14,24 @@ from itertools import groupby
 from pathlib import Path
 from typing import Callable, ContextManager, Iterator
 
-from cubecloud_cli.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, sha256_of_path
+from cubecloud_cli.core.artifacts import PARTIAL_SUFFIX, is_complete, read_manifest, sha256_of_path
+from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.runtime import Runtime, resolve_device
 from cubecloud_cli.cunerf import CunerfSettings, train_cunerf
 from cubecloud_cli.cunerf import stage as cunerf_stage
-from cubecloud_cli.errors import CubecloudError
 from cubecloud_cli.eval import EvalSettings, evaluate_work
 from cubecloud_cli.eval.stage import eval_is_current
 from cubecloud_cli.export import ExportSettings, export_scene
 from cubecloud_cli.export import stage as export_stage
+from cubecloud_cli.pipeline.kernels_ahead import MIN_ITERATIONS as WARMUP_MIN_ITERATIONS
+from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob
+from cubecloud_cli.pipeline.side_by_side import SplatJob, available_cores, run_side_by_side, threads_each
 from cubecloud_cli.preprocess import PreprocessSettings, preprocess_scan
 from cubecloud_cli.preprocess import stage as preprocess_stage
-from cubecloud_cli.progress import ProgressCallback, no_progress
-from cubecloud_cli.runtime import Runtime, resolve_device
-from cubecloud_cli.side_by_side import SplatJob, available_cores, run_side_by_side, threads_each
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
-from cubecloud_cli.warmup import MIN_ITERATIONS as WARMUP_MIN_ITERATIONS
-from cubecloud_cli.warmup import Warmup, WarmupJob
 
 
 @dataclass(frozen=True)
@@ -217,7 +217,7 @@ def run_stages(
     ``progress(folder)`` gives the callback a stage reports to (a bar on the terminal).
 
     With more than one stage to run, the numba kernels of those that will run are compiled ahead
-    in a helper at the lowest priority (``cubecloud_cli/warmup.py``); a splat stage waits for it."""
+    in a helper at the lowest priority (``cubecloud_cli/pipeline/kernels_ahead.py``); a splat stage waits for it."""
     outcomes: dict[str, StageOutcome] = {}
     warmup = Warmup.start(_kernels_ahead(stages, force))
     try:

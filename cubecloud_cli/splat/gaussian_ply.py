@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.splat.gaussians import Gaussians
 
 GREY_COMMENT = "cubecloud channels 1"

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet, nearest_angles_deg
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.scoring import summarize
 
 NOVEL_DIR, VIEWS_FILE, REFERENCE_FILE = "novel", "views.json", "reference.npy"

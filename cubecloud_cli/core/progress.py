@@ -3,7 +3,7 @@
 ``on_progress(phase, done, total, fields)``: the stage is in ``phase``, ``done`` of ``total``
 units of work are finished (iterations, views, frames, or expected seconds where the work has
 no natural count), and ``fields`` holds live figures such as the loss or a PSNR. A new
-``total`` starts a new count. The command line draws it (cubecloud_cli/cli/progress.py).
+``total`` starts a new count. The command line draws it (cubecloud_cli/cli/progress_bar.py).
 """
 
 from __future__ import annotations

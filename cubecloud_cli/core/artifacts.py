@@ -28,7 +28,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from cubecloud_cli import __version__
-from cubecloud_cli.errors import CubecloudError
+from cubecloud_cli.core.errors import CubecloudError
 
 MANIFEST_NAME = "manifest.json"
 PARTIAL_SUFFIX = ".partial"

@@ -1,10 +1,10 @@
 """The projection of one block of Gaussians held by column (one array row per parameter), forward
-and backward: the per-Gaussian arithmetic of :mod:`cubecloud_cli.raster.cpu_projection`, whose
+and backward: the per-Gaussian arithmetic of :mod:`cubecloud_cli.raster.cpu.projection_kernels`, whose
 parallel kernels cut the Gaussians into blocks and call these.
 
 Each is one flat loop over the block's columns with every test a select, no call (the helpers
 inline) and no division check (``error_model="numpy"``; every divisor is clamped away from zero),
-which LLVM computes four Gaussians at a time once ``cubecloud_cli.jit`` has raised its limit on
+which LLVM computes four Gaussians at a time once ``cubecloud_cli.numerics.jit`` has raised its limit on
 run-time alias checks.
 """
 
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-import cubecloud_cli.jit  # noqa: F401  (its LLVM setting, before these compile)
+import cubecloud_cli.numerics.jit  # noqa: F401  (its LLVM setting, before these compile)
 from cubecloud_cli.raster.constants import (
     EIGENVALUE_FLOOR,
     FRUSTUM_CLAMP,

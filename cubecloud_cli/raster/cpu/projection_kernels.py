@@ -6,7 +6,7 @@ reference and the path on other devices), in float64. Autograd through the PyTor
 about 8 ms for 50k Gaussians on two cores, more than compositing a 128² view. Each block of 256
 Gaussians is turned into columns (one array row per parameter) and projected by one loop with no
 branch, call or division check (``cpu_projection_blocks``), which LLVM computes four Gaussians at
-a time (with the memory check limit of ``cubecloud_cli.jit``): forward and backward at 50k Gaussians take 2.7 ms on two
+a time (with the memory check limit of ``cubecloud_cli.numerics.jit``): forward and backward at 50k Gaussians take 2.7 ms on two
 cores and 4.1 ms on one, against 4.6 and 7.5 ms for the scalar loop they replaced, with the same
 bits. Each divides once by z, by the determinant and by |q|, and multiplies by the reciprocals:
 a vector division costs many multiplies, and the backward had 25 (forward 0.89–0.93 and
@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cubecloud_cli.jit import PRANGE_ONLY
-from cubecloud_cli.raster.cpu_projection_blocks import project_block, project_block_backward
+from cubecloud_cli.numerics.jit import PRANGE_ONLY
+from cubecloud_cli.raster.cpu.projection_blocks import project_block, project_block_backward
 
 # Gaussians per block of the parallel loops: a block's columns stay in the L1 cache while its
 # vector loop runs over them.

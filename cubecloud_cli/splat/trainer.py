@@ -10,18 +10,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.adam import adam
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.metrics import psnr_from_mse
+from cubecloud_cli.numerics.adam import adam
+from cubecloud_cli.numerics.metrics import psnr_from_mse
 from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
-from cubecloud_cli.raster.cpu_warmup import BackwardCompile
-from cubecloud_cli.splat.data import TrainingScene
+from cubecloud_cli.raster.cpu.backward_compile import BackwardCompile
 from cubecloud_cli.splat.densify import DensifyStrategy, GradientStats, apply_plan, plan_densification, reset_opacity
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.optimizer import replace_parameters
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
+from cubecloud_cli.splat.training_views import TrainingScene
 
 PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 

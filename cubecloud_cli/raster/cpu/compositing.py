@@ -11,7 +11,7 @@ the rows of its own box; each row is one fixed 16-pixel loop without branches (e
 select), which LLVM turns into SIMD, 8 float32 lanes at a time on AVX2, or one 8-pixel loop
 where the row's pixels to visit lie within 8 columns (NARROW). The exp is inline
 arithmetic (a polynomial, then squarings), not a libm call; the polynomial, the power and the
-sums are fused multiply-adds, written out (``cubecloud_cli.jit.fused_multiply_add``: 0.89 of the
+sums are fused multiply-adds, written out (``cubecloud_cli.numerics.jit.fused_multiply_add``: 0.89 of the
 forward's time and 0.87 of the backward's on the bench frame); rows whose pixels have all stopped
 are skipped by a bit mask; the backward skips entries, and rows of entries, that blended nothing.
 Which rows an entry visits, which of them blended and which entries the backward walks are bit
@@ -34,7 +34,7 @@ from numba import njit, prange, types
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import overload
 
-from cubecloud_cli.jit import (
+from cubecloud_cli.numerics.jit import (
     FASTMATH,
     PRANGE_ONLY,
     as_real,
@@ -69,7 +69,7 @@ EXP_POLYNOMIAL_LIMIT = 6.0
 # Most rows a splat covers in a tile are narrow: at 50k Gaussians and 128², two in three of the
 # rows with a live pixel lie within 8 columns, three in four once stopped pixels are left out.
 # Such a row is one 8-lane loop, one AVX2 vector of float32, instead of two. LLVM's loop
-# vectorizer leaves loops of under 16 iterations scalar unless told (cubecloud_cli/jit.py).
+# vectorizer leaves loops of under 16 iterations scalar unless told (cubecloud_cli/numerics/jit.py).
 NARROW = 8
 
 
@@ -404,7 +404,7 @@ def pair_geometry_gradients(grad_alpha, gaussian, raw, dx, dy, a, b, c):
     the power), which reassociation cannot regroup. As products of three or four factors, LLVM
     grouped them one way in the kernel numba compiles in the process and another way in the copy
     it loads from its cache, and a seeded run from an empty cache ended on other bits
-    (cubecloud_cli/jit.py)."""
+    (cubecloud_cli/numerics/jit.py)."""
     dx_dx, dx_dy, dy_dy = dx * dx, dx * dy, dy * dy
     grad_power, moving = pair_power_gradient(grad_alpha, raw, dx_dx, dx_dy, dy_dy, a, b, c)
     return (
