@@ -62,10 +62,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # presets train shorter, with the reference schedule scaled to their length. The paper's
     # 3DGS is plain; the CPU presets anti-alias (Mip-Splatting), so a zoomed view holds. fast's
     # budget: 75k Gaussians kept the bundled CT's novel-view score (46.44 against 46.34 dB as
-    # grown to 90k) and trained in 52 s instead of 80; 60k lost 0.16 dB more (docs/results.md).
+    # grown to 90k) and trained in 52 s instead of 80; 60k lost 0.16 dB more (docs/results.md, "Model only what the scene requires").
     # fast trains 1500 iterations on 120 views: more views of the scene generalise better than
     # more passes over fewer (novel PSNR 46.55 / 45.64 dB against 46.39 / 45.38 for 2000 on 60,
-    # seeds 46.51–46.61), in three quarters of the time; docs/results.md "Views for iterations".
+    # seeds 46.51–46.61), in three quarters of the time; docs/history/pipeline-speed.md, "Views for iterations".
     "splat": {
         "fast": {"iterations": 1500, "max_gaussians": 75_000, "antialias": True},
         "balanced": {"iterations": 7000, "max_gaussians": 300_000, "antialias": True},
@@ -78,11 +78,11 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 # `fast` trains no iteration: its grid is solved to render the training voxels exactly
 # (--grid-init volume, cunerf/grid_init.py), which beats 3000 iterations from random features on
 # every measure of the field (3D PSNR 42.3 against 32.7 dB, held-out slices 30.3 against 29.1 dB,
-# renders against the volume's 57.1 against 52.2 dB) in 8 s instead of 79, and the splats trained
-# on its renders score as before (docs/results.md "The fitted start"). `balanced` and `paper`
+# renders against the volume's 58.1 against 52.2 dB) in 8 s instead of 79, and the splats trained
+# on its renders score as before (docs/history/cunerf-start.md). `balanced` and `paper`
 # train from random features. Measured earlier on the bundled CT at 128³ (bench/cunerf.py):
 # 2³ points per cube for 4000 iterations beat 3³ for 2000 in the same time (37.3 vs 35.4 dB 3D
-# PSNR); a batch of 2048 cubes costs the splats 0.07 dB against 4096 (docs/results.md "The
+# PSNR); a batch of 2048 cubes costs the splats 0.07 dB against 4096 (docs/history/cunerf-speed.md "The
 # CuNeRF batch").
 _GRID = {
     "lr": 0.05,

@@ -204,7 +204,7 @@ def _blend_one_row(transmittance, colour, weights, window, narrow, live, low, hi
     seed=st.integers(0, 2**16),
 )  # fmt: skip
 # Where a float counter of columns gave the 8-pixel loop dx = (dx0 + window) + lane, two roundings:
-# column 6's weight came out 34 ulp off (cpu_kernels.COLUMNS_32).
+# column 6's weight came out 34 ulp off (compositing.COLUMNS_32).
 @example(first=1, width=6, u=0.06264178507645202, dy=0.5, conic=(0.25, -0.5, 1.0), opacity=1.0, seed=0)
 def test_a_narrow_row_blends_the_bits_of_a_whole_row(real, first, width, u, dy, conic, opacity, seed):
     """The 8-pixel loop gives each pixel the bits the 16-pixel loop gives it, for every input: dx

@@ -52,7 +52,7 @@ def keep_freed_memory() -> bool:
     arrays each time (the kernels' outputs, torch's gradients); by default glibc maps such
     blocks afresh and unmaps them on free, so each step touched ~2,200 new pages, zeroed by
     the kernel at a page fault each: ~10 % of a 50k-Gaussian frame on a 2-core VM
-    (docs/results.md). What an earlier stage of the same process freed is handed back first
+    (docs/history/rasterizer-speed.md). What an earlier stage of the same process freed is handed back first
     (``malloc_trim``), so that a stage's recorded peak memory is its own.
     Returns whether the setting took (not on other C libraries, where it is skipped)."""
     if not sys.platform.startswith("linux"):

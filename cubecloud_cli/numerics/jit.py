@@ -13,7 +13,7 @@ function of its own, and inlined into the kernel, where it is optimised again. A
 in the process runs the first copy (the process already holds it under the same name); one
 loaded from the cache runs the second. Where the fast-math flags let LLVM round differently in
 the two (fusing a multiply and an add into one FMA, or summing a reduction in another order),
-a run from an empty cache gave other bits than a warm one (docs/results.md).
+a run from an empty cache gave other bits than a warm one (docs/history/first-compilation.md).
 
 * ``FASTMATH``, for the rasterizer: every freedom but ``contract`` (no FMA that LLVM chooses; the
   kernels write theirs out with ``fused_multiply_add``, the same in both copies). Its reductions count
@@ -22,7 +22,7 @@ a run from an empty cache gave other bits than a warm one (docs/results.md).
   even with its float column counter replaced (a float induction needs ``reassoc`` to vectorise).
   What ``reassoc`` may regroup must then read the same in both copies: a product of three or
   more factors did not (the backward's conic terms), so the kernels multiply values that have
-  other uses, which it leaves whole (``cpu_kernels.pair_geometry_gradients``).
+  other uses, which it leaves whole (``raster/cpu/compositing.pair_geometry_gradients``).
 * ``EXACT_FASTMATH``, for the grid field's MLP: no freedom that changes a finite result, so both
   copies must agree. Its hidden-unit sums did differ with ``reassoc``; without it the kernels are
   as fast.
@@ -31,8 +31,8 @@ a run from an empty cache gave other bits than a warm one (docs/results.md).
 numba and would turn float32 arithmetic into float64 (and halve its SIMD width).
 
 For whoever edits the kernels: numba's cache checks only the file of the kernel it caches, not
-the files of the helpers compiled into it. After editing ``cpu_projection_blocks.py`` alone, a
-cached ``cpu_projection.project_forward`` still runs the old helper, until its own file changes
+the files of the helpers compiled into it. After editing ``raster/cpu/projection_blocks.py`` alone, a
+cached ``projection_kernels.project_forward`` still runs the old helper, until its own file changes
 or its ``__pycache__`` entries are removed. An install from a release rewrites every file and is
 not affected.
 """

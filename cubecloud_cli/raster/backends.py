@@ -1,6 +1,6 @@
 """One rasterization call, three implementations: which runs depends on the device.
 
-* ``numba``: the CPU kernels (``cpu.py``), projection and compositing with hand-written backwards;
+* ``numba``: the CPU kernels (``cpu/``), projection and compositing with hand-written backwards;
 * ``gsplat``: gsplat's CUDA rasterizer, on a CUDA device when gsplat is installed;
 * ``torch``: the plain PyTorch path (``projection.py`` + ``pairs.py``), on any device.
 

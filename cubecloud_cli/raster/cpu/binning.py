@@ -232,7 +232,7 @@ def bin_tiles(bounds, depths, tiles_x, tiles_y):
     ties in depth kept in index order.
 
     Serial: on two threads, each of these passes measured slower than on one, the second
-    thread's wake and cold caches costing more than half of a pass (docs/results.md)."""
+    thread's wake and cold caches costing more than half of a pass (docs/results.md, "Binning stays serial")."""
     corner, columns, tiles, nonempty, offsets = _spans_and_offsets(bounds, tiles_x, tiles_y)
     kept = nonempty.size
     order = stable_depth_order(nonempty, depths)

@@ -16,7 +16,7 @@ forward's time and 0.87 of the backward's on the bench frame); rows whose pixels
 are skipped by a bit mask; the backward skips entries, and rows of entries, that blended nothing.
 Which rows an entry visits, which of them blended and which entries the backward walks are bit
 masks and lists, kept by stores and counts rather than by tests: such a test follows no pattern
-a branch predictor learns, and each one it missed cost a row more than its pixels (docs/results.md).
+a branch predictor learns, and each one it missed cost a row more than its pixels (docs/history/rasterizer-speed.md).
 An entry's Gaussian is read at an index that follows no order in memory, so the Gaussian of the
 entry four ahead is prefetched while the current one blends.
 
@@ -264,7 +264,7 @@ def forward(offsets, entries, bounds, means2d, conics, colours, opacities, level
     per blended column, written for the rows the entry visited and read only where the row's bit
     is: the pairs the backward undoes, exactly these.
     Recomputing them there instead let a pair at the α threshold round to the other side now and
-    then, the two kernels being optimised apart (docs/results.md).
+    then, the two kernels being optimised apart (docs/history/rasterizer-speed.md).
 
     One body on purpose: the per-tile state (transmittance, the bit masks of live pixels) lives in
     the body of the parallel loop over tiles, which numba compiles as one kernel."""
@@ -573,7 +573,7 @@ def backward(
     blended (``blended_rows``, ``blended_pixels``). An entry that blended nothing has no gradient
     and no row: in a dense view most entries are such (three in four at 50k Gaussians, 128²).
     With a row for every entry instead, numbered by the binning, the sums read four times the
-    memory, most of it rows never written, and the frame was 3–7 % slower (docs/results.md).
+    memory, most of it rows never written, and the frame was 3–7 % slower (docs/history/rasterizer-speed.md).
 
     One body on purpose, as ``forward``: the per-tile state lives in the parallel loop's body."""
     channels = colours.shape[1]

@@ -95,7 +95,7 @@ def _compensation_ratio(a, b, c, variance):
 
 @njit(cache=True, error_model="numpy")
 def project_block(means, scales, quaternions, rotation, translation, focal, width, height, near, variance, antialias, results, radii):  # fmt: skip
-    """``cpu_projection.project_forward`` for one block of Gaussians held by column (``means`` (3, n), ``scales``
+    """``projection_kernels.project_forward`` for one block of Gaussians held by column (``means`` (3, n), ``scales``
     (3, n), ``quaternions`` (4, n)): u, v, the conic (3), the covariance (3), the depth and the
     compensation into the rows of ``results`` (10, n), and ``radii``. One flat loop without a
     branch, a call or a division check, so that LLVM computes four or eight Gaussians at a time;
@@ -169,7 +169,7 @@ def project_block_backward(
     grad_compensations,
     results,
 ):
-    """``cpu_projection.project_backward`` for one block held by column (as ``project_block``; the incoming
+    """``projection_kernels.project_backward`` for one block held by column (as ``project_block``; the incoming
     gradients too): the gradients of means (rows 0–2), scales (3–5) and quaternions (6–9) into
     ``results`` (10, n). The caller passes only Gaussians with an incoming gradient; the others
     keep zero gradients there (and make no 0·∞ here).
