@@ -1,5 +1,5 @@
 """The compositing kernels of the working tree against those of a git revision, in one process:
-the way issue 21's kernel changes were measured (docs/results.md), where separate runs of
+the way the rasterizer's kernel changes were measured (docs/history/rasterizer-speed.md), where separate runs of
 `bench/raster.py` swing with the host by more than the change.
 
     python bench/kernels_ab.py                          # HEAD against the working tree, bench frame
@@ -18,10 +18,10 @@ bits (image, transmittance, and the gradient rows they write).
 both kernels, the per-Gaussian sums and autograd's work around them) through each side's
 `raster.cpu`, on the bench frame and with --work on the trained views: for changes outside the two
 kernels, whose gain a part's own timing can show and the frame not, and for changes to what the
-kernels take (docs/results.md).
+kernels take (docs/history/rasterizer-speed.md).
 
 Run it twice after changing a kernel: the first process compiles the new kernel, and a kernel
-compiled in the process ran 4-8 % slower than one loaded from numba's cache (docs/results.md).
+compiled in the process ran 4-8 % slower than one loaded from numba's cache (docs/history/rasterizer-speed.md).
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ import torch
 from cubecloud_cli.core.runtime import keep_freed_memory
 from cubecloud_cli.presets import PRESET_NAMES, resolve
 from cubecloud_cli.scene import read_point_cloud_ply
+from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.gaussians import gaussians_from_points
 from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.settings import SplatSettings
@@ -60,7 +61,13 @@ def main() -> None:
         settings = SplatSettings(**resolve("splat", args.preset, {}))
     else:
         settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
-    trainer = SplatTrainer(gaussians_from_points(xyz, rgb[:, :1] / 255.0), scene, settings, torch.device("cpu"))
+    trainer = SplatTrainer(
+        gaussians_from_points(xyz, rgb[:, :1] / 255.0),
+        scene,
+        settings,
+        torch.device("cpu"),
+        strategy_for(settings, scene.extent),
+    )
     print(
         f"{scene.cameras.width}² views, {len(trainer.gaussians)} initial Gaussians, {torch.get_num_threads()} threads, "
         f"rasterizer: {trainer.rasterizer.description}"

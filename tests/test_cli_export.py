@@ -192,9 +192,9 @@ def test_a_step_as_long_as_the_volume_is_refused():
     from cubecloud_cli.core.errors import CubecloudError
     from cubecloud_cli.export import ExportSettings
 
-    ExportSettings(step=7.5, cube=4).validate(8)
+    ExportSettings(step=7.5, cube=4).check_for_volume(8)
     with pytest.raises(CubecloudError, match="spans the whole 8³ volume"):
-        ExportSettings(step=8, cube=4).validate(8)
+        ExportSettings(step=8, cube=4).check_for_volume(8)
 
 
 def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exported, tmp_path, monkeypatch):

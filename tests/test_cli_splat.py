@@ -17,6 +17,7 @@ from cli_helpers import assert_one_line_error, invoke
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
+from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
 from cubecloud_cli.splat.trainer import SplatTrainer, render
@@ -72,7 +73,8 @@ def test_training_recovers_known_gaussians_from_their_images():
         scene.images = torch.stack([render(truth, scene, view, 0, NUMBA).image for view in range(16)])
     rng = np.random.default_rng(0)
     start = gaussians_from_points(rng.uniform(-1, 1, (2000, 3)), rng.uniform(0, 1, (2000, 1)))
-    trainer = SplatTrainer(start, scene, SplatSettings(iterations=400, max_gaussians=5000), torch.device("cpu"))
+    settings = SplatSettings(iterations=400, max_gaussians=5000)
+    trainer = SplatTrainer(start, scene, settings, torch.device("cpu"), strategy_for(settings, scene.extent))
     before = trainer.evaluate(scene.test)["psnr"]
     for _ in range(400):
         trainer.step()

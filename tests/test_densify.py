@@ -1,4 +1,5 @@
-"""Adaptive density control on constructed cases: clone, split, prune, budget, reset."""
+"""Density control on constructed cases (clone, split, prune, budget, reset), and the strategies the
+trainer is given: the reference's on its schedule, and none."""
 
 import math
 
@@ -154,31 +155,42 @@ def test_the_reference_schedule_scales_to_the_run_length():
     }
 
 
-def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
+def tiny_trainer(settings, strategy=None, count=50):
+    """A trainer of ``count`` random Gaussians on four 16² views of noise."""
     from pathlib import Path
 
     import numpy as np
 
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
     from cubecloud_cli.splat import gaussians_from_points
-    from cubecloud_cli.splat.settings import SplatSettings
+    from cubecloud_cli.splat.densify import strategy_for
     from cubecloud_cli.splat.trainer import SplatTrainer
     from cubecloud_cli.splat.training_views import TrainingScene
 
     cameras = orbit_cameras(OrbitSpec(views=4, resolution=16))
-    scene = TrainingScene(Path("."), cameras, list("abcd"), torch.rand(4, 16, 16, 1), [1, 2, 3], [0], None)
+    images = torch.rand(4, 16, 16, 1, generator=torch.Generator().manual_seed(0))
+    scene = TrainingScene(Path("."), cameras, list("abcd"), images, [1, 2, 3], [0], None)
     rng = np.random.default_rng(0)
-    trainer = SplatTrainer(
-        gaussians_from_points(rng.uniform(-1, 1, (50, 3)), rng.uniform(0, 1, (50, 1))),
-        scene,
-        SplatSettings(iterations=200),
-        torch.device("cpu"),
-    )
+    start = gaussians_from_points(rng.uniform(-1, 1, (count, 3)), rng.uniform(0, 1, (count, 1)))
+    strategy = strategy if strategy is not None else strategy_for(settings, scene.extent)
+    return SplatTrainer(start, scene, settings, torch.device("cpu"), strategy)
+
+
+def test_no_reset_or_densification_at_or_after_densify_until(monkeypatch):
+    from cubecloud_cli.splat.settings import SplatSettings
+
+    trainer = tiny_trainer(SplatSettings(iterations=200))
+    strategy = trainer.strategy
     events = []
-    monkeypatch.setattr(trainer, "_reset_opacity", lambda: events.append(("reset", trainer.iteration)))
-    original = trainer._densify
+    monkeypatch.setattr(strategy, "_reset_opacity", lambda trainable: events.append(("reset", trainer.iteration)))
+    original = strategy._densify
     monkeypatch.setattr(
-        trainer, "_densify", lambda prune_large: (events.append(("densify", trainer.iteration)), original(prune_large))
+        strategy,
+        "_densify",
+        lambda trainable, prune_large: (
+            events.append(("densify", trainer.iteration)),
+            original(trainable, prune_large),
+        ),
     )
     for _ in range(200):
         trainer.step()
@@ -211,13 +223,35 @@ def test_optimizer_moments_follow_their_rows_when_parameters_are_replaced():
     optimizer.step()  # Adam steps with the rewritten state
 
 
-def test_the_strategy_asks_the_schedule_when_to_densify_and_reset():
-    from cubecloud_cli.splat.densify import DensifyStrategy
+def test_the_schedule_says_when_to_densify_and_reset():
+    from cubecloud_cli.splat.densify import DensifySchedule
     from cubecloud_cli.splat.settings import SplatSettings
 
-    strategy = DensifyStrategy.from_settings(SplatSettings(iterations=30_000))
+    strategy = DensifySchedule.from_settings(SplatSettings(iterations=30_000))
     assert strategy.thresholds.grad_threshold == SplatSettings().grad_threshold
     assert not strategy.densify_due(500) and strategy.densify_due(600) and not strategy.densify_due(650)
     assert strategy.reset_due(3000) and not strategy.reset_due(15_000)  # no reset once refining stops
     assert not strategy.prunes_large(3000) and strategy.prunes_large(3001)
-    assert not DensifyStrategy.from_settings(SplatSettings(iterations=30_000, refine=False)).densify_due(600)
+    assert not DensifySchedule.from_settings(SplatSettings(iterations=30_000, refine=False)).densify_due(600)
+
+
+def test_a_trainer_given_no_density_control_trains_the_gaussians_it_started_with():
+    from cubecloud_cli.splat.densify import NoDensification, ReferenceStrategy, strategy_for
+    from cubecloud_cli.splat.settings import SplatSettings
+
+    settings = SplatSettings(iterations=100)
+    still = tiny_trainer(settings, NoDensification())
+    start = still.gaussians.means.detach().clone()
+    before = still.evaluate([1, 2, 3])["psnr"]
+    for _ in range(100):
+        still.step()
+    assert len(still.gaussians) == 50 and still.evaluate([1, 2, 3])["psnr"] > before + 1.0
+    assert not torch.equal(still.gaussians.means.detach(), start)  # trained, only not densified
+    assert still.strategy.state_dict() == {}
+    assert isinstance(strategy_for(SplatSettings(refine=False), 1.0), NoDensification)
+
+    growing = tiny_trainer(settings)
+    assert isinstance(growing.strategy, ReferenceStrategy)
+    for _ in range(100):
+        growing.step()
+    assert len(growing.gaussians) != 50  # the reference's strategy, on the same start, changed the set

@@ -210,3 +210,14 @@ def test_imports_inside_functions_count(tmp_path):
         "def f():\n    from cubecloud_cli.core.errors import CubecloudError\n    import cubecloud_cli.cli\n"
     )
     assert imports_of(source) == {"cubecloud_cli.core.errors", "cubecloud_cli.cli"}
+
+
+def test_validate_means_one_thing_with_one_signature():
+    """Every ``validate`` checks its own options and takes nothing else (what depends on the data
+    has a name of its own, such as ``check_for_volume``)."""
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef) and node.name == "validate":
+                arguments = [a.arg for a in node.args.posonlyargs + node.args.args + node.args.kwonlyargs]
+                assert arguments == ["self"], f"{path}:{node.lineno} validate{tuple(arguments)}"
+                assert ast.unparse(node.returns) == "None", f"{path}:{node.lineno} validate returns a value"

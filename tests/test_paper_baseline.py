@@ -81,7 +81,7 @@ def test_a_stack_slices_sagittally_unless_told_otherwise():
 
 
 def test_run_accepts_exports_made_before_the_cameras_option():
-    from cubecloud_cli.pipeline.runner import _differences
+    from cubecloud_cli.core.stage import parameter_differences as _differences
 
     assert _differences({"views": 60}, {"views": 60, "cameras": "orbit"}) == []
     assert _differences({"views": 60}, {"views": 60, "cameras": "stack"}) == ["cameras: 'orbit' -> 'stack'"]

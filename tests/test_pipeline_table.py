@@ -1,6 +1,33 @@
 """run_stages, the loop over the stage table, with stand-in stages: what is skipped, resumed and redone."""
 
-from cubecloud_cli.pipeline.runner import PipelineStage, run_stages
+from pathlib import Path
+
+from cubecloud_cli.core.stage import Stage
+from cubecloud_cli.pipeline.runner import run_stages
+
+
+class StandIn(Stage):
+    """A stage that only notes how it was run: current or not as the test says."""
+
+    folder, upstream, checkpoint = "", (), None  # plain attributes here, not the contract's properties
+
+    def __init__(self, work: Path, folder: str, upstream: tuple, current: bool, checkpoint: Path, ran: list):
+        self.work, self.folder, self.upstream, self.settings = work, folder, upstream, None
+        self.current, self.checkpoint, self.ran = current, checkpoint, ran
+
+    def input_files(self) -> list[Path]:
+        return []
+
+    def recorded_params(self) -> dict:
+        return {}
+
+    def is_current(self) -> bool:
+        return self.current
+
+    def run(self, force, resume, on_progress):
+        self.ran.append((self.folder, force, resume))
+        on_progress("work", 1, 1, {})
+        return {}
 
 
 def table(tmp_path, current: set[str], checkpoints: set[str] = frozenset(), ran: list | None = None):
@@ -11,13 +38,7 @@ def table(tmp_path, current: set[str], checkpoints: set[str] = frozenset(), ran:
         checkpoint = tmp_path / f"{folder}.ckpt"
         if folder in checkpoints:
             checkpoint.write_text("saved")
-
-        def run(force, resume, on_progress):
-            ran.append((folder, force, resume))
-            on_progress("work", 1, 1, {})
-            return {}
-
-        return PipelineStage(folder, upstream[folder], lambda: folder in current, run, checkpoint=checkpoint)
+        return StandIn(tmp_path, folder, upstream[folder], folder in current, checkpoint, ran)
 
     return [stage(folder) for folder in upstream], ran
 
@@ -47,3 +68,34 @@ def test_force_redoes_every_stage_from_scratch(tmp_path):
     outcomes = run_stages(stages, tmp_path, force=True, on_stage=seen.append)
     assert set(statuses(outcomes).values()) == {"ran"} and all(force and not resume for _, force, resume in ran)
     assert [outcome.stage for outcome in seen] == ["a", "b", "c", "d", "e"]
+
+
+def test_the_five_stages_implement_the_contract(tmp_path):
+    from cubecloud_cli.core.runtime import Runtime
+    from cubecloud_cli.cunerf import CunerfSettings
+    from cubecloud_cli.eval import EvalSettings
+    from cubecloud_cli.export import ExportSettings
+    from cubecloud_cli.pipeline.table import stage_table
+    from cubecloud_cli.preprocess import PreprocessSettings
+    from cubecloud_cli.splat.settings import SplatSettings
+
+    scan = tmp_path / "scan.nii.gz"
+    stages = stage_table(
+        scan, tmp_path, PreprocessSettings(), CunerfSettings(), ExportSettings(), SplatSettings(),
+        EvalSettings(), Runtime(device="cpu"),
+    )  # fmt: skip
+    assert [stage.folder for stage in stages] == ["preprocess", "cunerf", "export", "splat", "splat-random", "eval"]
+    assert [type(stage).__name__ for stage in stages] == [
+        "PreprocessStage", "CunerfStage", "ExportStage", "SplatStage", "SplatStage", "EvalStage",
+    ]  # fmt: skip
+    for stage in stages:
+        assert Stage in type(stage).__mro__  # each subclasses the contract, inheriting its defaults
+        for member in ("folder", "upstream", "input_files", "recorded_params", "run"):
+            assert getattr(type(stage), member) is not getattr(Stage, member), f"{stage.folder} lacks {member}"
+        assert stage.work == tmp_path and stage.settings is not None
+        assert all(name in [s.folder for s in stages] for name in stage.upstream)
+        assert not stage.is_current()  # nothing written yet
+    assert stages[0].input_files() == [scan]
+    assert [stage.checkpoint is not None for stage in stages] == [False, True, False, True, True, False]
+    assert stages[4].recorded_params()["init"] == "random"
+    assert stages[-1].upstream == ("preprocess", "cunerf", "export", "splat", "splat-random")

@@ -16,8 +16,9 @@ from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.pipeline import side_by_side
-from cubecloud_cli.pipeline.runner import run_stages, stage_table
+from cubecloud_cli.pipeline.runner import run_stages
 from cubecloud_cli.pipeline.side_by_side import available_cores, threads_each, without_main_module
+from cubecloud_cli.pipeline.table import stage_table
 from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.splat import stage as splat_stage
 from cubecloud_cli.splat.settings import SplatSettings
@@ -67,7 +68,7 @@ def splat_stages(work, monkeypatch):
         Runtime(device="cpu"),
     )
     runs = [stage for stage in stages if stage.folder.startswith("splat")]
-    assert [stage.side_by_side is not None for stage in runs] == [True, True]
+    assert sorted(side_by_side.side_by_side_runs(runs)) == ["splat", "splat-random"]
     return runs
 
 

@@ -4,10 +4,15 @@ argument types), and when it starts only where a stage will compile them."""
 
 import subprocess
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
-from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob
-from cubecloud_cli.pipeline.runner import PipelineStage, _kernels_ahead
+from cubecloud_cli.core.runtime import Runtime
+from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, kernels_for
+from cubecloud_cli.pipeline.runner import _kernels_ahead
+from cubecloud_cli.pipeline.table import stage_table
 from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.stage import SplatStage
 
 # In a process of its own, so that no kernel compiled by another test hides one the helper
 # missed: compile ahead, note every kernel's signatures, run the stages as `run` does, and print
@@ -17,6 +22,7 @@ import sys
 from pathlib import Path
 from numba.core.registry import CPUDispatcher
 from cubecloud_cli.pipeline import runner as pipeline
+from cubecloud_cli.pipeline.table import stage_table
 from cubecloud_cli.cunerf import CunerfSettings
 from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
@@ -24,7 +30,7 @@ from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.sample_data import sample_ct_path
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, warm_up
+from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, kernels_for, warm_up
 
 def signatures():
     found = {}
@@ -36,12 +42,12 @@ def signatures():
     return found
 
 splat = SplatSettings(iterations=2)
-stages = pipeline.stage_table(
+stages = stage_table(
     sample_ct_path(), Path(sys.argv[1]), PreprocessSettings(size=32),
     CunerfSettings(holdout=2), ExportSettings(resolution=32, views=4, max_points=300, novel_directions=2),
     splat, EvalSettings(turntable_frames=0), Runtime(device="cpu"), baseline=False,
 )
-assert stages[-2].compiles is None  # too short a run to compile ahead: the helper is called here
+assert kernels_for(stages[-2]) is None  # too short a run to compile ahead: the helper is called here
 warm_up(WarmupJob(splat=splat))
 ahead = signatures()
 pipeline.Warmup.start = classmethod(lambda cls, job: Warmup(None))  # this process compiled them
@@ -63,8 +69,31 @@ def test_the_helper_compiles_every_rasterizer_signature_the_splat_and_eval_stage
     assert set(compiled_late) <= {"encode_forward", "mlp_forward", "dvr_march", "encode_backward", "mlp_backward"}
 
 
-def _stage(folder: str, upstream: tuple[str, ...], current: bool, compiles: WarmupJob | None = None):
-    return PipelineStage(folder, upstream, lambda: current, lambda *args: {}, compiles=compiles)
+@dataclass(frozen=True)
+class StandIn(SplatStage):
+    """A stage current or not as the test says; a splat run where ``splat`` (its kernels are the
+    ones compiled ahead), else one that compiles none."""
+
+    stand_in_folder: str = ""
+    stand_in_upstream: tuple[str, ...] = ()
+    current: bool = True
+    splat: bool = False
+
+    @property
+    def folder(self) -> str:
+        return self.stand_in_folder
+
+    @property
+    def upstream(self) -> tuple[str, ...]:
+        return self.stand_in_upstream
+
+    def is_current(self) -> bool:
+        return self.current
+
+
+def _stage(folder: str, upstream: tuple[str, ...], current: bool, splat: bool = False):
+    settings = SplatSettings() if splat else SplatSettings(iterations=1)  # too short to compile ahead
+    return StandIn(Path("work"), settings, Runtime(device="cpu"), None, folder, upstream, current, splat)
 
 
 def test_the_helper_takes_the_kernels_of_the_stages_that_will_run_and_only_behind_another_stage():
@@ -73,10 +102,10 @@ def test_the_helper_takes_the_kernels_of_the_stages_that_will_run_and_only_behin
         _stage("preprocess", (), True),
         _stage("cunerf", ("preprocess",), False),
         _stage("export", ("cunerf",), True),  # current, but redone after cunerf
-        _stage("splat", ("export",), True, splat),
+        _stage("splat", ("export",), True, splat=True),
     ]
     assert _kernels_ahead(table, force=False) == splat
-    everything_current = [_stage(s.folder, s.upstream, True, s.compiles) for s in table]
+    everything_current = [_stage(s.folder, s.upstream, True, s.splat) for s in table]
     assert _kernels_ahead(everything_current, force=False) is None
     assert _kernels_ahead(everything_current, force=True) == splat
     assert _kernels_ahead([table[-1]], force=True) is None  # one stage: it compiles its own
@@ -89,7 +118,6 @@ def test_only_runs_long_enough_to_repay_the_helper_compile_ahead(tmp_path):
     from cubecloud_cli.eval import EvalSettings
     from cubecloud_cli.export import ExportSettings
     from cubecloud_cli.pipeline.kernels_ahead import MIN_ITERATIONS
-    from cubecloud_cli.pipeline.runner import stage_table
     from cubecloud_cli.preprocess import PreprocessSettings
 
     def splat_compiles(iterations: int):
@@ -97,7 +125,7 @@ def test_only_runs_long_enough_to_repay_the_helper_compile_ahead(tmp_path):
             tmp_path / "scan.nii.gz", tmp_path, PreprocessSettings(), CunerfSettings(), ExportSettings(),
             SplatSettings(iterations=iterations), EvalSettings(), Runtime(device="cpu"),
         )  # fmt: skip
-        return [stage.compiles for stage in stages if stage.folder.startswith("splat")]
+        return [kernels_for(stage) for stage in stages if stage.folder.startswith("splat")]
 
     assert all(job is not None and job.splat.iterations == MIN_ITERATIONS for job in splat_compiles(MIN_ITERATIONS))
     assert splat_compiles(MIN_ITERATIONS - 1) == [None, None]

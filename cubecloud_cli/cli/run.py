@@ -117,7 +117,8 @@ def run_command(
         volume_index=volume_index,
         series=series,
     )
-    from cubecloud_cli.pipeline.runner import only_stage, run_stages, stage_table  # the stages: torch
+    from cubecloud_cli.pipeline.runner import only_stage, run_stages  # the stages: torch
+    from cubecloud_cli.pipeline.table import stage_table
 
     cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})

@@ -78,7 +78,9 @@ class CunerfSettings:
     seed: int = 0
     """Seed of every random draw; the same seed repeats a run."""
 
-    def validate(self, volume_size: int | None = None) -> None:
+    def validate(self) -> None:
+        """Refuse options that no volume makes right, with a one-line error naming the fix."""
+
         def bad(message: str) -> CubecloudError:
             return CubecloudError(message)
 
@@ -124,14 +126,18 @@ class CunerfSettings:
             raise bad(f"--body-fraction {self.body_fraction:g} must be within 0..1")
         if not (math.isfinite(self.export_scale) and 0.05 <= self.export_scale <= 8):
             raise bad(f"--export-scale {self.export_scale:g} must be within 0.05..8")
-        if volume_size is not None:
-            if volume_size // self.train_scale < 2:
-                raise bad(
-                    f"--train-scale {self.train_scale} leaves fewer than 2 voxels per axis of a {volume_size}³ volume"
-                )
-            out = round(volume_size * self.export_scale)
-            if not 2 <= out <= 2048:
-                raise bad(f"--export-scale {self.export_scale:g} gives a {out}³ reconstruction: keep it within 2..2048")
+
+    def check_for_volume(self, volume_size: int) -> None:
+        """Refuse options that do not fit a volume of ``volume_size``³ voxels."""
+        if volume_size // self.train_scale < 2:
+            raise CubecloudError(
+                f"--train-scale {self.train_scale} leaves fewer than 2 voxels per axis of a {volume_size}³ volume"
+            )
+        out = round(volume_size * self.export_scale)
+        if not 2 <= out <= 2048:
+            raise CubecloudError(
+                f"--export-scale {self.export_scale:g} gives a {out}³ reconstruction: keep it within 2..2048"
+            )
 
     def points_per_cube(self) -> int:
         return self.samples_per_axis**3 + self.importance

@@ -17,12 +17,13 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from cubecloud_cli.core.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.core.artifacts import PARTIAL_SUFFIX, StageWriter, read_manifest, require_stage, write_csv_log
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.interrupts import (
     CubecloudInterrupted,
@@ -36,6 +37,7 @@ from cubecloud_cli.core.interrupts import (
 from cubecloud_cli.core.pictures import write_preview_rows
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.cunerf.grid_init import initialise_from_volume
 from cubecloud_cli.cunerf.model import CubeModel
@@ -53,6 +55,32 @@ CHECKPOINT_FILE = "checkpoint.pt"
 def input_files(work: Path) -> list[Path]:
     """The files a cunerf stage is trained from; with its settings, they make it current."""
     return [Path(work) / "preprocess" / "volume.npy"]
+
+
+@dataclass(frozen=True)
+class CunerfStage(Stage):
+    """The cunerf stage of a pipeline (docs/design.md §1)."""
+
+    work: Path
+    settings: CunerfSettings
+    runtime: Runtime = Runtime()
+    folder = "cunerf"
+    upstream = ("preprocess",)
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.work / f".{self.folder}{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
+
+    def input_files(self) -> list[Path]:
+        return input_files(self.work)
+
+    def recorded_params(self) -> dict:
+        return self.settings.as_dict()
+
+    def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
+        return train_cunerf(
+            self.work, self.settings, force=force, resume=resume, runtime=self.runtime, on_progress=on_progress
+        )
 
 
 RECON_FILE = "recon.nii.gz"
@@ -133,7 +161,7 @@ def train_cunerf(
     settings.validate()
     preprocess = require_stage(work, "preprocess")
     size = int(preprocess["volume"]["shape"][0])
-    settings.validate(size)
+    settings.check_for_volume(size)
     device = runtime.apply()
     reset_peak_memory(device)
 
@@ -317,7 +345,7 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
     log_every = max(1, total // 200)
     latest: dict = {}
     if total == 0:  # the fitted start alone: validated once, as training's last step would be
-        trainer.history.append({"iteration": 0, "seconds": 0.0, "loss": None, "lr": None, **trainer.validate()})
+        trainer.history.append({"iteration": 0, "seconds": 0.0, "loss": None, "lr": None, **trainer.held_out_scores()})
         return
     with checkpointed_loop(checkpoint, "lower --lr and pass --force to start again") as interrupt:
         while trainer.iteration < total:
@@ -326,7 +354,7 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
             it = trainer.iteration
             row = None
             if it % settings.val_every == 0 or it == total:
-                latest = trainer.validate()
+                latest = trainer.held_out_scores()
                 row = {**latest}
             if row is not None or it % log_every == 0:
                 trainer.history.append(

@@ -90,7 +90,7 @@ class Trainer:
         self.smoothed_loss = value if self.smoothed_loss is None else 0.9 * self.smoothed_loss + 0.1 * value
         return value
 
-    def validate(self, chunk: int | None = None) -> dict[str, float]:
+    def held_out_scores(self, chunk: int | None = None) -> dict[str, float]:
         """PSNR/SSIM on the held-out slices (whole image and body only)."""
         slices = self.voxels.held_out
         if not slices:

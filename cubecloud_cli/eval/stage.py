@@ -18,6 +18,7 @@ from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
 from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
 from cubecloud_cli.eval.outputs import PAPER_TABLE_I, report_markdown, write_per_view_csv
@@ -219,6 +220,31 @@ def eval_is_current(work: Path, settings: EvalSettings | None = None) -> bool:
         and recorded.get(f"{run}/point_cloud.ply") == file_digest(Path(work) / run / "point_cloud.ply")
         for run in runs
     )
+
+
+@dataclass(frozen=True)
+class EvalStage(Stage):
+    """The eval stage of a pipeline, after the stages in ``upstream`` (docs/design.md §1). eval is
+    cheap and holds no choices worth protecting: one made with other settings or of other runs
+    (a splat-NAME/ the user trained beside them) is not current, and simply redone, never refused."""
+
+    work: Path
+    settings: EvalSettings
+    runtime: Runtime = Runtime()
+    upstream: tuple[str, ...] = ()
+    folder = "eval"
+
+    def input_files(self) -> list[Path]:
+        return [self.work / run / "point_cloud.ply" for run in find_splat_runs(self.work, report=False)]
+
+    def recorded_params(self) -> dict:
+        return {**asdict(self.settings), "runs": find_splat_runs(self.work, report=False)}
+
+    def is_current(self) -> bool:
+        return eval_is_current(self.work, self.settings)
+
+    def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
+        return evaluate_work(self.work, self.settings, force=force, runtime=self.runtime, on_progress=on_progress)
 
 
 @dataclass

@@ -94,7 +94,8 @@ class ExportSettings:
         """Per-view slice planes: across the volume for a stack, through the origin otherwise."""
         return tuple(float(d) for d in stack_offsets(self.views)) if self.cameras == "stack" else ()
 
-    def validate(self, volume_size: int | None = None) -> None:
+    def validate(self) -> None:
+        """Refuse options that no volume makes right, with a one-line error naming the fix."""
         self.orbit().validate()
         if self.cameras not in CAMERA_PATHS:
             raise CubecloudError(f"--cameras {self.cameras!r} must be one of {', '.join(CAMERA_PATHS)}")
@@ -116,14 +117,6 @@ class ExportSettings:
             )
         if self.cube < 1:
             raise CubecloudError(f"--cube {self.cube} must be at least 1 voxel (the paper uses 16)")
-        if volume_size is not None and self.step >= volume_size:
-            raise CubecloudError(
-                f"--step {self.step:g} spans the whole {volume_size}³ volume: choose a smaller step, e.g. 1"
-            )
-        if volume_size is not None and self.cube > volume_size:
-            raise CubecloudError(
-                f"--cube {self.cube} is larger than the {volume_size}³ volume: choose at most {volume_size}"
-            )
         if self.points_per_cube < 1:
             raise CubecloudError(f"--points-per-cube {self.points_per_cube} must be at least 1")
         if self.max_points < 0:
@@ -140,6 +133,17 @@ class ExportSettings:
             raise CubecloudError(f"--render-from {self.render_from!r} must be grid or field")
         if self.bake_size is not None and not 2 <= self.bake_size <= 1024:
             raise CubecloudError(f"--bake-size {self.bake_size} must be within 2..1024 voxels")
+
+    def check_for_volume(self, volume_size: int) -> None:
+        """Refuse options that do not fit a volume of ``volume_size``³ voxels."""
+        if self.step >= volume_size:
+            raise CubecloudError(
+                f"--step {self.step:g} spans the whole {volume_size}³ volume: choose a smaller step, e.g. 1"
+            )
+        if self.cube > volume_size:
+            raise CubecloudError(
+                f"--cube {self.cube} is larger than the {volume_size}³ volume: choose at most {volume_size}"
+            )
 
     def bake_resolution(self, volume_size: int) -> int:
         return self.bake_size or volume_size

@@ -34,6 +34,7 @@ from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.export.cunerf_bake import saved_bake
 from cubecloud_cli.export.finished_views import PROGRESS_DIR, ExportProgress
@@ -65,6 +66,30 @@ def input_files(work: Path, cunerf_name: str | None = None) -> list[Path]:
 def resumed_views(manifest: dict) -> int:
     """How many views an export took from an interrupted run's saved work."""
     return int(manifest.get("resumed", {}).get("views", 0))
+
+
+@dataclass(frozen=True)
+class ExportStage(Stage):
+    """The export stage of a pipeline (docs/design.md §1)."""
+
+    work: Path
+    settings: ExportSettings
+    runtime: Runtime = Runtime()
+    folder = "export"
+    upstream = ("cunerf",)
+
+    def input_files(self) -> list[Path]:
+        return input_files(self.work)
+
+    def recorded_params(self) -> dict:
+        return recorded_params(self.settings)
+
+    def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
+        # An export always continues from the views an interrupted run saved (``resumed``).
+        return export_scene(self.work, self.settings, force=force, runtime=self.runtime, on_progress=on_progress)
+
+    def resumed(self, manifest: dict) -> bool:
+        return resumed_views(manifest) > 0
 
 
 def held_out_views(count: int) -> list[int]:
@@ -164,7 +189,7 @@ def _plan_export(
     settings.validate()
     preprocess = require_stage(work, "preprocess")
     size = int(preprocess["volume"]["shape"][0])
-    settings.validate(size)
+    settings.check_for_volume(size)
     cunerf = require_stage(work, "cunerf", cunerf_name)
     trained_on = cunerf.get("inputs", {}).get("preprocess/volume.npy")
     if trained_on is not None and trained_on != preprocess["files"]["volume.npy"]["sha256"]:

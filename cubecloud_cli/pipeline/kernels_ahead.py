@@ -26,7 +26,10 @@ import signal
 from dataclasses import dataclass
 from pathlib import Path
 
+from cubecloud_cli.core.runtime import resolve_device
+from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.stage import SplatStage
 
 # Longer than any first compilation measured (about 30 s on the slower host); a helper still
 # running then is stopped, and the stages compile what is left themselves.
@@ -49,6 +52,14 @@ class WarmupJob:
         return self.splat is None
 
 
+def kernels_for(stage: Stage) -> WarmupJob | None:
+    """The kernels ``stage`` compiles that a helper may compile ahead: a CPU splat run's, when it
+    is long enough to repay the helper."""
+    if not isinstance(stage, SplatStage) or stage.settings.iterations < MIN_ITERATIONS:
+        return None
+    return WarmupJob(splat=stage.settings) if resolve_device(stage.runtime.device).type == "cpu" else None
+
+
 def compile_splat_kernels(settings) -> None:
     """The rasterizer's kernels as splat training calls them: one training step of a tiny scene
     (whose first step compiles the backward side in its own helper) and one evaluation."""
@@ -57,6 +68,7 @@ def compile_splat_kernels(settings) -> None:
 
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
     from cubecloud_cli.splat import gaussians_from_points
+    from cubecloud_cli.splat.densify import strategy_for
     from cubecloud_cli.splat.trainer import SplatTrainer
     from cubecloud_cli.splat.training_views import TrainingScene
 
@@ -70,7 +82,7 @@ def compile_splat_kernels(settings) -> None:
         settings.channels,
         settings.sh_degree,
     )
-    trainer = SplatTrainer(start, scene, settings, torch.device("cpu"))
+    trainer = SplatTrainer(start, scene, settings, torch.device("cpu"), strategy_for(settings, scene.extent))
     trainer.step()
     trainer.evaluate(scene.test)
 

@@ -26,30 +26,21 @@ import time
 import traceback
 import types
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection, wait
-from pathlib import Path
 from typing import Iterator
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback
 from cubecloud_cli.core.runtime import Runtime, resolve_device
+from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.splat.settings import SplatSettings
+from cubecloud_cli.splat.stage import SplatStage
 
 # Starting a process (importing torch, loading the scene) costs a few seconds; shorter runs are
 # trained in turn. A test's 3-iteration run is one of them.
 MIN_ITERATIONS = 300
 WIDEN = "SIGUSR1"
-
-
-@dataclass(frozen=True)
-class SplatJob:
-    """What a child process needs to train one splat run: picklable, unlike a stage's closure."""
-
-    work: Path
-    settings: SplatSettings
-    runtime: Runtime
-    name: str | None
 
 
 def available_cores() -> int:
@@ -64,6 +55,18 @@ def threads_each(runtime: Runtime, settings: SplatSettings, runs: int, cores: in
     if resolve_device(runtime.device).type != "cpu":
         return None
     return cores // runs
+
+
+def side_by_side_runs(stages: list[Stage]) -> dict[str, Stage]:
+    """The splat runs among ``stages`` that train side by side when more than one of them has to
+    run, by folder, each on its share of the cores; none where ``threads_each`` says in turn."""
+    runs = [stage for stage in stages if isinstance(stage, SplatStage)]
+    if not runs:
+        return {}
+    threads = threads_each(runs[0].runtime, runs[0].settings, len(runs), available_cores())
+    if threads is None:
+        return {}
+    return {run.folder: replace(run, runtime=replace(run.runtime, threads=threads)) for run in runs}
 
 
 def _widen_kernels_on_signal() -> None:
@@ -109,10 +112,8 @@ def _start_ignoring_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _child(connection: Connection, job: SplatJob, force: bool, resume: bool, log_level: int) -> None:
-    """A child's whole life: train, and say how it ended through ``connection``."""
-    from cubecloud_cli.splat.stage import train_splat
-
+def _child(connection: Connection, stage: Stage, force: bool, resume: bool, log_level: int) -> None:
+    """A child's whole life: run the stage, and say how it ended through ``connection``."""
     _widen_kernels_on_signal()
     logger = logging.getLogger("cubecloud")
     logger.setLevel(log_level)
@@ -126,9 +127,7 @@ def _child(connection: Connection, job: SplatJob, force: bool, resume: bool, log
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         connection.send(("ready", None))
-        manifest = train_splat(
-            job.work, job.settings, force=force, resume=resume, runtime=job.runtime, name=job.name, on_progress=report
-        )
+        manifest = stage.run(force, resume, report)
         connection.send(("done", manifest))
     except CubecloudError as exc:
         connection.send(("error", str(exc)))
@@ -158,10 +157,10 @@ class _Running:
 
 
 def run_side_by_side(
-    jobs: list[tuple[str, SplatJob, bool, bool, ProgressCallback]], staggered: bool = True
+    jobs: list[tuple[Stage, bool, bool, ProgressCallback]], staggered: bool = True
 ) -> dict[str, tuple[dict, float]]:
-    """Train each (folder, job, force, resume, on_progress) in a child process, with the threads
-    of its job's runtime; returns each folder's manifest and seconds. The first job starts at
+    """Run each (stage, force, resume, on_progress) in a child process (a splat run, with the
+    threads of its runtime); returns each stage folder's manifest and seconds. The first job starts at
     once, the others one by one, each after the ones before have taken a training step; or,
     when not ``staggered`` (numba's cache holds the kernels already), all at once."""
     context = multiprocessing.get_context("spawn")  # a fork would copy torch's and numba's thread pools
@@ -170,11 +169,12 @@ def run_side_by_side(
     interrupted = False
 
     def start_next() -> None:
-        folder, job, force, resume, on_progress = waiting.pop(0)
+        stage, force, resume, on_progress = waiting.pop(0)
+        folder = stage.folder
         ours, theirs = context.Pipe(duplex=False)
         process = context.Process(
             target=_child,
-            args=(theirs, job, force, resume, logging.getLogger("cubecloud").getEffectiveLevel()),
+            args=(theirs, stage, force, resume, logging.getLogger("cubecloud").getEffectiveLevel()),
             name=f"cubecloud {folder}",
         )
         with without_main_module(), _start_ignoring_ctrl_c():

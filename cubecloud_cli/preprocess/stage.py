@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -22,6 +22,7 @@ from cubecloud_cli.core.artifacts import StageWriter, check_free_disk, read_mani
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.pictures import write_preview
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.preprocess.settings import PreprocessSettings
 from cubecloud_cli.volume.cube_frame import CubeFrame, plan_cube
 from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
@@ -41,6 +42,26 @@ PREVIEW_PNG = "preview.png"
 def recorded_params(settings: PreprocessSettings) -> dict:
     """What a complete preprocess/ must have been made with to be current (with the same scan)."""
     return asdict(settings)
+
+
+@dataclass(frozen=True)
+class PreprocessStage(Stage):
+    """The preprocess stage of a pipeline over ``scan`` (docs/design.md §1)."""
+
+    scan: Path
+    work: Path
+    settings: PreprocessSettings
+    folder = "preprocess"
+    upstream = ()
+
+    def input_files(self) -> list[Path]:
+        return [Path(self.scan)]
+
+    def recorded_params(self) -> dict:
+        return recorded_params(self.settings)
+
+    def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
+        return preprocess_scan(self.scan, self.work, self.settings, force=force, on_progress=on_progress)
 
 
 def _check_memory(size: int, source_voxels: int) -> None:

@@ -1,8 +1,12 @@
-"""Adaptive density control of the reference 3DGS (docs/references.md §1.3–1.4), as pure functions.
+"""Density control: what changes the set of Gaussians during training, passed to the trainer as a
+strategy, as gsplat's ``Strategy`` is (``strategy/base.py``: ``step_pre_backward``,
+``step_post_backward``), so that a run can swap the reference's rules for another's or for none.
 
-Every ``refine_every`` iterations the trainer asks :func:`plan_densification` what to change and
-applies the plan to every per-Gaussian tensor (parameters and optimizer moments alike) with
-:func:`apply_plan`:
+:class:`DensityStrategy` is what the trainer calls; :class:`ReferenceStrategy` is adaptive density
+control of the reference 3DGS (docs/references.md §1.3–1.4) and :class:`NoDensification` keeps the
+Gaussians the run started with (``--no-refine``). The reference's rules are pure functions: every
+``densify_every`` iterations :func:`plan_densification` says what to change, and :func:`apply_plan`
+applies the plan to every per-Gaussian tensor (parameters and optimizer moments alike):
 
 * clone Gaussians whose mean view-space gradient (in NDC units) reaches the threshold and whose
   largest scale is at most ``percent_dense`` × the scene extent (copies, unchanged);
@@ -13,17 +17,21 @@ applies the plan to every per-Gaussian tensor (parameters and optimizer moments 
 * hold the count to ``max_gaussians``: growth goes to the largest gradients first, and a model
   above the budget loses its least opaque Gaussians.
 
-:class:`DensifyStrategy` is the one place that says when: it holds the thresholds and the
-reference schedule scaled to the run, and the training loop only asks it.
+:class:`DensifySchedule` says when, on the reference schedule scaled to the run.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 
+from cubecloud_cli.numerics.adam import Optimizer
+from cubecloud_cli.raster.backends import Rasterized
 from cubecloud_cli.raster.projection import quaternion_to_rotation
+from cubecloud_cli.splat.gaussians import TRAINED_PARAMETERS, Gaussians
+from cubecloud_cli.splat.optimizer import replace_parameters
 from cubecloud_cli.splat.settings import SplatSettings
 
 RESET_OPACITY = 0.01
@@ -40,16 +48,16 @@ class DensifySettings:
 
 
 @dataclass(frozen=True)
-class DensifyStrategy:
-    """When the training loop gathers gradient statistics, densifies, prunes large Gaussians and
-    resets opacity: the reference's rules on the reference schedule scaled to the run."""
+class DensifySchedule:
+    """When the reference gathers gradient statistics, densifies, prunes large Gaussians and resets
+    opacity: its schedule scaled to the run (``SplatSettings.schedule``)."""
 
     thresholds: DensifySettings
     schedule: dict[str, int]
     refine: bool = True
 
     @classmethod
-    def from_settings(cls, settings: SplatSettings) -> "DensifyStrategy":
+    def from_settings(cls, settings: SplatSettings) -> "DensifySchedule":
         thresholds = DensifySettings(
             settings.grad_threshold, settings.percent_dense, max_gaussians=settings.max_gaussians
         )
@@ -183,3 +191,145 @@ def reset_opacity(opacity_logits: torch.Tensor) -> torch.Tensor:
     """Opacities capped at 0.01 (the reference's periodic reset), as logits."""
     capped = torch.sigmoid(opacity_logits).clamp(max=RESET_OPACITY)
     return torch.logit(capped.clamp_min(1e-7))
+
+
+@dataclass
+class Trainable:
+    """What a strategy may change: the Gaussians, the optimizer that holds them (parameters and
+    moments are replaced together) and the run's generator (the split children's draws)."""
+
+    gaussians: Gaussians
+    optimizer: Optimizer
+    generator: torch.Generator
+
+
+class DensityStrategy(Protocol):
+    """What the trainer asks at each iteration about the set of Gaussians. It keeps its own state
+    (``state_dict`` goes into the run's checkpoints)."""
+
+    def initialize(self, count: int, device: torch.device) -> None:
+        """Start for ``count`` Gaussians on ``device``."""
+        ...
+
+    def gathers_statistics(self, iteration: int) -> bool:
+        """Whether ``iteration`` (counted from 1, after its backward) may still change the set:
+        the trainer recomputes the 3D filter on its own schedule only once it does not."""
+        ...
+
+    def step_post_backward(self, iteration: int, rendered: Rasterized, width: int, height: int) -> None:
+        """After the iteration's backward, before the optimizer's step: gather statistics."""
+        ...
+
+    def step_post_optimizer(self, iteration: int, trainable: Trainable) -> bool:
+        """After the optimizer's step: densify, prune or reset; True when Gaussians were added or
+        removed."""
+        ...
+
+    def state_dict(self) -> dict:
+        """What a checkpoint keeps of the strategy."""
+        ...
+
+    def load_state_dict(self, state: dict, count: int, device: torch.device) -> None:
+        """Continue from a checkpoint's state for its ``count`` Gaussians."""
+        ...
+
+
+class ReferenceStrategy:
+    """The reference 3DGS's adaptive density control: view-space gradient statistics, clone, split
+    and prune on :class:`DensifySchedule`, and periodic opacity resets, within the scene's
+    ``extent``."""
+
+    def __init__(self, schedule: DensifySchedule, extent: float):
+        self.schedule = schedule
+        self.extent = extent
+        self.stats = GradientStats(0)
+
+    def initialize(self, count: int, device: torch.device) -> None:
+        self.stats = GradientStats(count, device)
+
+    def gathers_statistics(self, iteration: int) -> bool:
+        return self.schedule.refining(iteration)
+
+    def step_post_backward(self, iteration: int, rendered: Rasterized, width: int, height: int) -> None:
+        screen_gradient = rendered.screen_gradient() if self.gathers_statistics(iteration) else None
+        if screen_gradient is not None:
+            self.stats.add(screen_gradient, rendered.radii, width, height)
+
+    def step_post_optimizer(self, iteration: int, trainable: Trainable) -> bool:
+        densified = self.schedule.densify_due(iteration)
+        if densified:
+            self._densify(trainable, prune_large=self.schedule.prunes_large(iteration))
+        if self.schedule.reset_due(iteration):
+            self._reset_opacity(trainable)
+        return densified
+
+    def _densify(self, trainable: Trainable, prune_large: bool) -> None:
+        g = trainable.gaussians
+        device = g.means.device
+        plan = plan_densification(
+            g.means,
+            g.log_scales,
+            g.quaternions,
+            g.opacity_logits,
+            self.stats.mean(),
+            self.schedule.thresholds,
+            self.extent,
+            prune_large,
+            trainable.generator,
+        )
+        children = {"means": plan.child_means.to(device), "log_scales": plan.child_log_scales.to(device)}
+        replaced = replace_parameters(
+            trainable.optimizer,
+            TRAINED_PARAMETERS,
+            lambda name, old: apply_plan(plan, old, children.get(name)),
+            lambda name, moment: apply_plan(plan, moment, new_rows_zero=True),
+        )
+        for name, new in replaced.items():
+            setattr(g, name, new)
+        self.stats = GradientStats(len(g), device)
+
+    @staticmethod
+    def _reset_opacity(trainable: Trainable) -> None:
+        replaced = replace_parameters(
+            trainable.optimizer,
+            ["opacity_logits"],
+            lambda name, old: reset_opacity(old),
+            lambda name, moment: torch.zeros_like(moment),
+        )
+        trainable.gaussians.opacity_logits = replaced["opacity_logits"]
+
+    def state_dict(self) -> dict:
+        return {"stats": (self.stats.total.cpu(), self.stats.views.cpu())}
+
+    def load_state_dict(self, state: dict, count: int, device: torch.device) -> None:
+        self.stats = GradientStats(count, device)
+        self.stats.total, self.stats.views = (t.to(device) for t in state["stats"])
+
+
+class NoDensification:
+    """The Gaussians the run started with, none added, removed or reset (``--no-refine``)."""
+
+    def initialize(self, count: int, device: torch.device) -> None:
+        pass
+
+    def gathers_statistics(self, iteration: int) -> bool:
+        return False
+
+    def step_post_backward(self, iteration: int, rendered: Rasterized, width: int, height: int) -> None:
+        pass
+
+    def step_post_optimizer(self, iteration: int, trainable: Trainable) -> bool:
+        return False
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict, count: int, device: torch.device) -> None:
+        pass
+
+
+def strategy_for(settings: SplatSettings, extent: float) -> DensityStrategy:
+    """The strategy ``settings`` ask for, for a scene of ``extent``: the reference's, or none."""
+    if not settings.refine:
+        return NoDensification()
+    return ReferenceStrategy(DensifySchedule.from_settings(settings), extent)

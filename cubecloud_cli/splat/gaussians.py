@@ -19,6 +19,8 @@ import torch
 from cubecloud_cli.splat.smoothing import smoothed_scales, smoothing_attenuation
 from cubecloud_cli.splat.spherical_harmonics import MAX_DEGREE, coefficient_count, rgb_to_sh, sh_to_colour
 
+# The per-Gaussian tensors that training optimises, each a parameter group of Adam.
+TRAINED_PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 INITIAL_OPACITY = 0.1  # the reference initialisation
 # exp(±LOG_SCALE_LIMIT) keeps scales, and the projected covariance's a·c (∝ s⁴ · focal⁴),
 # finite in float32 whatever the optimizer does; e¹⁰ is 22 000 world units, far past any scene.

@@ -14,12 +14,20 @@ from __future__ import annotations
 
 import logging
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from cubecloud_cli.core.artifacts import StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.core.artifacts import (
+    PARTIAL_SUFFIX,
+    StageWriter,
+    read_manifest,
+    require_stage,
+    stage_dir_name,
+    write_csv_log,
+)
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.interrupts import (
     CubecloudInterrupted,
@@ -32,6 +40,8 @@ from cubecloud_cli.core.interrupts import (
 from cubecloud_cli.core.pictures import to_uint8
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
+from cubecloud_cli.core.stage import Stage
+from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.gaussian_ply import write_gaussians_ply
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
 from cubecloud_cli.splat.settings import SplatSettings
@@ -54,6 +64,43 @@ def input_files(scene_dir: Path) -> list[Path]:
     """The scene files a splat run trains from (the point cloud only seeds --init cloud, but a new
     export changes both)."""
     return [Path(scene_dir) / "images.npy", Path(scene_dir) / "points3D.ply"]
+
+
+@dataclass(frozen=True)
+class SplatStage(Stage):
+    """A splat run of a pipeline, trained on the work directory's export (``name``: a run beside
+    the default one, in splat-NAME/). Picklable, so that a run can train in a process of its own."""
+
+    work: Path
+    settings: SplatSettings
+    runtime: Runtime = Runtime()
+    name: str | None = None
+    upstream = ("export",)
+
+    @property
+    def folder(self) -> str:
+        return stage_dir_name("splat", self.name)
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.work / f".{self.folder}{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
+
+    def input_files(self) -> list[Path]:
+        return input_files(self.work / "export")
+
+    def recorded_params(self) -> dict:
+        return recorded_params(self.settings, self.work / "export")
+
+    def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
+        return train_splat(
+            self.work,
+            self.settings,
+            force=force,
+            resume=resume,
+            runtime=self.runtime,
+            name=self.name,
+            on_progress=on_progress,
+        )
 
 
 def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
@@ -174,7 +221,8 @@ def _build_trainer(
     scene: TrainingScene, settings: SplatSettings, device: torch.device, state: dict | None
 ) -> SplatTrainer:
     """A trainer from the initial Gaussians, restored to a checkpoint's state when resuming."""
-    trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device)
+    strategy = strategy_for(settings, scene.extent)
+    trainer = SplatTrainer(_initial_gaussians(scene, settings), scene, settings, device, strategy)
     trainer.identity = _scene_identity(scene)
     if state is not None:
         trainer.restore(state)

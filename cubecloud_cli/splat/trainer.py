@@ -1,5 +1,5 @@
-"""The 3DGS training loop: one view per iteration, the paper's loss, Adam per parameter group,
-adaptive density control, checkpoints that resume exactly."""
+"""The 3DGS training loop: one view per iteration, the paper's loss, Adam per parameter group, the
+density-control strategy it is given (``densify.py``), checkpoints that resume exactly."""
 
 from __future__ import annotations
 
@@ -15,15 +15,12 @@ from cubecloud_cli.numerics.adam import adam
 from cubecloud_cli.numerics.metrics import psnr_from_mse
 from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.raster.cpu.backward_compile import BackwardCompile
-from cubecloud_cli.splat.densify import DensifyStrategy, GradientStats, apply_plan, plan_densification, reset_opacity
-from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.splat.densify import DensityStrategy, Trainable
+from cubecloud_cli.splat.gaussians import TRAINED_PARAMETERS, Gaussians
 from cubecloud_cli.splat.losses import photometric_loss
-from cubecloud_cli.splat.optimizer import replace_parameters
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
 from cubecloud_cli.splat.training_views import TrainingScene
-
-PARAMETERS = ("means", "log_scales", "quaternions", "opacity_logits", "sh_dc", "sh_rest")
 
 
 def render_camera(
@@ -70,13 +67,23 @@ def render(
 
 
 class SplatTrainer:
-    def __init__(self, gaussians: Gaussians, scene: TrainingScene, settings: SplatSettings, device: torch.device):
+    """Trains ``gaussians`` on ``scene``; ``strategy`` decides how their set changes
+    (``densify.strategy_for(settings, scene.extent)`` gives the one the settings ask for)."""
+
+    def __init__(
+        self,
+        gaussians: Gaussians,
+        scene: TrainingScene,
+        settings: SplatSettings,
+        device: torch.device,
+        strategy: DensityStrategy,
+    ):
         self.settings = settings
         self.scene = scene
         self.device = device
         self.rasterizer = rasterizer_for(device)
         self.extent = scene.extent
-        for name in PARAMETERS:
+        for name in TRAINED_PARAMETERS:
             setattr(gaussians, name, getattr(gaussians, name).detach().to(device).requires_grad_(True))
         self.gaussians = gaussians
         # What training started from; a restored checkpoint replaces the Gaussians, not this.
@@ -89,13 +96,15 @@ class SplatTrainer:
             "sh_dc": settings.lr_sh,
             "sh_rest": settings.lr_sh / 20.0,
         }
-        groups = [{"params": [getattr(gaussians, name)], "lr": rates[name], "name": name} for name in PARAMETERS]
+        groups = [
+            {"params": [getattr(gaussians, name)], "lr": rates[name], "name": name} for name in TRAINED_PARAMETERS
+        ]
         # Fused: one pass over each parameter instead of about ten elementwise ops, each with its
         # own temporary; on the CPU a 75k-Gaussian step took 3.5 ms and takes 0.9 ms on one thread.
         self.optimizer = adam(groups, eps=1e-15)
-        self.strategy = DensifyStrategy.from_settings(settings)
-        self.schedule = self.strategy.schedule
-        self.stats = GradientStats(len(gaussians), device)
+        self.strategy = strategy
+        self.strategy.initialize(len(gaussians), device)
+        self.schedule = settings.schedule()
         self.generator = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
         self._stepped = False
@@ -152,61 +161,23 @@ class SplatTrainer:
             backward_compile.before_backward()
         loss.backward()
         self.iteration += 1
-        refining = self.strategy.refining(self.iteration)
-        screen_gradient = rendered.screen_gradient() if refining else None
-        if screen_gradient is not None:
-            self.stats.add(screen_gradient, rendered.radii, self.scene.cameras.width, self.scene.cameras.height)
+        refining = self.strategy.gathers_statistics(self.iteration)
+        self.strategy.step_post_backward(self.iteration, rendered, self.scene.cameras.width, self.scene.cameras.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         # One sum per parameter: NaN and ±Inf propagate into it, at a fraction of isfinite's cost.
         if not bool(
-            torch.isfinite(torch.stack([getattr(self.gaussians, name).detach().sum() for name in PARAMETERS])).all()
+            torch.isfinite(
+                torch.stack([getattr(self.gaussians, name).detach().sum() for name in TRAINED_PARAMETERS])
+            ).all()
         ):
             raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {self.iteration}")
-        if self.strategy.densify_due(self.iteration):
-            self._densify(prune_large=self.strategy.prunes_large(self.iteration))
-        if self.strategy.reset_due(self.iteration):
-            self._reset_opacity()
+        if self.strategy.step_post_optimizer(self.iteration, Trainable(self.gaussians, self.optimizer, self.generator)):
+            self._update_smoothing()  # for the Gaussians added and removed
         if not refining and self.iteration % RECOMPUTE_EVERY == 0:
             self._update_smoothing()  # the means still move a little once densification stops
         self.elapsed_s += time.perf_counter() - started
         return float(loss.detach())
-
-    # -- density control ------------------------------------------------------------------
-
-    def _densify(self, prune_large: bool) -> None:
-        g = self.gaussians
-        plan = plan_densification(
-            g.means,
-            g.log_scales,
-            g.quaternions,
-            g.opacity_logits,
-            self.stats.mean(),
-            self.strategy.thresholds,
-            self.extent,
-            prune_large,
-            self.generator,
-        )
-        children = {"means": plan.child_means.to(self.device), "log_scales": plan.child_log_scales.to(self.device)}
-        replaced = replace_parameters(
-            self.optimizer,
-            PARAMETERS,
-            lambda name, old: apply_plan(plan, old, children.get(name)),
-            lambda name, moment: apply_plan(plan, moment, new_rows_zero=True),
-        )
-        for name, new in replaced.items():
-            setattr(g, name, new)
-        self.stats = GradientStats(len(g), self.device)
-        self._update_smoothing()
-
-    def _reset_opacity(self) -> None:
-        replaced = replace_parameters(
-            self.optimizer,
-            ["opacity_logits"],
-            lambda name, old: reset_opacity(old),
-            lambda name, moment: torch.zeros_like(moment),
-        )
-        self.gaussians.opacity_logits = replaced["opacity_logits"]
 
     # -- evaluation and checkpoints -------------------------------------------------------
 
@@ -228,10 +199,10 @@ class SplatTrainer:
             "iteration": self.iteration,
             "elapsed_s": self.elapsed_s,
             "history": self.history,
-            "gaussians": {name: getattr(self.gaussians, name).detach().cpu() for name in PARAMETERS},
+            "gaussians": {name: getattr(self.gaussians, name).detach().cpu() for name in TRAINED_PARAMETERS},
             "smoothing": None if self.gaussians.smoothing is None else self.gaussians.smoothing.cpu(),
             "optimizer": self.optimizer.state_dict(),
-            "stats": (self.stats.total.cpu(), self.stats.views.cpu()),
+            **self.strategy.state_dict(),
             "generator": self.generator.get_state(),
             "queue": list(self._queue),
             "settings": self.settings.as_dict(),
@@ -253,8 +224,7 @@ class SplatTrainer:
         self.gaussians.smoothing = None if smoothing is None else smoothing.to(self.device)
         self.optimizer.state.clear()
         self.optimizer.load_state_dict(state["optimizer"])
-        self.stats = GradientStats(len(self.gaussians), self.device)
-        self.stats.total, self.stats.views = (t.to(self.device) for t in state["stats"])
+        self.strategy.load_state_dict(state, len(self.gaussians), self.device)
         self.generator.set_state(state["generator"])
         self._queue = list(state["queue"])
         self.iteration = int(state["iteration"])
