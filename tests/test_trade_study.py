@@ -117,7 +117,7 @@ def _a_finished_run_seeds_the_base(finished: Path, tmp_path, monkeypatch, capsys
     trade.seed_from_base(finished, work, keys)
     capsys.readouterr()
     commands = trade.stage_commands(None, work, "fast", None, {})
-    with trade.JobServerOnDemand() as jobs:
+    with trade.JobServerOnDemand(trade.CUBECLOUD_JOBS) as jobs:
         trade.run_configuration("preset", commands, keys, work, {}, jobs)
         assert jobs._command is None  # no server started: nothing was to run
     assert "cubecloud" not in capsys.readouterr().out  # every stage kept, none rerun
