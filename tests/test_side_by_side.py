@@ -17,10 +17,12 @@ from cubecloud_cli.eval import EvalSettings
 from cubecloud_cli.export import ExportSettings
 from cubecloud_cli.pipeline import side_by_side
 from cubecloud_cli.pipeline.runner import run_stages
-from cubecloud_cli.pipeline.side_by_side import available_cores, threads_each, without_main_module
+from cubecloud_cli.pipeline.side_by_side import available_cores, without_main_module
 from cubecloud_cli.pipeline.table import stage_table
 from cubecloud_cli.preprocess import PreprocessSettings
+from cubecloud_cli.splat import on_cpu
 from cubecloud_cli.splat import stage as splat_stage
+from cubecloud_cli.splat.on_cpu import threads_each
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
 
@@ -56,7 +58,7 @@ def splat_settings() -> SplatSettings:
 
 def splat_stages(work, monkeypatch):
     """The stage table's two splat runs, marked to train side by side (short as they are)."""
-    monkeypatch.setattr(side_by_side, "MIN_ITERATIONS", 1)
+    monkeypatch.setattr(on_cpu, "SIDE_BY_SIDE_MIN_ITERATIONS", 1)
     stages = stage_table(
         work / "scan.nii.gz",
         work,

@@ -44,7 +44,7 @@ log = logging.getLogger("cubecloud")
 CUBECLOUD_JOBS = JobEntry(
     program="cubecloud",
     main="cubecloud_cli.cli:main",
-    preload=("cubecloud_cli.cli", "cubecloud_cli.eval.compare", "cubecloud_cli.pipeline.runner"),
+    preload=("cubecloud_cli.cli", "cubecloud_cli.eval.compare", "cubecloud_cli.pipeline.table"),
 )
 
 ScansArgument = Annotated[

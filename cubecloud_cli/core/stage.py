@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Mapping, Protocol
+from typing import Any, Callable, Mapping, Protocol
 
 from cubecloud_cli.core.artifacts import is_complete, read_manifest, sha256_of_path
 from cubecloud_cli.core.errors import CubecloudError
@@ -69,6 +69,16 @@ class Stage(Protocol):
     def resumed(self, manifest: Mapping[str, Any]) -> bool:
         """Whether a run that was not asked to resume reused saved work all the same."""
         return False
+
+    def beside(self, others: int, cores: int) -> Stage | None:
+        """This stage as it runs in a process of its own beside ``others`` more such stages, on
+        its share of ``cores`` (it must pickle); None to run it in turn, in this process."""
+        return None
+
+    def compile_ahead(self) -> Callable[[], object] | None:
+        """What this stage's run will compile, as a picklable job a helper process may run ahead
+        while earlier stages leave cores idle; None: nothing worth it."""
+        return None
 
 
 def parameter_differences(recorded: Mapping[str, Any], requested: Mapping[str, Any]) -> list[str]:

@@ -1,8 +1,8 @@
 """`cubecloud run`'s loop: the stages in order, skipping those already complete with the same
-settings, resuming those interrupted, redoing those whose upstream stage was redone. It reads
-each stage through the contract of ``cubecloud_cli/core/stage.py`` only; which stages train side
-by side (``side_by_side.py``) and which kernels are compiled ahead (``kernels_ahead.py``) those
-modules decide from the stages.
+settings, resuming those interrupted, redoing those whose upstream stage was redone, running side
+by side those that may (``side_by_side.py``) and compiling ahead what a later stage will compile
+(``kernels_ahead.py``). It reads each stage through the contract of ``cubecloud_cli/core/stage.py``
+only.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Callable, ContextManager, Iterator
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.stage import Stage
-from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, kernels_for
+from cubecloud_cli.pipeline.kernels_ahead import Warmup
 from cubecloud_cli.pipeline.side_by_side import run_side_by_side, side_by_side_runs
 
 
@@ -59,7 +59,7 @@ def run_stages(
                     on_stage(outcomes[stage.folder])
             to_run = [stage for stage in group if plans[stage.folder] is not None]
             kernels_ready = False
-            if any(kernels_for(stage) is not None for stage in to_run):
+            if any(stage.compile_ahead() is not None for stage in to_run):
                 kernels_ready = warmup.wait()
             if len(to_run) > 1:
                 jobs = [together[stage.folder] for stage in to_run]
@@ -78,7 +78,7 @@ def run_stages(
     return list(outcomes.values())
 
 
-def _kernels_ahead(stages: list[Stage], force: bool) -> WarmupJob | None:
+def _kernels_ahead(stages: list[Stage], force: bool) -> Callable[[], object] | None:
     """The kernels of the stages that will run, when there is a stage before them to hide their
     compilation behind (a single stage, as a workflow engine runs them, compiles its own)."""
     running: set[str] = set()
@@ -86,7 +86,7 @@ def _kernels_ahead(stages: list[Stage], force: bool) -> WarmupJob | None:
     for stage in stages:
         if force or any(name in running for name in stage.upstream) or not _is_current_as_far_as_known(stage):
             running.add(stage.folder)
-            job = job or kernels_for(stage)  # the splat runs differ in their start only: one job serves all
+            job = job or stage.compile_ahead()  # the splat runs differ in their start only: one job serves all
     return job if len(running) > 1 else None
 
 

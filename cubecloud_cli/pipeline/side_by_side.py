@@ -26,20 +26,14 @@ import time
 import traceback
 import types
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Iterator
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback
-from cubecloud_cli.core.runtime import Runtime, resolve_device
 from cubecloud_cli.core.stage import Stage
-from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.splat.stage import SplatStage
 
-# Starting a process (importing torch, loading the scene) costs a few seconds; shorter runs are
-# trained in turn. A test's 3-iteration run is one of them.
-MIN_ITERATIONS = 300
 WIDEN = "SIGUSR1"
 
 
@@ -47,26 +41,13 @@ def available_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def threads_each(runtime: Runtime, settings: SplatSettings, runs: int, cores: int) -> int | None:
-    """Threads for each of ``runs`` splat runs trained side by side, or None to train them in
-    turn: on a GPU, when the user chose --threads, with fewer cores than runs, or for short runs."""
-    if runs < 2 or cores < runs or runtime.threads is not None or settings.iterations < MIN_ITERATIONS:
-        return None
-    if resolve_device(runtime.device).type != "cpu":
-        return None
-    return cores // runs
-
-
 def side_by_side_runs(stages: list[Stage]) -> dict[str, Stage]:
-    """The splat runs among ``stages`` that train side by side when more than one of them has to
-    run, by folder, each on its share of the cores; none where ``threads_each`` says in turn."""
-    runs = [stage for stage in stages if isinstance(stage, SplatStage)]
-    if not runs:
-        return {}
-    threads = threads_each(runs[0].runtime, runs[0].settings, len(runs), available_cores())
-    if threads is None:
-        return {}
-    return {run.folder: replace(run, runtime=replace(run.runtime, threads=threads)) for run in runs}
+    """The stages that run side by side, each in a process of its own, when more than one of them
+    has to run: by folder, each as it runs on its share of the cores (``Stage.beside``)."""
+    cores = available_cores()
+    able = [stage for stage in stages if stage.beside(1, cores) is not None]
+    copies = {stage.folder: stage.beside(len(able) - 1, cores) for stage in able}
+    return {folder: copy for folder, copy in copies.items() if copy is not None}
 
 
 def _widen_kernels_on_signal() -> None:

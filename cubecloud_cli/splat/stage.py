@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.gaussian_ply import write_gaussians_ply
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
+from cubecloud_cli.splat.on_cpu import SplatKernels, kernels_to_compile_ahead, threads_each
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.trainer import SplatTrainer
 from cubecloud_cli.splat.training_views import TrainingScene, load_scene
@@ -90,6 +91,13 @@ class SplatStage(Stage):
 
     def recorded_params(self) -> dict:
         return recorded_params(self.settings, self.work / "export")
+
+    def beside(self, others: int, cores: int) -> SplatStage | None:
+        threads = threads_each(self.runtime, self.settings, others + 1, cores)
+        return None if threads is None else replace(self, runtime=replace(self.runtime, threads=threads))
+
+    def compile_ahead(self) -> SplatKernels | None:
+        return kernels_to_compile_ahead(self.settings, self.runtime)
 
     def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
         return train_splat(

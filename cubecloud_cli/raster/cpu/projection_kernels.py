@@ -5,7 +5,7 @@ The same arithmetic as :func:`cubecloud_cli.raster.projection.project` (which st
 reference and the path on other devices), in float64. Autograd through the PyTorch version costs
 about 8 ms for 50k Gaussians on two cores, more than compositing a 128² view. Each block of 256
 Gaussians is turned into columns (one array row per parameter) and projected by one loop with no
-branch, call or division check (``cpu_projection_blocks``), which LLVM computes four Gaussians at
+branch, call or division check (``projection_blocks``), which LLVM computes four Gaussians at
 a time (with the memory check limit of ``cubecloud_cli.numerics.jit``): forward and backward at 50k Gaussians take 2.7 ms on two
 cores and 4.1 ms on one, against 4.6 and 7.5 ms for the scalar loop they replaced, with the same
 bits. Each divides once by z, by the determinant and by |q|, and multiplies by the reciprocals:

@@ -8,9 +8,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cubecloud_cli.core.runtime import Runtime
-from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, kernels_for
+from cubecloud_cli.pipeline.kernels_ahead import Warmup
 from cubecloud_cli.pipeline.runner import _kernels_ahead
 from cubecloud_cli.pipeline.table import stage_table
+from cubecloud_cli.splat.on_cpu import SplatKernels
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import SplatStage
 
@@ -30,7 +31,8 @@ from cubecloud_cli.preprocess import PreprocessSettings
 from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.sample_data import sample_ct_path
 from cubecloud_cli.splat.settings import SplatSettings
-from cubecloud_cli.pipeline.kernels_ahead import Warmup, WarmupJob, kernels_for, warm_up
+from cubecloud_cli.pipeline.kernels_ahead import Warmup, warm_up
+from cubecloud_cli.splat.on_cpu import SplatKernels
 
 def signatures():
     found = {}
@@ -47,8 +49,8 @@ stages = stage_table(
     CunerfSettings(holdout=2), ExportSettings(resolution=32, views=4, max_points=300, novel_directions=2),
     splat, EvalSettings(turntable_frames=0), Runtime(device="cpu"), baseline=False,
 )
-assert kernels_for(stages[-2]) is None  # too short a run to compile ahead: the helper is called here
-warm_up(WarmupJob(splat=splat))
+assert stages[-2].compile_ahead() is None  # too short a run to compile ahead: the helper is called here
+warm_up(SplatKernels(splat))
 ahead = signatures()
 pipeline.Warmup.start = classmethod(lambda cls, job: Warmup(None))  # this process compiled them
 pipeline.run_stages(stages, Path(sys.argv[1]))
@@ -97,7 +99,7 @@ def _stage(folder: str, upstream: tuple[str, ...], current: bool, splat: bool = 
 
 
 def test_the_helper_takes_the_kernels_of_the_stages_that_will_run_and_only_behind_another_stage():
-    splat = WarmupJob(splat=SplatSettings())
+    splat = SplatKernels(SplatSettings())
     table = [
         _stage("preprocess", (), True),
         _stage("cunerf", ("preprocess",), False),
@@ -117,21 +119,21 @@ def test_only_runs_long_enough_to_repay_the_helper_compile_ahead(tmp_path):
     from cubecloud_cli.cunerf import CunerfSettings
     from cubecloud_cli.eval import EvalSettings
     from cubecloud_cli.export import ExportSettings
-    from cubecloud_cli.pipeline.kernels_ahead import MIN_ITERATIONS
     from cubecloud_cli.preprocess import PreprocessSettings
+    from cubecloud_cli.splat.on_cpu import COMPILE_AHEAD_MIN_ITERATIONS as MIN_ITERATIONS
 
     def splat_compiles(iterations: int):
         stages = stage_table(
             tmp_path / "scan.nii.gz", tmp_path, PreprocessSettings(), CunerfSettings(), ExportSettings(),
             SplatSettings(iterations=iterations), EvalSettings(), Runtime(device="cpu"),
         )  # fmt: skip
-        return [kernels_for(stage) for stage in stages if stage.folder.startswith("splat")]
+        return [stage.compile_ahead() for stage in stages if stage.folder.startswith("splat")]
 
-    assert all(job is not None and job.splat.iterations == MIN_ITERATIONS for job in splat_compiles(MIN_ITERATIONS))
+    assert all(job is not None and job.settings.iterations == MIN_ITERATIONS for job in splat_compiles(MIN_ITERATIONS))
     assert splat_compiles(MIN_ITERATIONS - 1) == [None, None]
 
 
 def test_a_stopped_helper_reports_nothing_compiled(tmp_path):
-    helper = Warmup.start(WarmupJob(splat=SplatSettings()))
+    helper = Warmup.start(SplatKernels(SplatSettings()))
     helper.stop()
     assert helper.wait() is False and Warmup(None).wait() is False
