@@ -3,10 +3,8 @@ renders of the preprocessed volume, on the held-out views; write the numbers and
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -20,8 +18,17 @@ from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
-from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
+from cubecloud_cli.eval.novel_scores import pictured_views
 from cubecloud_cli.eval.outputs import PAPER_TABLE_I, report_markdown, write_per_view_csv
+from cubecloud_cli.eval.rows import (
+    CUNERF_ROW,
+    cunerf_rows,
+    picture_name,
+    protocol_description,
+    score_novel,
+    score_row,
+    training_curve,
+)
 from cubecloud_cli.eval.runs import (
     ScoredScene,
     SplatRun,
@@ -33,170 +40,10 @@ from cubecloud_cli.eval.runs import (
     resolve_scene,
     turntable_cameras,
 )
-from cubecloud_cli.eval.scoring import score_views, summarize
 from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.raster.backends import rasterizer_for
 
 log = logging.getLogger("cubecloud")
-
-CUNERF_ROW, CUNERF_TRAINING_ROW = "cunerf", "cunerf-training-views"
-
-
-def protocol_description(scored: ScoredScene, foreign_rows: list[str]) -> dict:
-    protocol = {
-        "name": "cubecloud held-out views v1",
-        "reference": (
-            "renders of the preprocessed volume (export/reference.npy), with the export's image model"
-            if scored.reference_kind == "volume"
-            else "the scene's own images (it has no reference.npy: a foreign COLMAP scene)"
-        ),
-        "views": "the scene's held-out test views (split.json: every 8th view), never trained on",
-        "novel views": (
-            f"{len(scored.novel.views.directions)} fixed directions (from the head, from the feet, then seeded "
-            f"random ones) at magnifications {', '.join(f'{m:g}' for m in scored.novel.views.magnifications)}, "
-            "rendered from the volume with pixel-area references (supersampled), the same for every camera "
-            "setup; cells: angle from the nearest training camera × magnification; the headline `novel PSNR` "
-            "is the mean over 0.75–1.33×"
-            if scored.novel is not None
-            else "none: the scene has no novel-view test (an export made before it, a foreign scene, or "
-            "--novel-directions 0)"
-        ),
-        "metrics": "docs/design.md §5: PSNR with data range 1, SSIM (Gaussian window σ = 1.5, 11 taps, no sample-covariance "
-        "correction, as scikit-image), MSE on [0, 1]; per view, then mean and population std over views; "
-        "colour renders are scored on their grey mean, as the references are grey",
-        "foreground": "the *_foreground scores count only pixels where the reference is non-zero",
-        "rows": "each splat run; `cunerf`: CuNeRF's own renders of the same views; `cunerf-training-views`: CuNeRF's "
-        "renders of the training views against the reference, the error baked into 3DGS's targets",
-        "timing": "splat rows: median ms per frame rendering the held-out views here; CuNeRF rows: the export's "
-        "render time per view from the baked grid, as recorded when the export ran",
-        "non-finite values": 'written as the strings "inf" and "nan" (identical images have infinite PSNR)',
-        "image_model": json.dumps(scored.export_manifest.get("image_model")) if scored.export_manifest else "unknown",
-    }
-    if foreign_rows:
-        protocol["other scenes"] = (
-            f"{', '.join(foreign_rows)} trained on another scene and are scored on its held-out "
-            "views against its own reference (column `against`): not comparable with the rows above"
-        )
-    return protocol
-
-
-def _score_row(
-    reference: np.ndarray,
-    estimate: np.ndarray,
-    names: list[str],
-    row: str,
-    method: str,
-    per_view: list[dict],
-    scene: Path,
-    against: str,
-) -> dict:
-    scores = score_views(reference, estimate)
-    per_view += [
-        {
-            "row": row,
-            "method": method,
-            "set": "held-out",
-            "view": name,
-            "scene": str(scene),
-            "against": against,
-            **score,
-        }
-        for name, score in zip(names, scores)
-    ]
-    return {"method_name": method, **summarize(scores), "view_names": names, "scene": str(scene), "reference": against}
-
-
-def _cunerf_rows(work: Path, scored: ScoredScene, per_view: list[dict]) -> dict[str, dict]:
-    scene, export = scored.scene, scored.export_manifest or {}
-    images = scene.images.numpy().mean(axis=-1)
-    cunerf_dir = work / "cunerf"
-    cunerf = read_manifest(cunerf_dir) if is_complete(cunerf_dir) else {}
-    timings = export.get("timings_s", {})
-    resumed = bool(export.get("resumed", {}).get("views"))  # then only the missing views were timed
-    extra = {
-        "ms_per_frame": None
-        if resumed or "render_images" not in timings
-        else 1000.0 * timings["render_images"] / max(1, len(scene.names)),
-        "train_seconds": cunerf.get("timings_s", {}).get("total"),
-        "size_mb": (cunerf_dir / "model.pt").stat().st_size / 1e6 if (cunerf_dir / "model.pt").is_file() else None,
-        "render_source": export.get("render_source"),
-    }
-    rows = {}
-    for row, method, views_of in (
-        (CUNERF_ROW, "CuNeRF renders (held-out views)", scene.test),
-        (CUNERF_TRAINING_ROW, "CuNeRF renders = 3DGS targets (training views)", scene.train),
-    ):
-        names = [scene.names[i] for i in views_of]
-        rows[row] = {
-            **_score_row(
-                scored.reference[views_of], images[views_of], names, row, method, per_view, scene.directory, "volume"
-            ),
-            **extra,
-        }
-    return rows
-
-
-def _score_novel(
-    run: SplatRun, gaussians, scored: ScoredScene, rasterizer, tick, per_view: list[dict], result: dict
-) -> dict[int, np.ndarray]:
-    """Render ``run`` at the scene's novel views, score them, put the summary into ``result`` and
-    their rows into ``per_view``; returns the renders of the views the report pictures."""
-    test = scored.novel
-    count = len(test.views.directions)
-    renders = np.concatenate(
-        [
-            render_views(gaussians, test.views.cameras(m), list(range(count)), rasterizer, tick, run.antialias)[0]
-            for m in test.views.magnifications
-        ]
-    )
-    if not np.isfinite(renders).all():
-        raise CubecloudError(f"{run.name} renders NaN or Inf at a novel view: retrain it with `{run.retrain}`")
-    angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
-    rows = annotate(score_views(test.reference, renders), test, angles)
-    per_view += [
-        {
-            "row": run.name,
-            "method": run.method,
-            "set": "novel",
-            "scene": str(scored.scene.directory),
-            "against": "volume, pixel area",
-            **row,
-        }
-        for row in rows
-    ]
-    novel = summarize_novel(rows)
-    headline = novel["headline"]
-    result.update(
-        {
-            "novel_psnr": headline["psnr"],
-            "novel_psnr_std": headline["psnr_std"],
-            "novel_ssim": headline["ssim"],
-            "novel_ssim_std": headline["ssim_std"],
-            "novel_views": headline["views"],
-            "novel": novel,
-        }
-    )
-    return {index: renders[index] for _, index in pictured_views(test)}
-
-
-def _training_curve(run: SplatRun) -> tuple[list[float], list[float]]:
-    path = run.directory / "log.csv"
-    iterations, psnrs = [], []
-    if path.is_file():
-        with open(path, newline="") as handle:
-            for row in csv.DictReader(handle):
-                try:
-                    iteration, value = float(row.get("iteration") or "nan"), float(row.get("test_psnr") or "nan")
-                except ValueError:
-                    continue
-                if math.isfinite(iteration) and math.isfinite(value):
-                    iterations.append(iteration)
-                    psnrs.append(value)
-    return iterations, psnrs
-
-
-def _picture_name(view_name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(view_name).with_suffix("").as_posix())
 
 
 def eval_is_current(work: Path, settings: EvalSettings | None = None) -> bool:
@@ -361,7 +208,7 @@ def _score_run(
             f"retrain it with `{run.retrain}`"
         )
     result = scores.results[run.name] = {
-        **_score_row(
+        **score_row(
             scored.reference[test],
             renders,
             names,
@@ -380,7 +227,7 @@ def _score_run(
         "rasterizer": rasterizer.description,
     }
     if scored.novel is not None:
-        pictured = _score_novel(run, gaussians, scored, rasterizer, tick, scores.per_view, result)
+        pictured = score_novel(run, gaussians, scored, rasterizer, tick, scores.per_view, result)
         if scored is loaded.main_scene:
             for index, render in pictured.items():
                 scores.novel_renders.setdefault(index, {})[run.name] = render
@@ -403,7 +250,7 @@ def _score_cunerf(work: Path, loaded: LoadedRuns, scores: Scores) -> None:
             f"no CuNeRF rows: {loaded.own_export} is not the scene the runs trained on, or has no reference renders"
         )
         return
-    scores.results.update(_cunerf_rows(work, main, scores.per_view))
+    scores.results.update(cunerf_rows(work, main, scores.per_view))
     images = main.scene.images.numpy().mean(axis=-1)
     for index in main.scene.test:
         scores.renders_by_view.setdefault(main.scene.names[index], {})[CUNERF_ROW] = images[index]
@@ -416,7 +263,7 @@ def _draw_pictures(loaded: LoadedRuns, scores: Scores, directory: Path) -> None:
     for index in main.scene.test:
         name = main.scene.names[index]
         if name in scores.renders_by_view:
-            relative = f"views/{_picture_name(name)}.png"
+            relative = f"views/{picture_name(name)}.png"
             error_grid(main.reference[index], scores.renders_by_view[name], f"held-out view {name}").save(
                 directory / relative
             )
@@ -430,7 +277,7 @@ def _draw_pictures(loaded: LoadedRuns, scores: Scores, directory: Path) -> None:
                     main.novel.reference[index], scores.novel_renders[index], f"novel view {name}: {label}"
                 ).save(directory / relative)
                 pictures["novel"].append(relative)
-    curves = [(run.name, *_training_curve(run)) for run in loaded.runs]
+    curves = [(run.name, *training_curve(run)) for run in loaded.runs]
     if any(xs for _, xs, _ in curves):
         (directory / "psnr_vs_iteration.svg").write_text(
             line_plot_svg(curves, "test PSNR during training (against the training images)", "iteration", "PSNR (dB)")
