@@ -71,6 +71,11 @@ def stage_dir_name(stage: str, name: str | None = None) -> str:
     return f"{stage}-{name}"
 
 
+def partial_dir(work: Path, folder: str) -> Path:
+    """Where stage folder ``folder`` is written before it is renamed into place (``WORK/.NAME.partial``)."""
+    return Path(work) / f".{folder}{PARTIAL_SUFFIX}"
+
+
 def to_jsonable(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {str(k): to_jsonable(v) for k, v in value.items()}
@@ -158,7 +163,7 @@ class StageWriter:
     def __post_init__(self) -> None:
         self.work = Path(self.work)
         self.final_dir = self.work / stage_dir_name(self.stage, self.name)
-        self.directory = self.work / f".{self.final_dir.name}{PARTIAL_SUFFIX}"
+        self.directory = partial_dir(self.work, self.final_dir.name)
         self._started = 0.0
 
     def check_can_start(self) -> None:

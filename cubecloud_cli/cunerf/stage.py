@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.core.artifacts import PARTIAL_SUFFIX, StageWriter, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.core.artifacts import StageWriter, partial_dir, read_manifest, require_stage, write_csv_log
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.interrupts import (
     CubecloudInterrupted,
@@ -69,7 +69,7 @@ class CunerfStage(Stage):
 
     @property
     def checkpoint(self) -> Path:
-        return self.work / f".{self.folder}{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
+        return partial_dir(self.work, self.folder) / CHECKPOINT_FILE
 
     def input_files(self) -> list[Path]:
         return input_files(self.work)

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from cubecloud_cli.core.artifacts import (
-    PARTIAL_SUFFIX,
     StageWriter,
+    partial_dir,
     read_manifest,
     require_stage,
     stage_dir_name,
@@ -84,7 +84,7 @@ class SplatStage(Stage):
 
     @property
     def checkpoint(self) -> Path:
-        return self.work / f".{self.folder}{PARTIAL_SUFFIX}" / CHECKPOINT_FILE
+        return partial_dir(self.work, self.folder) / CHECKPOINT_FILE
 
     def input_files(self) -> list[Path]:
         return input_files(self.work / "export")
