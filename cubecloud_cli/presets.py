@@ -13,13 +13,15 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-PRESET_NAMES = ("fast", "balanced", "paper")
+PRESET_NAMES = ("fast", "balanced", "detail", "paper")
 DEFAULT_PRESET = "fast"
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "preprocess": {
         "fast": {"size": 128, "fit": "pad", "window": "abdomen", "interpolation": "linear"},
         "balanced": {"size": 192, "fit": "pad", "window": "abdomen", "interpolation": "linear"},
+        # detail: the scan's own resolution (volume/cube_frame.size_for_scan), up to 512³.
+        "detail": {"size": "scan", "fit": "pad", "window": "abdomen", "interpolation": "linear"},
         # The paper resized every CT to 512³ with nearest neighbour and min-max scaled it
         # (docs/cunerf.md §3.4-3.5).
         "paper": {"size": 512, "fit": "stretch", "window": "full", "interpolation": "nearest"},
@@ -48,6 +50,16 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "points_per_cube": 512,
             "max_points": 150_000,
         },
+        # detail: views as large as the volume is wide, up to 512² (ExportSettings.for_volume).
+        "detail": {
+            "resolution": "volume",
+            "cameras": "sphere",
+            "views": 60,
+            "axis": "si",
+            "view": "dvr",
+            "points_per_cube": 512,
+            "max_points": 200_000,
+        },
         "paper": {
             "resolution": 512,
             "cameras": "orbit",
@@ -69,6 +81,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "splat": {
         "fast": {"iterations": 1500, "max_gaussians": 75_000, "antialias": True},
         "balanced": {"iterations": 7000, "max_gaussians": 300_000, "antialias": True},
+        "detail": {"iterations": 3000, "max_gaussians": 300_000, "antialias": True},
         "paper": {"iterations": 30_000, "max_gaussians": None, "antialias": False},
     },
 }
@@ -95,7 +108,7 @@ _GRID = {
 }
 # The paper's network and schedule (docs/cunerf.md §8); CPU presets cut the batch and samples.
 _MLP = {"lr": 2e-3, "lr_final": 2e-5, "cube_radius": 1.0, "grid_init": "random"}
-CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "paper": "cunerf"}
+CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "detail": "fast", "paper": "cunerf"}
 CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         "fast": {
@@ -119,6 +132,27 @@ CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     },
     "balanced": {
         "fast": {**_GRID, "iterations": 5000, "batch_size": 8192, "val_every": 1000, "checkpoint_every": 500},
+        "cunerf": {
+            **_MLP,
+            "warmup": 1000,
+            "iterations": 10000,
+            "batch_size": 1024,
+            "samples_per_axis": 4,
+            "importance": 64,
+            "val_every": 1000,
+            "checkpoint_every": 250,
+        },
+    },
+    # detail: the fitted start, as fast (its grid has one vertex per voxel at any size).
+    "detail": {
+        "fast": {
+            **_GRID,
+            "grid_init": "volume",
+            "iterations": 0,
+            "batch_size": 8192,
+            "val_every": 1000,
+            "checkpoint_every": 500,
+        },
         "cunerf": {
             **_MLP,
             "warmup": 1000,

@@ -280,7 +280,8 @@ def test_help_shows_the_preset_values():
     assert f"balanced {PRESETS['preprocess']['balanced']['size']}," in words("preprocess")
     assert f"balanced {PRESETS['splat']['balanced']['max_gaussians']}," in words("splat")
     export_help = words("export")
-    assert "fast dvr, balanced dvr, paper slice" in export_help and "preset_note" not in export_help
+    assert "fast dvr, balanced dvr, detail dvr, paper slice" in export_help and "preset_note" not in export_help
+    assert "detail scan" in words("preprocess") and "detail volume" in export_help
 
 
 def test_a_second_ctrl_c_before_any_checkpoint_leaves_nothing_to_resume(preprocessed, tmp_path, monkeypatch):

@@ -74,9 +74,24 @@ def test_truncated_nifti(tmp_path, phantom_nifti):
     assert _no_partial_left(tmp_path / "w")
 
 
-def test_2d_image(tmp_path):
+def test_preset_detail_sizes_the_cube_by_the_scan_and_size_still_wins(tmp_path):
+    # 40 × 30 × 12 voxels of 0.8 × 0.8 × 2.5 mm: 32 × 24 × 30 mm, finest 0.8 mm -> 40 voxels -> 48.
+    scan = write_nifti(tmp_path / "thin.nii.gz", body_phantom((40, 30, 12)), np.diag([0.8, 0.8, 2.5, 1.0]))
+    detail = invoke("preprocess", scan, "-o", tmp_path / "a", "--preset", "detail")
+    assert detail.exit_code == 0, detail.output
+    assert "cube size 48³ from the scan's finest spacing (0.8 mm" in detail.stderr
+    manifest = json.loads((tmp_path / "a" / "preprocess" / "manifest.json").read_text())
+    assert manifest["params"]["size"] == "scan" and manifest["volume"]["shape"] == [48, 48, 48]
+    assert manifest["geometry"]["voxel_size_mm"] == pytest.approx([32 / 48] * 3)  # finer than 0.8 mm: rounded up
+    given = invoke("preprocess", scan, "-o", tmp_path / "b", "--preset", "detail", "--size", 16)
+    assert given.exit_code == 0 and "cube size" not in given.stderr
+    assert _load(tmp_path / "b").shape == (16, 16, 16)
+
+
+@pytest.mark.parametrize("preset", ["fast", "detail"])
+def test_2d_image(tmp_path, preset):
     path = write_nifti(tmp_path / "xray.nii.gz", np.zeros((64, 64), np.int16))
-    assert_one_line_error(invoke("preprocess", path, "-o", tmp_path / "w"), "2D image")
+    assert_one_line_error(invoke("preprocess", path, "-o", tmp_path / "w", "--preset", preset), "2D image")
 
 
 def test_4d_volume_needs_index(tmp_path):

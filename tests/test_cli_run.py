@@ -1,3 +1,4 @@
+import json
 import shutil
 
 import numpy as np
@@ -163,3 +164,21 @@ def test_run_continues_an_interrupted_export(tmp_path, phantom_nifti, monkeypatc
     resumed = invoke(*options)
     assert resumed.exit_code == 0, resumed.output
     assert len(calls) == 3 and "resumed from its saved work" in resumed.stderr
+
+
+def test_a_tiny_detail_run_follows_the_scan_from_cube_to_views(tmp_path):
+    # 32 voxels of 1 mm per axis: the detail preset keeps them, 32³, and renders 32² views.
+    scan = write_nifti(tmp_path / "scan.nii.gz", body_phantom((32, 32, 32)), np.diag([1.0, 1.0, 1.0, 1.0]))
+    work = tmp_path / "w"
+    result = invoke("run", scan, "-o", work, "--preset", "detail", "--views", 8, "--splat-iterations", 5)
+    assert result.exit_code == 0, result.output
+    read = lambda stage: json.loads((work / stage / "manifest.json").read_text())  # noqa: E731
+    assert read("preprocess")["volume"]["shape"] == [32, 32, 32]
+    export = read("export")
+    assert export["params"]["resolution"] == "volume"
+    assert (export["cameras"]["width"], export["cameras"]["height"]) == (32, 32)
+    assert np.load(work / "export" / "novel" / "reference.npy", mmap_mode="r").shape[1:] == (32, 32)
+    assert read("cunerf")["params"]["grid_init"] == "volume"
+    assert "novel PSNR" in (work / "eval" / "report.md").read_text()
+    again = invoke("run", scan, "-o", work, "--preset", "detail", "--views", 8, "--splat-iterations", 5)
+    assert again.exit_code == 0 and again.stderr.count("skipped (already complete)") == 6

@@ -58,3 +58,56 @@ def test_world_to_scanner_is_consistent(shape, spacing, size, fit):
 def test_bad_fit_raises():
     with pytest.raises(ValueError):
         plan_cube((4, 4, 4), np.eye(4), 8, "squash")
+
+
+# -- the detail preset's size rule ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "shape, spacing, fit, expected",
+    [
+        ((512, 512, 48), (0.5703, 0.5703, 5.0), "pad", 512),  # the shared chest CT: its own in-plane detail
+        ((100, 100, 30), (1.0, 1.0, 3.0), "pad", 112),  # 100 mm at 1 mm, rounded up to 16
+        ((96, 96, 96), (1.0, 1.0, 1.0), "pad", 96),  # already a multiple of 16
+        ((600, 600, 5), (0.7, 0.7, 2.5), "pad", 512),  # a thin slab: 600 voxels wide, capped
+        ((64, 64, 300), (2.0, 2.0, 0.5), "pad", 304),  # finest along z: 150 mm at 0.5 mm is 300 voxels
+        ((20, 20, 20), (3.0, 3.0, 3.0), "pad", 32),
+        ((512, 512, 48), (0.5703, 0.5703, 5.0), "stretch", 512),  # stretch keeps the most samples on any axis
+        ((40, 50, 10), (1.0, 1.0, 9.0), "stretch", 64),
+    ],
+)
+def test_the_scan_size_keeps_the_finest_spacing_rounded_to_16_and_capped(shape, spacing, fit, expected):
+    from cubecloud_cli.volume.cube_frame import size_for_scan
+
+    assert size_for_scan(shape, spacing, fit) == expected
+
+
+@given(
+    shape=st.tuples(*[st.integers(2, 2000)] * 3),
+    spacing=st.tuples(*[st.floats(0.05, 20.0)] * 3),
+    fit=st.sampled_from(["pad", "stretch"]),
+    cap=st.sampled_from([64, 512]),
+)
+@settings(max_examples=200, deadline=None)
+def test_the_scan_size_is_a_capped_multiple_of_16_that_loses_no_detail_below_the_cap(shape, spacing, fit, cap):
+    from cubecloud_cli.volume.cube_frame import size_for_scan
+
+    size = size_for_scan(shape, spacing, fit, cap=cap)
+    assert size % 16 == 0 and 16 <= size <= cap
+    frame = plan_cube(shape, np.diag([*spacing, 1.0]), size, fit)
+    if size < cap:  # below the cap the cube's voxels are at least as fine as the scan's finest
+        if fit == "pad":
+            assert frame.voxel_size_mm.max() <= min(spacing) * (1 + 1e-6)
+        else:
+            assert size >= max(shape)
+
+
+@pytest.mark.parametrize("shape, spacing", [((32, 32, 1), (1, 1, 1)), ((32, 32), (1, 1)), ((8, 8, 8), (1, 0, 1))])
+def test_the_scan_size_needs_a_3d_scan_with_positive_spacing(shape, spacing):
+    from cubecloud_cli.volume.cube_frame import size_for_scan
+
+    if len(shape) == 3 and min(spacing) > 0:
+        assert size_for_scan(shape, spacing, "pad") == 32  # one slice is a 3D array; the reader refuses it
+        return
+    with pytest.raises(ValueError):
+        size_for_scan(shape, spacing, "pad")

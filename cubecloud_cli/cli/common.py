@@ -87,8 +87,9 @@ PresetOption = Annotated[
     PRESET_CHOICES,
     typer.Option(
         "--preset",
-        help="Settings for every option left unset: fast and balanced for a 2-core CPU, paper "
-        "for the paper's settings (meant for a GPU).",
+        help="Settings for every option left unset: fast and balanced for a 2-core CPU; detail for the scan's own "
+        "resolution (a cube as fine as its finest voxel spacing, up to 512³, with views as large); paper for the "
+        "paper's settings (meant for a GPU).",
     ),
 ]
 ForceOption = Annotated[bool, typer.Option("--force", help="Replace the stage if it is already complete.")]

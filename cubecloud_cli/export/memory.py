@@ -15,7 +15,7 @@ BYTES_PER_RENDERED_PIXEL = 160
 
 def export_bytes(settings: ExportSettings, volume_size: int) -> int:
     """An upper estimate of the stage's peak memory in bytes."""
-    pixels = settings.resolution * settings.resolution
+    pixels = settings.pixels() ** 2
     novel_views = settings.novel_directions * len(MAGNIFICATIONS)
     stacks = (2 * settings.views + novel_views) * pixels * 4  # images, reference and novel stacks, float32
     # Counted as if a novel reference's k × k sub-pixel renders were held at once (they go one at

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras, stack_cameras, stack_offsets
@@ -20,6 +20,9 @@ CAMERA_PATHS = get_args(CameraPath)
 CAMERA_BUILDERS = {"sphere": sphere_cameras, "orbit": orbit_cameras, "stack": stack_cameras}
 MAX_NOVEL_DIRECTIONS = 256
 MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
+# A resolution the preset leaves to the volume: views as wide as the volume, up to this.
+RESOLUTION_FROM_VOLUME = "volume"
+MAX_VOLUME_RESOLUTION = 512
 
 
 @dataclass(frozen=True)
@@ -50,8 +53,8 @@ class ExportSettings:
     """Camera distance from the volume's centre, in world units (the volume spans -1..1)."""
     fov: float | None = None
     """Field of view in degrees (default: just wide enough for the whole volume in every view)."""
-    resolution: int = preset_default("export", "resolution")
-    """Image width and height in pixels."""
+    resolution: int | str = preset_default("export", "resolution")
+    """Image width and height in pixels; the detail preset's "volume" is the volume's side, up to 512."""
     elevation: float = 0.0
     """--cameras orbit: degrees the orbit is raised out of its plane (all views alike)."""
     # The images (docs/design.md §3).
@@ -81,14 +84,26 @@ class ExportSettings:
     the volume at magnifications 0.5, 0.75, 1, 1.33 and 2 with pixel-area references; eval scores every run on
     them. 0 for none."""
 
+    def for_volume(self, volume_size: int) -> "ExportSettings":
+        """These settings with a resolution left to the volume made concrete."""
+        if self.resolution != RESOLUTION_FROM_VOLUME:
+            return self
+        return replace(self, resolution=min(volume_size, MAX_VOLUME_RESOLUTION))
+
+    def pixels(self) -> int:
+        """Image width and height (a resolution left to the volume must be made concrete first)."""
+        if not isinstance(self.resolution, int):
+            raise ValueError(f"resolution {self.resolution!r} depends on the volume: call for_volume first")
+        return self.resolution
+
     def orbit(self) -> OrbitSpec:
-        return OrbitSpec(self.views, self.axis, self.radius, self.resolution, self.elevation, self.fov)
+        return OrbitSpec(self.views, self.axis, self.radius, self.pixels(), self.elevation, self.fov)
 
     def camera_set(self) -> PinholeCameras:
         return CAMERA_BUILDERS[self.cameras](self.orbit())
 
     def novel_view_set(self) -> NovelViewSet:
-        return NovelViewSet.build(self.novel_directions, self.radius, self.resolution)
+        return NovelViewSet.build(self.novel_directions, self.radius, self.pixels())
 
     def slice_offsets(self) -> tuple[float, ...]:
         """Per-view slice planes: across the volume for a stack, through the origin otherwise."""
@@ -96,7 +111,9 @@ class ExportSettings:
 
     def validate(self) -> None:
         """Refuse options that no volume makes right, with a one-line error naming the fix."""
-        self.orbit().validate()
+        if isinstance(self.resolution, str) and self.resolution != RESOLUTION_FROM_VOLUME:
+            raise CubecloudError(f"--resolution {self.resolution!r} must be a number of pixels, e.g. 256")
+        self.for_volume(MAX_VOLUME_RESOLUTION).orbit().validate()
         if self.cameras not in CAMERA_PATHS:
             raise CubecloudError(f"--cameras {self.cameras!r} must be one of {', '.join(CAMERA_PATHS)}")
         if self.cameras == "stack" and self.view != "slice":
@@ -111,7 +128,7 @@ class ExportSettings:
             raise CubecloudError(
                 f"--novel-directions {self.novel_directions} must be within 0..{MAX_NOVEL_DIRECTIONS} (0: no novel-view test)"
             )
-        if self.resolution > MAX_RESOLUTION:
+        if self.for_volume(MAX_VOLUME_RESOLUTION).pixels() > MAX_RESOLUTION:
             raise CubecloudError(
                 f"--resolution {self.resolution} is beyond {MAX_RESOLUTION} pixels: choose e.g. 256 or 512"
             )

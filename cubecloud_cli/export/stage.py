@@ -183,6 +183,7 @@ def _plan_export(
     preprocess = require_stage(work, "preprocess")
     size = int(preprocess["volume"]["shape"][0])
     settings.check_for_volume(size)
+    settings = settings.for_volume(size)
     cunerf = require_stage(work, "cunerf", cunerf_name)
     trained_on = cunerf.get("inputs", {}).get("preprocess/volume.npy")
     if trained_on is not None and trained_on != preprocess["files"]["volume.npy"]["sha256"]:

@@ -13,6 +13,8 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.presets import preset_default
 
 MIN_SIZE, MAX_SIZE = 8, 2048
+# A size the preset leaves to the scan (volume/cube_frame.size_for_scan), decided once it is read.
+SIZE_FROM_SCAN = "scan"
 
 Fit = Literal["pad", "stretch"]
 Modality = Literal["auto", "ct", "mr"]
@@ -25,8 +27,9 @@ class PreprocessSettings:
 
     STAGE: ClassVar[str] = "preprocess"
 
-    size: int = preset_default("preprocess", "size")
-    """Cube side S in voxels (the paper: 512)."""
+    size: int | str = preset_default("preprocess", "size")
+    """Cube side S in voxels (the paper: 512); the detail preset's "scan" keeps the scan's finest voxel spacing,
+    rounded up to a multiple of 16 and capped at 512."""
     fit: Fit = preset_default("preprocess", "fit")
     """pad: keep the physical aspect ratio, pad with air. stretch: resize each axis to S (the paper)."""
     window: str = preset_default("preprocess", "window")
@@ -49,7 +52,9 @@ class PreprocessSettings:
     """DICOM: the SeriesInstanceUID to read from a folder holding several (default: the largest axial one)."""
 
     def validate(self) -> None:
-        if not MIN_SIZE <= self.size <= MAX_SIZE:
+        if self.size == SIZE_FROM_SCAN:
+            pass
+        elif isinstance(self.size, str) or not MIN_SIZE <= self.size <= MAX_SIZE:
             raise CubecloudError(f"--size {self.size} is outside {MIN_SIZE}..{MAX_SIZE} voxels: the paper uses 512")
         if self.fit not in get_args(Fit):
             raise CubecloudError(f"--fit {self.fit!r} must be pad or stretch")

@@ -23,8 +23,8 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.pictures import write_preview
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.stage import Stage
-from cubecloud_cli.preprocess.settings import PreprocessSettings
-from cubecloud_cli.volume.cube_frame import CubeFrame, plan_cube
+from cubecloud_cli.preprocess.settings import SIZE_FROM_SCAN, PreprocessSettings
+from cubecloud_cli.volume.cube_frame import SCAN_SIZE_CAP, CubeFrame, plan_cube, size_for_scan
 from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
 from cubecloud_cli.volume.nifti import write_nifti
 from cubecloud_cli.volume.orientation import axis_codes, reorient_to_ras
@@ -114,18 +114,19 @@ def preprocess_scan(
     settings.validate()
     writer = StageWriter(Path(work), "preprocess", recorded_params(settings), force=force)
     with writer:  # refuses an existing stage before the scan is read
-        costs = phase_costs(0, settings.size)
+        costs = phase_costs(0, settings.size if isinstance(settings.size, int) else 0)
         on_phase("read", costs, 0.0)
         with writer.phase("read"):
             scan = read_scan(
                 scan_path, spacing_mm=settings.spacing, volume_index=settings.volume_index, series_uid=settings.series
             )
             writer.add_input(Path(scan_path), label=str(scan_path))
-        costs = phase_costs(scan.data.size, settings.size)
         for note in scan.notes:
             log.info(note)
-        _check_memory(settings.size, scan.data.size)
-        check_free_disk(Path(work), 2 * 4 * settings.size**3)
+        size = cube_size(scan, settings)
+        costs = phase_costs(scan.data.size, size)
+        _check_memory(size, scan.data.size)
+        check_free_disk(Path(work), 2 * 4 * size**3)
 
         on_phase("intensity", costs, 0.0)
         with writer.phase("intensity"):
@@ -136,7 +137,7 @@ def preprocess_scan(
 
         on_phase("resample", costs, 0.0)
         with writer.phase("resample"):
-            frame, volume = resample_to_cube(normalized, settings)
+            frame, volume = resample_to_cube(normalized, settings, size)
             del normalized
 
         on_phase("write", costs, 0.0)
@@ -209,12 +210,26 @@ def normalize_in_ras(scan: Scan, intensity: IntensityMap) -> Scan:
     )
 
 
-def resample_to_cube(scan: Scan, settings: PreprocessSettings) -> tuple[CubeFrame, np.ndarray]:
+def cube_size(scan: Scan, settings: PreprocessSettings) -> int:
+    """The cube side: --size, or the one the scan's own spacing asks for (said in the log)."""
+    if settings.size != SIZE_FROM_SCAN:
+        return int(settings.size)
+    spacing = scan.spacing_mm
+    size = size_for_scan(scan.data.shape, spacing, settings.fit)  # type: ignore[arg-type]
+    extent = max(n * s for n, s in zip(scan.data.shape, spacing))
+    log.info(
+        f"cube size {size}³ from the scan's finest spacing ({min(spacing):.3g} mm over {extent:.0f} mm, "
+        f"capped at {SCAN_SIZE_CAP}); --size sets another"
+    )
+    return size
+
+
+def resample_to_cube(scan: Scan, settings: PreprocessSettings, size: int) -> tuple[CubeFrame, np.ndarray]:
     """The S³ cube the volume is resampled to (its frame replaces the affine: voxel -> world ->
     scanner), and the resampled volume."""
-    frame = plan_cube(scan.data.shape, scan.affine, settings.size, settings.fit)  # type: ignore[arg-type]
+    frame = plan_cube(scan.data.shape, scan.affine, size, settings.fit)  # type: ignore[arg-type]
     matrices = [
-        interpolation_matrix(n, settings.size, frame.index_scale[a], frame.index_offset[a], settings.interpolation)  # type: ignore[arg-type]
+        interpolation_matrix(n, size, frame.index_scale[a], frame.index_offset[a], settings.interpolation)  # type: ignore[arg-type]
         for a, n in enumerate(scan.data.shape)
     ]
     return frame, resample_axes(scan.data, matrices)

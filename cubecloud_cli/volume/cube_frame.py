@@ -15,6 +15,7 @@ are anisotropic in millimetres.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -72,6 +73,34 @@ class CubeFrame:
             "world_to_scanner": self.world_to_scanner(),
             "voxel_to_source_index": self.voxel_to_source_index(),
         }
+
+
+# The scan's own resolution (`--preset detail`): the cube side that keeps the finest voxel
+# spacing, rounded up to what the 16-voxel cubes of the point sampling tile, and capped where a
+# 2-core CPU still finishes the pipeline (docs/results.md, "The scan's own detail").
+SIZE_MULTIPLE = 16
+SCAN_SIZE_CAP = 512
+
+
+def size_for_scan(
+    shape: tuple[int, ...], spacing_mm: tuple[float, ...] | np.ndarray, fit: Fit, cap: int = SCAN_SIZE_CAP
+) -> int:
+    """The cube side S that keeps the scan's finest voxel spacing along its longest extent
+    (``pad``) or its most finely sampled axis (``stretch``), rounded up to a multiple of 16 and
+    capped at ``cap``."""
+    counts = np.asarray(shape, dtype=float)
+    spacing = np.asarray(spacing_mm, dtype=float)
+    if counts.shape != (3,) or spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or spacing.min() <= 0:
+        raise ValueError(f"a 3D scan with positive spacing is needed, not shape {shape} and spacing {spacing_mm}")
+    if fit == "pad":
+        # 1e-6 keeps 512 × 0.57 mm / 0.57 mm at 512 whatever the rounding of the spacing.
+        needed = float(np.max(counts * spacing) / spacing.min()) - 1e-6
+    elif fit == "stretch":
+        needed = float(counts.max())
+    else:
+        raise ValueError(f"unknown fit {fit!r}")
+    multiple = SIZE_MULTIPLE * math.ceil(max(needed, 1.0) / SIZE_MULTIPLE)
+    return int(min(multiple, cap))
 
 
 def plan_cube(shape: tuple[int, int, int], source_affine: np.ndarray, size: int, fit: Fit) -> CubeFrame:
