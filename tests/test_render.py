@@ -203,3 +203,31 @@ def test_support_margin_reaches_outside_the_cube():
     assert everywhere.contains(torch.tensor([[-1.9, 0.0, 1.9], [0.0, 0.0, 0.0]])).all()
     empty = Support.from_blocks(torch.zeros(2, 2, 2, dtype=torch.bool))
     assert not empty.contains(torch.zeros(1, 3)).any()
+
+
+@pytest.mark.parametrize("size", [5, 8, 16, 19, 33])
+def test_the_support_found_row_by_row_is_the_one_pass_max_pool(size):
+    import torch.nn.functional as F
+
+    from cubecloud_cli.render.samplers import SUPPORT_BLOCK, Support, support_of_volume
+
+    rng = np.random.default_rng(size)
+    volume = torch.from_numpy((rng.random((size,) * 3) < 0.02).astype(np.float32))
+    count = -(-size // SUPPORT_BLOCK)
+    padded = F.pad((volume > 0.5).float()[None, None], (1, count * SUPPORT_BLOCK - size + 1) * 3)
+    pooled = F.max_pool3d(padded, kernel_size=SUPPORT_BLOCK + 2, stride=SUPPORT_BLOCK)[0, 0, :count, :count, :count]
+    expected = Support.from_blocks(pooled > 0, extent=2.0 * count * SUPPORT_BLOCK / size)
+    got = support_of_volume(volume, 0.5)
+    assert torch.equal(got.blocks, expected.blocks) and (got.origin, got.extent) == (expected.origin, expected.extent)
+
+
+def test_a_memory_mapped_volume_renders_as_the_loaded_one_without_a_copy(tmp_path):
+    volume = blob_volume()
+    np.save(tmp_path / "volume.npy", volume)
+    mapped = np.load(tmp_path / "volume.npy", mmap_mode="r")
+    field = GridField(mapped)
+    assert np.shares_memory(field.volume.numpy(), mapped)
+    cameras = orbit_cameras(OrbitSpec(views=2, resolution=24))
+    np.testing.assert_array_equal(
+        render_views(field, cameras, ImageModel()), render_views(GridField(volume.copy()), cameras, ImageModel())
+    )

@@ -242,7 +242,7 @@ def _load_inputs(job: ExportJob, writer: StageWriter) -> tuple[np.ndarray, Cuner
         recorded = read_manifest(path.parent)["files"].get(path.name, {}).get("sha256")
         if writer.add_input(path, label) != recorded:
             raise CubecloudError(f"{path} changed since its stage was written: run `{fix}`")
-    volume = np.load(volume_path)
+    volume = np.load(volume_path, mmap_mode="r")  # read where rays reach it: no copy of a 512³ volume in memory
     if volume.ndim != 3 or volume.shape != (size,) * 3 or not np.isfinite(volume).all():
         raise CubecloudError(
             f"{volume_path} is not the finite {size}³ volume its manifest says: rerun `cubecloud preprocess --force`"

@@ -24,18 +24,18 @@ from cubecloud_cli.numerics.jit import PRANGE_ONLY
 
 
 @njit(cache=True, inline="always")
-def _trilinear(volume_zyx, x, y, z):
+def _trilinear(volume, x, y, z):
     """The grid's value at continuous voxel coordinates (voxel centres at integers), corners
-    outside the grid counting as 0."""
-    size_z, size_y, size_x = volume_zyx.shape
+    outside the grid counting as 0; ``volume`` is indexed [x, y, z], as volume.npy is stored."""
+    size_x, size_y, size_z = volume.shape
     ix, iy, iz = math.floor(x), math.floor(y), math.floor(z)
     fx, fy, fz = x - ix, y - iy, z - iz
     if 0 <= ix < size_x - 1 and 0 <= iy < size_y - 1 and 0 <= iz < size_z - 1:
         # Every corner inside: most samples, read without a bounds test per corner.
-        c00 = volume_zyx[iz, iy, ix] * (1.0 - fx) + volume_zyx[iz, iy, ix + 1] * fx
-        c01 = volume_zyx[iz, iy + 1, ix] * (1.0 - fx) + volume_zyx[iz, iy + 1, ix + 1] * fx
-        c10 = volume_zyx[iz + 1, iy, ix] * (1.0 - fx) + volume_zyx[iz + 1, iy, ix + 1] * fx
-        c11 = volume_zyx[iz + 1, iy + 1, ix] * (1.0 - fx) + volume_zyx[iz + 1, iy + 1, ix + 1] * fx
+        c00 = volume[ix, iy, iz] * (1.0 - fx) + volume[ix + 1, iy, iz] * fx
+        c01 = volume[ix, iy + 1, iz] * (1.0 - fx) + volume[ix + 1, iy + 1, iz] * fx
+        c10 = volume[ix, iy, iz + 1] * (1.0 - fx) + volume[ix + 1, iy, iz + 1] * fx
+        c11 = volume[ix, iy + 1, iz + 1] * (1.0 - fx) + volume[ix + 1, iy + 1, iz + 1] * fx
         return (c00 * (1.0 - fy) + c01 * fy) * (1.0 - fz) + (c10 * (1.0 - fy) + c11 * fy) * fz
     total = 0.0
     for c in range(2):
@@ -52,19 +52,19 @@ def _trilinear(volume_zyx, x, y, z):
                 i = ix + a
                 if i < 0 or i >= size_x:
                     continue
-                total += wyz * (fx if a else 1.0 - fx) * volume_zyx[k, j, i]
+                total += wyz * (fx if a else 1.0 - fx) * volume[i, j, k]
     return total
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_march(volume_zyx, origin, directions, entry, first, last, step, low, ramp_width, density, termination, block):
+def dvr_march(volume, origin, directions, entry, first, last, step, low, ramp_width, density, termination, block):
     """(R,) dvr colours of rays ``origin + t · directions[r]`` through the (S, S, S) grid laid
-    over [−1, 1]³ (indexed z, y, x), sampled at k in [first[r], last[r]).
+    over [−1, 1]³ (indexed x, y, z), sampled at k in [first[r], last[r]).
 
     ``ramp_width`` is the transfer function's high − low, at least MIN_RAMP_WIDTH (the caller's
     guard); opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for small σΔ."""
     count = directions.shape[0]
-    size = volume_zyx.shape[0]
+    size = volume.shape[0]
     half = 0.5 * size
     inverse_width = 1.0 / ramp_width
     colours = np.zeros(count, dtype=np.float32)
@@ -77,7 +77,7 @@ def dvr_march(volume_zyx, origin, directions, entry, first, last, step, low, ram
             t = entry[r] + (k + 0.5) * step
             # World [−1, 1] → continuous voxel index: voxel i's centre is at (2i + 1)/S − 1.
             value = _trilinear(
-                volume_zyx,
+                volume,
                 (origin[0] + t * dx + 1.0) * half - 0.5,
                 (origin[1] + t * dy + 1.0) * half - 0.5,
                 (origin[2] + t * dz + 1.0) * half - 0.5,
@@ -94,3 +94,46 @@ def dvr_march(volume_zyx, origin, directions, entry, first, last, step, low, ram
                 left_in_block = block
         colours[r] = colour
     return colours
+
+
+@njit(cache=True, inline="always")
+def _slab_interval(origin32, direction, low, high):
+    """Entry and exit distances of one ray through the box [low, high]³ in float32, as
+    ``rays.ray_box`` computes them (near clamped at 0; a miss gives near >= far)."""
+    near = np.float32(-np.inf)
+    far = np.float32(np.inf)
+    for axis in range(3):
+        d = direction[axis]
+        safe = np.float32(1e-12) if abs(d) < 1e-12 else d
+        inverse = np.float32(1.0) / safe
+        t_low = (np.float32(low[axis]) - origin32[axis]) * inverse
+        t_high = (np.float32(high[axis]) - origin32[axis]) * inverse
+        near = max(near, min(t_low, t_high))
+        far = min(far, max(t_low, t_high))
+    return max(near, np.float32(0.0)), far
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def dvr_view(volume, origin, directions, support_low, support_high, step, low, ramp_width, density, termination, block):
+    """(R,) dvr colours of one view's rays from ``origin``: each ray's entry into the cube, its
+    span through the support's box and its march, all in one pass (:func:`dvr_march` after the
+    torch ray set-up of ``renderer._ray_chunks``, without the tensors between them)."""
+    count = directions.shape[0]
+    origin32 = origin.astype(np.float32)
+    cube_low = np.full(3, -1.0, dtype=np.float32)
+    cube_high = np.full(3, 1.0, dtype=np.float32)
+    step32 = np.float32(step)
+    colours = np.zeros(count, dtype=np.float32)
+    entries = np.empty(count, dtype=np.float32)
+    firsts = np.zeros(count, dtype=np.int64)
+    lasts = np.zeros(count, dtype=np.int64)
+    for r in prange(count):
+        entry, exit_ = _slab_interval(origin32, directions[r], cube_low, cube_high)
+        start, stop = _slab_interval(origin32, directions[r], support_low, support_high)
+        stop = min(stop, exit_)
+        first = max(math.floor((start - entry) / step32 - np.float32(0.5)), 0)
+        last = math.ceil((stop - entry) / step32 - np.float32(0.5))
+        entries[r], firsts[r], lasts[r] = entry, first, max(first, last)
+    return dvr_march(
+        volume, origin, directions, entries, firsts, lasts, step, low, ramp_width, density, termination, block
+    )

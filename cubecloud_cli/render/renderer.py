@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.render.grid_march import dvr_march
+from cubecloud_cli.render.grid_march import dvr_march, dvr_view
 from cubecloud_cli.render.image_models import ACCUMULATORS, MIN_RAMP_WIDTH, ImageModel
 from cubecloud_cli.render.rays import camera_rays, ray_box
 from cubecloud_cli.render.samplers import GridField, ScalarField, Support
@@ -91,17 +91,15 @@ def render_view(
         )
         return values.view(cameras.height, cameras.width)
 
-    cube_low = torch.full((3,), -1.0, device=device)
-    entry, exit_ = ray_box(origin, directions, cube_low, -cube_low)
     if support is None:
         support = field.support(model.support_threshold)
     if _fused_grid_dvr(field, model, device):
         # The kernel walks the air inside the support's box faster than the coarse march that
         # finds each ray's support interval (support_interval) takes.
-        colour = torch.zeros(directions.shape[0])
-        for rays, first, last in _ray_chunks(support, model, origin, directions, entry, exit_, refine=False):
-            colour[rays] = _march_grid_dvr(field, model, origin, directions[rays], entry[rays], first, last)
+        colour = _march_grid_view(field, model, origin, directions, support)
         return colour.clamp(0.0, 1.0).view(cameras.height, cameras.width)
+    cube_low = torch.full((3,), -1.0, device=device)
+    entry, exit_ = ray_box(origin, directions, cube_low, -cube_low)
     accumulator = ACCUMULATORS[model.kind](model, directions.shape[0], device)
     for rays, first, last in _ray_chunks(support, model, origin, directions, entry, exit_):
         _march(field, model, accumulator, rays, origin, directions, entry, first, last)
@@ -130,15 +128,17 @@ def _fused_grid_dvr(field, model: ImageModel, device: torch.device) -> bool:
     return model.kind == "dvr" and isinstance(field, GridField) and device.type == "cpu"
 
 
-def _march_grid_dvr(field: GridField, model: ImageModel, origin, directions, entry, first, last) -> torch.Tensor:
+def _march_grid_view(field: GridField, model: ImageModel, origin, directions, support: Support) -> torch.Tensor:
+    """One view's rays set up and marched in one numba pass: at 256² the torch set-up between
+    chunks took as long as the march itself."""
     transfer = model.transfer
-    colours = dvr_march(
-        field.zyx.numpy(),
+    low, high = support.bounds()
+    colours = dvr_view(
+        field.volume.numpy(),
         origin.double().numpy(),
         directions.numpy(),
-        entry.numpy(),
-        first.numpy(),
-        torch.maximum(first, last).numpy(),
+        low.numpy().astype(np.float32),
+        high.numpy().astype(np.float32),
         float(model.step),
         float(transfer.low),
         max(transfer.high - transfer.low, MIN_RAMP_WIDTH),

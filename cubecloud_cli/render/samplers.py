@@ -7,9 +7,11 @@ which lets the renderer skip the air around the body without changing a single p
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -95,12 +97,20 @@ class Support:
 
 def support_of_volume(volume: torch.Tensor, threshold: float, block: int = SUPPORT_BLOCK) -> Support:
     """Blocks of ``volume`` (S³) where some voxel, or a neighbour a trilinear sample can reach,
-    exceeds ``threshold``, with the margin of :meth:`Support.from_blocks`."""
+    exceeds ``threshold``, with the margin of :meth:`Support.from_blocks`. One row of blocks at a
+    time along x, so no volume-sized temporary is made (a float copy is 512 MB at 512³)."""
     size = volume.shape[0]
     count = max(1, -(-size // block))
-    padded = F.pad((volume > threshold).float()[None, None], (1, count * block - size + 1) * 3)
-    # Each block with a one-voxel halo: a sample inside the block interpolates its neighbours.
-    blocks = F.max_pool3d(padded, kernel_size=block + 2, stride=block)[0, 0, :count, :count, :count]
+    rows = []
+    for row in range(count):
+        # The row's voxels with a one-voxel halo on each side, zero beyond the volume.
+        low, high = row * block - 1, (row + 1) * block + 1
+        slab = (volume[max(low, 0) : min(high, size)] > threshold).float()
+        padding = (1, count * block - size + 1) * 2 + (max(-low, 0), max(high - size, 0))
+        padded = F.pad(slab[None, None], padding)
+        # Each block with a one-voxel halo: a sample inside the block interpolates its neighbours.
+        rows.append(F.max_pool3d(padded, kernel_size=block + 2, stride=block)[0, 0, :1, :count, :count])
+    blocks = torch.cat(rows)
     return Support.from_blocks(blocks > 0, extent=2.0 * count * block / size)
 
 
@@ -119,22 +129,31 @@ class GridField:
     """
 
     def __init__(self, volume, device: torch.device | str = "cpu"):
+        if isinstance(volume, np.ndarray) and volume.dtype == np.float32 and torch.device(device).type == "cpu":
+            # Shared, not copied: a memory-mapped volume.npy stays on disk until a ray reads it.
+            # Nothing writes to it, so torch's warning about read-only arrays does not apply.
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                volume = torch.from_numpy(volume)
         volume = torch.as_tensor(volume).to(device=device, dtype=torch.float32)  # float16 input too
         if volume.ndim != 3 or len(set(volume.shape)) != 1:
             raise ValueError(f"a GridField needs an S³ volume, got shape {tuple(volume.shape)}")
-        self.volume = volume.contiguous()
+        self.volume = volume if volume.is_contiguous() else volume.contiguous()
         self.resolution = volume.shape[0]
-        # grid_sample reads (x, y, z) coordinates as (W, H, D) indices; with align_corners=False
-        # its [−1, 1] spans the outer faces of the edge voxels, which is exactly our world cube.
-        self._zyx = volume.permute(2, 1, 0).contiguous()[None, None]
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         return _sample_grid(self._zyx, points, "bilinear")
 
     @property
-    def zyx(self) -> torch.Tensor:
-        """The (S, S, S) volume indexed [z, y, x], x contiguous (what ``grid_sample`` reads)."""
-        return self._zyx[0, 0]
+    def _zyx(self) -> torch.Tensor:
+        """The volume as grid_sample reads it, made on first use: (x, y, z) coordinates index
+        (W, H, D), and with align_corners=False its [−1, 1] spans the outer faces of the edge
+        voxels, which is exactly our world cube. The fused march needs no such copy."""
+        cached = self.__dict__.get("_cached_zyx")
+        if cached is None:
+            cached = self.volume.permute(2, 1, 0).contiguous()[None, None]
+            self.__dict__["_cached_zyx"] = cached
+        return cached
 
     def support(self, threshold: float) -> Support:
         return support_of_volume(self.volume, threshold)
