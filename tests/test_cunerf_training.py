@@ -186,3 +186,16 @@ def test_fitting_a_small_volume_reaches_a_useful_psnr():
     everything = torch.from_numpy(np.argwhere(np.ones_like(volume, dtype=bool)))
     rendered = render_many(trainer.model, voxel_centres(everything, 32)).reshape(32, 32, 32).numpy()
     assert psnr(volume, rendered) > 30
+
+
+@pytest.mark.parametrize("train_scale", [1, 2, 3])
+def test_body_voxels_listed_slab_by_slab_are_every_training_voxel_in_x_y_z_order(monkeypatch, train_scale):
+    import cubecloud_cli.cunerf.supervision as supervision
+
+    monkeypatch.setattr(supervision, "BODY_SLAB", 3)  # slabs that cut the lattice unevenly
+    rng = np.random.default_rng(train_scale)
+    volume = torch.from_numpy(np.where(rng.random((17, 17, 17)) < 0.4, rng.random((17, 17, 17)), 0.0).astype(np.float32))
+    voxels = supervision.TrainingVoxels(volume, train_scale, held_out=[4, 9], body_fraction=0.8)
+    lattice, slices = range(0, 17, train_scale), [k for k in range(0, 17, train_scale) if k not in (4, 9)]
+    expected = [(i, j, k) for i in lattice for j in lattice for k in slices if volume[i, j, k] > 0]
+    assert [tuple(row) for row in voxels.body.tolist()] == expected and voxels.body.dtype == torch.int32

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from skimage.metrics import structural_similarity
 
 from cubecloud_cli.numerics import metrics as metrics_module
-from cubecloud_cli.numerics.metrics import SSIM_RADIUS, ssim, ssim_and_masked, ssim_maps, volume_metrics
+from cubecloud_cli.numerics.metrics import SSIM_RADIUS, psnr, ssim, ssim_and_masked, ssim_maps, volume_metrics
 
 
 def skimage_map(reference: np.ndarray, estimate: np.ndarray) -> np.ndarray:
@@ -124,3 +124,22 @@ def test_the_device_volume_metrics_cross_chunks_and_axes_as_the_cpu_ones(monkeyp
 def test_ssim_refuses_images_smaller_than_its_window():
     with pytest.raises(ValueError, match="11×11"):
         ssim_maps(np.zeros((10, 30)), np.zeros((10, 30)))
+
+
+def test_the_3d_metrics_by_slabs_equal_the_whole_volume_at_once(monkeypatch):
+    # Slabs of 5 cut every axis unevenly; the sums must come out as one pass over everything.
+    monkeypatch.setattr(metrics_module, "VOLUME_SLAB", 5)
+    rng = np.random.default_rng(8)
+    reference = rng.random((13, 16, 12)).astype(np.float32)
+    reference[reference < 0.3] = 0.0
+    estimate = np.clip(reference + 0.1 * rng.standard_normal(reference.shape), 0, 1).astype(np.float32)
+    got = volume_metrics(reference, estimate)
+    body = reference > 0
+    assert got["psnr"] == pytest.approx(psnr(reference, estimate), abs=1e-10)
+    assert got["psnr_body"] == pytest.approx(psnr(reference, estimate, body), abs=1e-10)
+    maps = [ssim_maps(np.moveaxis(reference, a, 0), np.moveaxis(estimate, a, 0)) for a in range(3)]
+    assert got["ssim"] == pytest.approx(float(torch.cat([m.mean(dim=(-2, -1)) for m in maps]).mean()), abs=1e-12)
+    inside = torch.cat([m[metrics_module._crop_mask(np.moveaxis(body, a, 0), m.shape)] for a, m in enumerate(maps)])
+    assert got["ssim_body"] == pytest.approx(float(inside.mean()), abs=1e-12)
+    empty = volume_metrics(np.zeros((12, 12, 12), np.float32), np.zeros((12, 12, 12), np.float32))
+    assert np.isnan(empty["psnr_body"]) and np.isnan(empty["ssim_body"]) and empty["psnr"] == float("inf")

@@ -267,7 +267,7 @@ def _prepare(
     volume_np = np.load(volume_path)
     if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
         raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")
-    volume = torch.from_numpy(volume_np.astype(np.float32)).to(device)
+    volume = torch.from_numpy(np.asarray(volume_np, dtype=np.float32)).to(device)  # no copy of a float32 volume
     held_out = holdout_slices(volume_np, settings.holdout, settings.train_scale)
     voxels = TrainingVoxels(volume, settings.train_scale, held_out, settings.body_fraction)
     with torch.random.fork_rng(devices=[]):
@@ -331,7 +331,11 @@ def _reconstruct_and_write(
             writer.directory / RECON_FILE,
             f"cubecloud cunerf x{settings.export_scale:g}",
         )
-        difference = np.clip(4.0 * np.abs(recon - volume_np), 0.0, 1.0)
+        # In place: one volume-sized array where four temporaries would be 2 GB at 512³.
+        difference = np.subtract(recon, volume_np)
+        np.abs(difference, out=difference)
+        np.multiply(difference, 4.0, out=difference)
+        np.clip(difference, 0.0, 1.0, out=difference)
         write_preview_rows(
             [("volume", volume_np), ("cunerf", recon), ("|diff|x4", difference)], writer.directory / PREVIEW_FILE
         )

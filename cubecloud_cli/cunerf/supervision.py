@@ -45,6 +45,9 @@ def holdout_slices(volume: np.ndarray, count: int, train_scale: int) -> list[int
     return sorted({candidates[int(round(p))] for p in picks})
 
 
+BODY_SLAB = 32  # x-slices per pass when the body voxels are listed
+
+
 @dataclass
 class TrainingVoxels:
     volume: torch.Tensor  # (S, S, S) float32 in [0, 1], on the training device
@@ -64,13 +67,17 @@ class TrainingVoxels:
         self.slices = lattice[keep[lattice]]  # training slice indices (axis 2)
         if self.slices.numel() == 0:
             raise ValueError("no slice is left for training: hold out fewer slices")
-        sub = self.volume[lattice][:, lattice][:, :, self.slices]
-        local = torch.nonzero(sub.reshape(-1) > 0).squeeze(1)
+        index_type = torch.int32 if size < 2**15 else torch.int64
+        # Slab by slab along x, in the same (x, y, z) order as one pass: int64 indices of every
+        # body voxel at once would take several GB at 512³.
+        parts = []
+        for start in range(0, lattice.numel(), BODY_SLAB):
+            rows = lattice[start : start + BODY_SLAB]
+            local = torch.nonzero(self.volume[rows][:, lattice][:, :, self.slices] > 0)
+            voxels = (rows[local[:, 0]], lattice[local[:, 1]], self.slices[local[:, 2]])
+            parts.append(torch.stack(voxels, dim=1).to(index_type))
+        self.body = torch.cat(parts) if len(parts) > 1 else parts[0]
         n_xy, n_z = lattice.numel(), self.slices.numel()
-        i = lattice[local // (n_xy * n_z)]
-        j = lattice[(local // n_z) % n_xy]
-        k = self.slices[local % n_z]
-        self.body = torch.stack((i, j, k), dim=1).to(torch.int32 if size < 2**15 else torch.int64)
         self.training_voxels = n_xy * n_xy * n_z
 
     @property
