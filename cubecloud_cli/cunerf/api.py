@@ -77,7 +77,9 @@ class CunerfField:
     def from_file(cls, path: Path, device: str = "auto") -> "CunerfField":
         target = resolve_device(device)
         try:
-            payload = torch.load(path, map_location=target, weights_only=True)
+            # Memory-mapped on the CPU: the grid's table is read from the file as lookups reach it.
+            mapped = target.type == "cpu"
+            payload = torch.load(path, map_location=target, weights_only=True, mmap=mapped)
         except FileNotFoundError:
             raise CubecloudError(f"{path} does not exist: run `cubecloud cunerf WORK` first") from None
         except Exception as exc:  # torch raises many types for a damaged file
@@ -88,8 +90,15 @@ class CunerfField:
             raise CubecloudError(
                 f"{path} is not a cubecloud model of format {MODEL_FORMAT}: rerun `cubecloud cunerf WORK --force`"
             )
-        model = CubeModel(FieldConfig.from_dict(payload["field"]), RenderConfig(**payload["render"]))
-        model.load_state_dict(payload["model"])
+        try:
+            model = CubeModel.holding(
+                FieldConfig.from_dict(payload["field"]), RenderConfig(**payload["render"]), payload["model"]
+            )
+        except (RuntimeError, KeyError, TypeError) as exc:  # weights that do not fit the configuration
+            raise CubecloudError(
+                f"{path} holds weights that do not fit its configuration ({type(exc).__name__}): "
+                f"rerun `cubecloud cunerf WORK --force`"
+            ) from None
         model.to(target).eval()
         occupancy = None
         if payload.get("occupancy") is not None:

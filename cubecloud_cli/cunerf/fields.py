@@ -58,8 +58,14 @@ class PositionalEncoding(nn.Module):
 
     def __init__(self, frequencies: int):
         super().__init__()
-        self.register_buffer("scales", 2.0 ** torch.arange(frequencies, dtype=torch.float32), persistent=False)
+        self.frequencies = frequencies
+        for name, value in self.derived_buffers().items():
+            self.register_buffer(name, value, persistent=False)
         self.out_features = 3 * (1 + 2 * frequencies)
+
+    def derived_buffers(self) -> dict[str, torch.Tensor]:
+        """The buffers made from the configuration, not saved with the weights."""
+        return {"scales": 2.0 ** torch.arange(self.frequencies, dtype=torch.float32)}
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         scaled = points[..., None, :] * self.scales[:, None]  # (P, L, 3)
@@ -103,10 +109,14 @@ class GridField(NeuralField):
         # One table for all levels (rows of level l start at offsets[l]), so a single lookup
         # serves every level; tiny random values break the symmetry between features.
         self.table = nn.Parameter(1e-4 * torch.randn(rows, config.features))
-        starts = torch.tensor([0] + [r**3 for r in config.resolutions[:-1]]).cumsum(0)
-        self.register_buffer("offsets", starts, persistent=False)
+        for name, value in self.derived_buffers().items():
+            self.register_buffer(name, value, persistent=False)
         inputs = config.features * len(config.resolutions)
         self.mlp = nn.Sequential(nn.Linear(inputs, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 2))
+
+    def derived_buffers(self) -> dict[str, torch.Tensor]:
+        """The buffers made from the configuration, not saved with the weights."""
+        return {"offsets": torch.tensor([0] + [r**3 for r in self.config.resolutions[:-1]]).cumsum(0)}
 
     def _on_cpu_kernels(self, points: torch.Tensor) -> bool:
         """Whether the numba kernels apply: float32 on the CPU (the torch path serves the rest)."""

@@ -38,6 +38,22 @@ class CubeModel(nn.Module):
         wants_fine = render_config.importance > 0 and render_config.separate_fine
         self.fine: NeuralField | None = build_field(field_config) if wants_fine else None
 
+    @classmethod
+    def holding(cls, field_config: FieldConfig, render_config: RenderConfig, state: dict) -> "CubeModel":
+        """A model whose weights are ``state``'s tensors themselves (memory-mapped ones stay on
+        disk until read), never allocating and initialising weights of its own first: a
+        512³ grid's table is 1 GB."""
+        with torch.device("meta"):
+            model = cls(field_config, render_config)
+        model.load_state_dict(state, assign=True)
+        device = next(iter(state.values())).device if state else torch.device("cpu")
+        for module in model.modules():
+            derived = getattr(module, "derived_buffers", None)
+            if derived is not None:
+                for name, value in derived().items():
+                    module.register_buffer(name, value.to(device), persistent=False)
+        return model
+
     @property
     def final_field(self) -> NeuralField:
         """The field whose values the prediction is made of (fine when there is one)."""
