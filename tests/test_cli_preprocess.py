@@ -225,3 +225,13 @@ def test_float32_scans_with_nan_in_read_only_buffers(tmp_path, fmt):
     assert result.exit_code == 0, result.output
     assert "1 voxels were NaN" in result.stderr
     assert np.all(np.isfinite(_load(tmp_path / "w")))
+
+
+def test_torch_out_of_memory_is_one_line_not_a_traceback(tmp_path, phantom_nifti, monkeypatch):
+    import cubecloud_cli.preprocess.stage as stage
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: 136347648 bytes")
+
+    monkeypatch.setattr(stage, "preprocess_scan", fails)
+    assert_one_line_error(invoke("preprocess", phantom_nifti, "-o", tmp_path / "w"), "out of memory")

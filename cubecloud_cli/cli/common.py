@@ -56,6 +56,11 @@ def reports_errors(command: F) -> F:
         except MemoryError:
             typer.echo("error: out of memory: choose a smaller --size", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
+        except RuntimeError as exc:
+            if not is_out_of_memory(exc):
+                raise
+            typer.echo("error: out of memory (torch could not allocate): choose a smaller --size", err=True)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
         except KeyboardInterrupt as exc:
             # Stages that checkpoint say how to resume; the others leave nothing behind.
             message = str(exc) or "interrupted: no stage was marked complete; run the command again to redo it"
@@ -63,6 +68,12 @@ def reports_errors(command: F) -> F:
             raise typer.Exit(EXIT_INTERRUPTED) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def is_out_of_memory(exc: BaseException) -> bool:
+    """Whether torch's RuntimeError is an allocation that failed (the CPU's or a GPU's)."""
+    text = str(exc)
+    return "can't allocate memory" in text or "out of memory" in text.lower()
 
 
 def parse_floats(text: str | None, count: int, option: str) -> tuple[float, ...] | None:
