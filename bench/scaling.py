@@ -105,7 +105,11 @@ def exponents(rows: list[dict]) -> dict[str, float]:
 
 
 def table(rows: list[dict]) -> str:
-    head = "| size | wall | " + " | ".join(STAGES) + " | peak memory | Gaussians (CC / random) | novel PSNR CC / random | foreground | files |"
+    head = (
+        "| size | wall | "
+        + " | ".join(STAGES)
+        + " | peak memory | Gaussians (CC / random) | novel PSNR CC / random | foreground | files |"
+    )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         stage_cells = " | ".join(f"{r['seconds'].get(s) or 0:.1f} s" for s in STAGES)
@@ -131,14 +135,18 @@ def charts(rows: list[dict], out: Path) -> None:
         for stage in STAGES
     ] + [("wall", logs, [math.log10(r["wall_s"]) for r in rows])]
     (out / "time.svg").write_text(
-        line_plot_svg(series, "Time against cube size (chest CT, detail)", "log2 cube side (7 = 128, 9 = 512)", "log10 seconds")
+        line_plot_svg(
+            series, "Time against cube size (chest CT, detail)", "log2 cube side (7 = 128, 9 = 512)", "log10 seconds"
+        )
     )
     scores = []
     for run, label in (("splat", "Cube-Cloud"), ("splat-random", "random init")):
         scores.append((f"{label}, whole", sizes, [r.get(run, {}).get("novel_psnr", math.nan) for r in rows]))
         scores.append((f"{label}, body", sizes, [r.get(run, {}).get("novel_psnr_foreground", math.nan) for r in rows]))
     (out / "psnr.svg").write_text(
-        line_plot_svg(scores, "Novel-view PSNR against cube size", "cube side (voxels; views as many pixels)", "PSNR (dB)")
+        line_plot_svg(
+            scores, "Novel-view PSNR against cube size", "cube side (voxels; views as many pixels)", "PSNR (dB)"
+        )
     )
 
 

@@ -231,7 +231,9 @@ def test_torch_out_of_memory_is_one_line_not_a_traceback(tmp_path, phantom_nifti
     import cubecloud_cli.preprocess.stage as stage
 
     def fails(*args, **kwargs):
-        raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: 136347648 bytes")
+        raise RuntimeError(
+            "[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: 136347648 bytes"
+        )
 
     monkeypatch.setattr(stage, "preprocess_scan", fails)
     assert_one_line_error(invoke("preprocess", phantom_nifti, "-o", tmp_path / "w"), "out of memory")

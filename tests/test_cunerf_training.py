@@ -194,7 +194,9 @@ def test_body_voxels_listed_slab_by_slab_are_every_training_voxel_in_x_y_z_order
 
     monkeypatch.setattr(supervision, "BODY_SLAB", 3)  # slabs that cut the lattice unevenly
     rng = np.random.default_rng(train_scale)
-    volume = torch.from_numpy(np.where(rng.random((17, 17, 17)) < 0.4, rng.random((17, 17, 17)), 0.0).astype(np.float32))
+    volume = torch.from_numpy(
+        np.where(rng.random((17, 17, 17)) < 0.4, rng.random((17, 17, 17)), 0.0).astype(np.float32)
+    )
     voxels = supervision.TrainingVoxels(volume, train_scale, held_out=[4, 9], body_fraction=0.8)
     lattice, slices = range(0, 17, train_scale), [k for k in range(0, 17, train_scale) if k not in (4, 9)]
     expected = [(i, j, k) for i in lattice for j in lattice for k in slices if volume[i, j, k] > 0]

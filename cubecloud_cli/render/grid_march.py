@@ -123,7 +123,6 @@ def dvr_view(volume, origin, directions, support_low, support_high, step, low, r
     cube_low = np.full(3, -1.0, dtype=np.float32)
     cube_high = np.full(3, 1.0, dtype=np.float32)
     step32 = np.float32(step)
-    colours = np.zeros(count, dtype=np.float32)
     entries = np.empty(count, dtype=np.float32)
     firsts = np.zeros(count, dtype=np.int64)
     lasts = np.zeros(count, dtype=np.int64)

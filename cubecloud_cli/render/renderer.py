@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.render.grid_march import dvr_march, dvr_view
+from cubecloud_cli.render.grid_march import dvr_view
 from cubecloud_cli.render.image_models import ACCUMULATORS, MIN_RAMP_WIDTH, ImageModel
 from cubecloud_cli.render.rays import camera_rays, ray_box
 from cubecloud_cli.render.samplers import GridField, ScalarField, Support
