@@ -81,7 +81,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "splat": {
         "fast": {"iterations": 1500, "max_gaussians": 75_000, "antialias": True},
         "balanced": {"iterations": 7000, "max_gaussians": 300_000, "antialias": True},
-        "detail": {"iterations": 3000, "max_gaussians": 300_000, "antialias": True},
+        "detail": {"iterations": 2000, "max_gaussians": 200_000, "antialias": True},
         "paper": {"iterations": 30_000, "max_gaussians": None, "antialias": False},
     },
 }
