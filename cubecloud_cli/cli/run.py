@@ -142,9 +142,20 @@ def run_command(
             output,
             force=force,
             progress=stage_bar,
-            on_stage=lambda outcome: display.stage_done(outcome.stage, outcome.status),
+            on_stage=lambda outcome: _stage_done(display, outcome, output, preset),
         )
     _report(outcomes, output, time.perf_counter() - started, whole=stage is None)
+
+
+def _stage_done(display, outcome, output: Path, preset: str) -> None:
+    display.stage_done(outcome.stage, outcome.status)
+    if outcome.stage == "preprocess" and preset == "detail":
+        from cubecloud_cli.pipeline.cost import describe_cost
+
+        size = int(read_manifest(Path(output) / "preprocess")["volume"]["shape"][0])
+        line = describe_cost(size)
+        if line:
+            log.info(line)
 
 
 def _report(outcomes: list, output: Path, wall_seconds: float, whole: bool = True) -> None:
