@@ -30,6 +30,6 @@ def test_the_power_law_is_finite_and_positive_or_nan_at_the_extremes(size):
 def test_the_cost_line_says_minutes_and_gigabytes_or_nothing():
     measured = {128: (120.0, 0.6), 512: (1920.0, 6.0)}
     assert expected_cost(256, measured) == pytest.approx((480.0, 0.6 * 10**0.5))
-    assert describe_cost(512, measured).startswith("a 512³ detail run took about 32 min and 6.0 GB")
+    assert describe_cost(512, measured).startswith("a 512³ detail run takes about 32 min and 6.0 GB")
     assert expected_cost(256, {}) is None and describe_cost(256, {}) is None
     assert power_law(200, {256: 5.0}) == 5.0

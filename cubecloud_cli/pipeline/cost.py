@@ -8,7 +8,13 @@ import math
 
 # size -> (seconds from the scan to the report, peak memory in GB): `bench/scaling.py` on the
 # chest CT with `--preset detail`, both splat runs included, numba's first compilation included.
-MEASURED_DETAIL: dict[int, tuple[float, float]] = {}
+MEASURED_DETAIL: dict[int, tuple[float, float]] = {
+    128: (262.0, 0.66),
+    192: (293.0, 0.92),
+    256: (445.0, 1.41),
+    384: (993.0, 3.05),
+    512: (1915.0, 5.99),
+}
 
 
 def power_law(size: float, points: dict[int, float]) -> float:
@@ -41,6 +47,6 @@ def describe_cost(size: int, measured: dict[int, tuple[float, float]] = MEASURED
         return None
     seconds, memory = cost
     return (
-        f"a {size}³ detail run took about {seconds / 60:.0f} min and {memory:.1f} GB on a 2-core CPU "
-        f"(measured on the chest CT; more cores or a GPU take less)"
+        f"a {size}³ detail run takes about {seconds / 60:.0f} min and {memory:.1f} GB on a 2-core CPU "
+        f"(as measured on the chest CT at 128³ to 512³; more cores or a GPU take less)"
     )
