@@ -108,6 +108,17 @@ _GRID = {
 }
 # The paper's network and schedule (docs/cunerf.md §8); CPU presets cut the batch and samples.
 _MLP = {"lr": 2e-3, "lr_final": 2e-5, "cube_radius": 1.0, "grid_init": "random"}
+# The paper's network on a CPU budget, for --model cunerf with balanced or detail.
+_MLP_CPU_LONG = {
+    **_MLP,
+    "warmup": 1000,
+    "iterations": 10000,
+    "batch_size": 1024,
+    "samples_per_axis": 4,
+    "importance": 64,
+    "val_every": 1000,
+    "checkpoint_every": 250,
+}
 CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "detail": "fast", "paper": "cunerf"}
 CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
@@ -132,16 +143,7 @@ CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     },
     "balanced": {
         "fast": {**_GRID, "iterations": 5000, "batch_size": 8192, "val_every": 1000, "checkpoint_every": 500},
-        "cunerf": {
-            **_MLP,
-            "warmup": 1000,
-            "iterations": 10000,
-            "batch_size": 1024,
-            "samples_per_axis": 4,
-            "importance": 64,
-            "val_every": 1000,
-            "checkpoint_every": 250,
-        },
+        "cunerf": _MLP_CPU_LONG,
     },
     # detail: the fitted start, as fast (its grid has one vertex per voxel at any size).
     "detail": {
@@ -153,16 +155,7 @@ CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "val_every": 1000,
             "checkpoint_every": 500,
         },
-        "cunerf": {
-            **_MLP,
-            "warmup": 1000,
-            "iterations": 10000,
-            "batch_size": 1024,
-            "samples_per_axis": 4,
-            "importance": 64,
-            "val_every": 1000,
-            "checkpoint_every": 250,
-        },
+        "cunerf": _MLP_CPU_LONG,
     },
     "paper": {
         "fast": {**_GRID, "iterations": 20000, "batch_size": 8192, "val_every": 2000, "checkpoint_every": 1000},

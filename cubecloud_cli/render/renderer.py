@@ -106,17 +106,12 @@ def render_view(
     return accumulator.result().clamp(0.0, 1.0).view(cameras.height, cameras.width)
 
 
-def _ray_chunks(
-    support, model, origin, directions, entry, exit_, refine: bool = True
-) -> Iterator[tuple[torch.Tensor, ...]]:
+def _ray_chunks(support, model, origin, directions, entry, exit_) -> Iterator[tuple[torch.Tensor, ...]]:
     """Per chunk of rays: their indices and the first and last (exclusive) sample each needs,
-    from where each ray meets the support (``refine``) or only the box around it."""
+    from where each ray meets the support."""
     for begin in range(0, directions.shape[0], RAYS_PER_CHUNK):
         rays = torch.arange(begin, min(begin + RAYS_PER_CHUNK, directions.shape[0]), device=directions.device)
-        if refine:
-            start, stop = support_interval(support, origin, directions[rays])
-        else:
-            start, stop = ray_box(origin, directions[rays], *support.bounds())
+        start, stop = support_interval(support, origin, directions[rays])
         stop = torch.minimum(stop, exit_[rays])
         first = torch.floor((start - entry[rays]) / model.step - 0.5).clamp_min(0).long()
         last = torch.ceil((stop - entry[rays]) / model.step - 0.5).long()  # exclusive
