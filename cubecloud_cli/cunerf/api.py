@@ -22,6 +22,7 @@ import torch
 from cubecloud_cli.core.artifacts import require_stage, stage_dir_name
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.runtime import resolve_device
+from cubecloud_cli.cunerf import grid_bake
 from cubecloud_cli.cunerf.config import FieldConfig, RenderConfig
 from cubecloud_cli.cunerf.model import CubeModel, render_many
 from cubecloud_cli.cunerf.supervision import Occupancy, voxel_centres
@@ -172,6 +173,9 @@ class CunerfField:
         if not 1 <= size <= 4096:
             raise ValueError(f"bake size must be within 1..4096, got {size}")
         volume = np.empty((size, size, size), dtype=np.float32)
+        if grid_bake.applies(self.model, self.device, size):
+            grid_bake.bake_lattice(self.model, size, self.occupancy if skip_air else None, volume, on_progress)
+            return volume
         slab = max(1, (1 << 20) // (size * size))
         generator = torch.Generator(device=self.device).manual_seed(0)
         for start in range(0, size, slab):
