@@ -16,7 +16,7 @@ from cubecloud_cli.render.samplers import GridField
 def both_marches(monkeypatch, field, cameras, index, model, subpixel=(0.5, 0.5)):
     fused = renderer.render_view(field, cameras, index, model, subpixel=subpixel)
     with monkeypatch.context() as patched:
-        patched.setattr(renderer, "_fused_grid_dvr", lambda *args: False)
+        patched.setattr(renderer, "fused_grid_dvr", lambda *args: False)
         reference = renderer.render_view(field, cameras, index, model, subpixel=subpixel)
     return fused, reference
 
@@ -74,12 +74,12 @@ def test_fused_march_matches_and_stays_in_range_at_the_extremes(seed, low, width
     model = ImageModel("dvr", TransferFunction(low, min(low + width, 1.0), density), step=2.0 / 16)
     model.validate()
     fused = renderer.render_view(field, cameras, 0, model)
-    original = renderer._fused_grid_dvr
-    renderer._fused_grid_dvr = lambda *args: False
+    original = renderer.fused_grid_dvr
+    renderer.fused_grid_dvr = lambda *args: False
     try:
         reference = renderer.render_view(field, cameras, 0, model)
     finally:
-        renderer._fused_grid_dvr = original
+        renderer.fused_grid_dvr = original
     assert torch.isfinite(fused).all() and fused.min() >= 0.0 and fused.max() <= 1.0
     # The two may stop a ray a block apart, once less than `termination` of its light is left
     # (the fused march starts its blocks where the ray enters the support's box). Beyond that,

@@ -4,9 +4,8 @@ camera setup trains on, each pixel the mean over its area.
 A splat is a continuous image, and a pixel of a real camera integrates light over its area; a
 reference that samples each pixel's centre only would alias when the view zooms out, and score
 a correct anti-aliased splat as wrong. So every reference pixel averages a k × k grid of
-sub-pixel rays (:data:`cubecloud_cli.cameras.novel.SUPERSAMPLING`), rendered as k² images each
-through one sub-pixel point of every pixel: the same rays as one image k times larger, in half
-the time on a CPU (smaller, more coherent batches).
+sub-pixel rays (:data:`cubecloud_cli.cameras.novel.SUPERSAMPLING`,
+:mod:`cubecloud_cli.render.pixel_area`).
 
 WORK/export/novel/ holds
   views.json          the directions, poses, magnifications and focal lengths (NovelViewSet.as_json)
@@ -25,27 +24,13 @@ import torch
 from cubecloud_cli.cameras.novel import SUPERSAMPLING, NovelViewSet
 from cubecloud_cli.export.finished_views import ExportProgress
 from cubecloud_cli.export.images import write_contact_sheet
-from cubecloud_cli.render import ImageModel, render_view
+from cubecloud_cli.render import ImageModel
+from cubecloud_cli.render.pixel_area import pixel_area_render
 from cubecloud_cli.scene import write_json
 
 NOVEL_DIR = "novel"
 VIEWS_FILE = "views.json"
 REFERENCE_FILE = "reference.npy"
-
-
-def subpixel_points(factor: int) -> list[tuple[float, float]]:
-    """The centres of a factor × factor grid over a pixel, in fractions of a pixel."""
-    return [((i + 0.5) / factor, (j + 0.5) / factor) for j in range(factor) for i in range(factor)]
-
-
-def pixel_area_render(
-    field, cameras, index: int, model: ImageModel, support, device: torch.device, factor: int
-) -> np.ndarray:
-    """(H, W) view ``index`` with each pixel the mean of factor × factor sub-pixel samples."""
-    total = np.zeros((cameras.height, cameras.width), dtype=np.float64)
-    for point in subpixel_points(factor):
-        total += render_view(field, cameras, index, model, support, device, subpixel=point).cpu().numpy()
-    return (total / (factor * factor)).astype(np.float32)
 
 
 def render_novel_references(

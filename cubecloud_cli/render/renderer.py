@@ -22,7 +22,7 @@ import torch
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.render.grid_march import dvr_view
 from cubecloud_cli.render.image_models import ACCUMULATORS, MIN_RAMP_WIDTH, ImageModel
-from cubecloud_cli.render.rays import camera_rays, ray_box
+from cubecloud_cli.render.rays import camera_rays, ray_box, tiled_order
 from cubecloud_cli.render.samplers import GridField, ScalarField, Support
 
 RAYS_PER_CHUNK = 1 << 14
@@ -93,10 +93,13 @@ def render_view(
 
     if support is None:
         support = field.support(model.support_threshold)
-    if _fused_grid_dvr(field, model, device):
+    if fused_grid_dvr(field, model, device):
         # The kernel walks the air inside the support's box faster than the coarse march that
-        # finds each ray's support interval (support_interval) takes.
-        colour = _march_grid_view(field, model, origin, directions, support)
+        # finds each ray's support interval (support_interval) takes; it takes the rays tile by
+        # tile, which changes no ray (rays.RAY_TILE).
+        order = torch.from_numpy(tiled_order(cameras.height, cameras.width))
+        colour = torch.empty(directions.shape[0])
+        colour[order] = march_grid_view(field, model, origin, directions[order].contiguous(), support)
         return colour.clamp(0.0, 1.0).view(cameras.height, cameras.width)
     cube_low = torch.full((3,), -1.0, device=device)
     entry, exit_ = ray_box(origin, directions, cube_low, -cube_low)
@@ -118,12 +121,12 @@ def _ray_chunks(support, model, origin, directions, entry, exit_) -> Iterator[tu
         yield rays, first, last
 
 
-def _fused_grid_dvr(field, model: ImageModel, device: torch.device) -> bool:
+def fused_grid_dvr(field, model: ImageModel, device: torch.device) -> bool:
     """Whether the numba march applies: dvr through a voxel grid, on the CPU."""
     return model.kind == "dvr" and isinstance(field, GridField) and device.type == "cpu"
 
 
-def _march_grid_view(field: GridField, model: ImageModel, origin, directions, support: Support) -> torch.Tensor:
+def march_grid_view(field: GridField, model: ImageModel, origin, directions, support: Support) -> torch.Tensor:
     """One view's rays set up and marched in one numba pass: at 256² the torch set-up between
     chunks took as long as the march itself."""
     transfer = model.transfer
