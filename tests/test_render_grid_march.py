@@ -8,7 +8,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
-from cubecloud_cli.render import renderer
+from cubecloud_cli.render import grid_march, renderer
 from cubecloud_cli.render.image_models import MIN_RAMP_WIDTH, ImageModel, TransferFunction
 from cubecloud_cli.render.samplers import GridField
 
@@ -89,3 +89,86 @@ def test_fused_march_matches_and_stays_in_range_at_the_extremes(seed, low, width
     sensitivity = (1.0 + density * model.step) / max(width, MIN_RAMP_WIDTH)
     if sensitivity < 1e5:
         assert torch.allclose(fused, reference, atol=model.termination + 2e-6 * sensitivity, rtol=0)
+
+
+def brute_clear_cells(volume: np.ndarray, low: float, shift: int) -> np.ndarray:
+    """The definition: a cell is clear when the voxels of [c·n, c·n + n] on each axis are all
+    below low − margin (and so is the air beyond the grid, 0)."""
+    n, size = 1 << shift, volume.shape[0]
+    cells = -(-size // n)
+    clear = np.zeros((cells,) * 3, dtype=bool)
+    for a, b, c in np.ndindex(clear.shape):
+        block = volume[a * n : a * n + n + 1, b * n : b * n + n + 1, c * n : c * n + n + 1]
+        clear[a, b, c] = max(float(block.max()), 0.0) <= low - grid_march.CLEAR_MARGIN
+    return clear
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), size=st.sampled_from([7, 8, 13, 16]), shift=st.sampled_from([1, 2, 3]))
+def test_clear_cells_are_the_cells_whose_every_readable_voxel_is_clear(seed, size, shift):
+    rng = np.random.default_rng(seed)
+    volume = (rng.random((size,) * 3) * (rng.random((size,) * 3) > 0.9)).astype(np.float32)
+    low = float(rng.choice([0.0, 1e-7, 0.3, 0.95]))
+    np.testing.assert_array_equal(grid_march.clear_cells(volume, low, shift), brute_clear_cells(volume, low, shift))
+
+
+def march_with(field, cameras, index, model, clear) -> np.ndarray:
+    origin, directions = renderer.camera_rays(cameras, index, torch.device("cpu"))
+    low, high = field.support(model.support_threshold).bounds()
+    transfer = model.transfer
+    return grid_march.dvr_view(
+        field.volume.numpy(), clear, grid_march.CELL_SHIFT, origin.double().numpy(), directions.numpy(),
+        low.numpy().astype(np.float32), high.numpy().astype(np.float32), float(model.step), float(transfer.low),
+        max(transfer.high - transfer.low, MIN_RAMP_WIDTH), float(transfer.density), float(model.termination),
+        renderer.STEPS_PER_BLOCK,
+    )  # fmt: skip
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    low=st.sampled_from([0.05, 0.4, 0.8]),
+    density=st.sampled_from([1.0, 40.0, 1e4]),
+    axis_aligned=st.booleans(),
+)
+def test_stepping_over_clear_cells_changes_no_colour(seed, low, density, axis_aligned):
+    """Sparse blobs in air, seen along the axes (direction components exactly 0) or at random:
+    the march with clear cells gives the colours of the march that reads every sample, bit for
+    bit, dense media stopping rays included."""
+    rng = np.random.default_rng(seed)
+    size = 40
+    volume = np.zeros((size,) * 3, dtype=np.float32)
+    for blob in range(4):
+        corner = rng.integers(0, size - 8, 3)
+        sides = rng.integers(5 if blob == 0 else 2, 8, 3)  # the first one bright and large enough to be hit
+        volume[tuple(slice(c, c + side) for c, side in zip(corner, sides))] = 1.0 if blob == 0 else rng.uniform(0.2, 1)
+    field = GridField(volume)
+    if axis_aligned:
+        cameras = PinholeCameras(np.eye(3)[None], np.array([[0.0, 0.0, 4.0]]), 24, 24, 30.0)
+    else:
+        cameras = orbit_cameras(OrbitSpec(views=5, resolution=24, elevation=float(rng.uniform(-60, 60))))
+    model = ImageModel("dvr", TransferFunction(low, min(low + 0.3, 1.0), density), step=2.0 / (size * 1.7))
+    clear = field.clear_cells(low)
+    assert clear.any() and not clear.all()
+    with_cells = march_with(field, cameras, 0, model, clear)
+    np.testing.assert_array_equal(with_cells, march_with(field, cameras, 0, model, np.zeros_like(clear)))
+    assert with_cells.max() > 0.0
+
+
+def test_a_ray_that_goes_dark_stops_at_its_block_s_end_even_inside_a_clear_cell():
+    """Two slabs across z with air between: after the first, under 1e-4 of the light is left, so
+    the march stops at the end of that sample block, which lies in the air. Stepping over the
+    air must stop there too, not go on to add the second slab's light (about 3e-5)."""
+    size = 40
+    volume = np.zeros((size,) * 3, dtype=np.float32)
+    volume[:, :, 2:6] = 1.0
+    volume[:, :, 36:40] = 1.0  # beyond the first block of 32 steps, which ends in the air
+    field = GridField(volume)
+    cameras = PinholeCameras(np.eye(3)[None], np.array([[0.0, 0.0, 4.0]]), 8, 8, 20.0)  # every ray crosses both
+    model = ImageModel("dvr", TransferFunction(0.4, 0.7, 52.0), step=2.0 / size)
+    clear = field.clear_cells(0.4)
+    assert clear[:, :, 1:4].all() and not clear[:, :, 0].any()  # cells of 8: the air between is clear
+    every_sample = march_with(field, cameras, 0, model, np.zeros_like(clear))
+    np.testing.assert_array_equal(march_with(field, cameras, 0, model, clear), every_sample)
+    light_left = np.exp(-52.0 * 0.2)  # four voxels of 0.05 at full absorption
+    assert light_left < model.termination and every_sample.min() > 0.5

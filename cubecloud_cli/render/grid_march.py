@@ -56,44 +56,110 @@ def _trilinear(volume, x, y, z):
     return total
 
 
+# Voxels per side of a cell of the clear-cell grid (2 ** CELL_SHIFT). A 512² view of the 512³
+# chest CT in a lung window: 2.1 s with cells of 8, 2.3 s of 4 or 16, 2.6 s without.
+CELL_SHIFT = 3
+CLEAR_MARGIN = 1e-6
+
+
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_march(volume, origin, directions, entry, first, last, step, low, ramp_width, density, termination, block):
+def clear_cells(volume, low, shift):
+    """(C, C, C) bool, C = ⌈S / 2^shift⌉: whether every sample whose low corner lies in the cell
+    is clear: every voxel it can read (the cell's and the next layer on each axis) and the air
+    beyond the grid (0) are below ``low`` by CLEAR_MARGIN, which covers the rounding of the
+    weights and of where a step lands. With ``low`` under the margin no cell is clear."""
+    size = volume.shape[0]
+    cells = (size + (1 << shift) - 1) >> shift
+    clear = np.zeros((cells, cells, cells), dtype=np.bool_)
+    bound = low - CLEAR_MARGIN
+    if not bound >= 0.0:
+        return clear
+    top = np.zeros((cells, cells, cells), dtype=np.float32)
+    for a in prange(cells):
+        for i in range(max(a << shift, 0), min((a + 1) << shift + 0, size - 1) + 1):
+            for j in range(size):
+                for k in range(size):
+                    value = volume[i, j, k]
+                    for b in range(max((j - 1) >> shift, 0), (j >> shift) + 1):
+                        for c in range(max((k - 1) >> shift, 0), (k >> shift) + 1):
+                            if value > top[a, b, c]:
+                                top[a, b, c] = value
+    for a in prange(cells):
+        for b in range(cells):
+            for c in range(cells):
+                clear[a, b, c] = top[a, b, c] <= bound
+    return clear
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def dvr_march(
+    volume, clear, shift, origin, directions, entry, first, last, step, low, ramp_width, density, termination, block
+):
     """(R,) dvr colours of rays ``origin + t · directions[r]`` through the (S, S, S) grid laid
     over [−1, 1]³ (indexed x, y, z), sampled at k in [first[r], last[r]).
 
     ``ramp_width`` is the transfer function's high − low, at least MIN_RAMP_WIDTH (the caller's
-    guard); opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for small σΔ."""
+    guard); opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for small σΔ. A sample in a
+    cell of ``clear`` (:func:`clear_cells`) adds and absorbs nothing, so the march reads no voxel
+    for it and steps over the cell's other samples: the same colours, fewer reads."""
     count = directions.shape[0]
     size = volume.shape[0]
     half = 0.5 * size
     inverse_width = 1.0 / ramp_width
+    cell = 1 << shift
     colours = np.zeros(count, dtype=np.float32)
     for r in prange(count):
         transmittance = 1.0
         colour = 0.0
         dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
         left_in_block = block
-        for k in range(first[r], last[r]):
+        k, stop = first[r], last[r]
+        while k < stop:
             t = entry[r] + (k + 0.5) * step
             # World [−1, 1] → continuous voxel index: voxel i's centre is at (2i + 1)/S − 1.
-            value = _trilinear(
-                volume,
-                (origin[0] + t * dx + 1.0) * half - 0.5,
-                (origin[1] + t * dy + 1.0) * half - 0.5,
-                (origin[2] + t * dz + 1.0) * half - 0.5,
-            )
-            if value > low:  # at or below low the sample is clear: nothing added, nothing absorbed
-                ramp = min((value - low) * inverse_width, 1.0)
-                alpha = -math.expm1(-density * ramp * step)
-                colour += transmittance * alpha * value
-                transmittance *= 1.0 - alpha
+            x = (origin[0] + t * dx + 1.0) * half - 0.5
+            y = (origin[1] + t * dy + 1.0) * half - 0.5
+            z = (origin[2] + t * dz + 1.0) * half - 0.5
+            ix, iy, iz = math.floor(x), math.floor(y), math.floor(z)
+            skip = 0
+            if 0 <= ix < size and 0 <= iy < size and 0 <= iz < size and clear[ix >> shift, iy >> shift, iz >> shift]:
+                # Whole steps to the cell's nearest face, less one for rounding, are in it too.
+                steps = _steps_in_cell(x, ix, dx, half * step, cell, shift)
+                steps = min(steps, _steps_in_cell(y, iy, dy, half * step, cell, shift))
+                steps = min(steps, _steps_in_cell(z, iz, dz, half * step, cell, shift))
+                skip = max(min(steps - 1, stop - k - 1), 0)
+            else:
+                value = _trilinear(volume, x, y, z)
+                if value > low:  # at or below low the sample is clear: nothing added, nothing absorbed
+                    ramp = min((value - low) * inverse_width, 1.0)
+                    alpha = -math.expm1(-density * ramp * step)
+                    colour += transmittance * alpha * value
+                    transmittance *= 1.0 - alpha
             left_in_block -= 1
             if left_in_block == 0:
                 if transmittance < termination:
                     break
                 left_in_block = block
+            if skip > 0:
+                # The skipped samples would count down the block and stop where this one would.
+                if skip >= left_in_block and transmittance < termination:
+                    break
+                left_in_block = (left_in_block - skip - 1) % block + 1
+            k += skip + 1
         colours[r] = colour
     return colours
+
+
+@njit(cache=True, inline="always")
+def _steps_in_cell(coordinate, index, direction, voxels_per_unit_step, cell, shift):
+    """Whole steps from ``coordinate`` (low corner ``index``) to the face of its cell the ray
+    leaves by, along one axis."""
+    speed = direction * voxels_per_unit_step
+    if speed > 1e-12:
+        return int(min((((index >> shift) + 1) * cell - coordinate) / speed, 1e9))
+    if speed < -1e-12:
+        return int(min((coordinate - (index >> shift) * cell) / -speed, 1e9))
+    return 1_000_000_000
 
 
 @njit(cache=True, inline="always")
@@ -114,7 +180,21 @@ def _slab_interval(origin32, direction, low, high):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_view(volume, origin, directions, support_low, support_high, step, low, ramp_width, density, termination, block):
+def dvr_view(
+    volume,
+    clear,
+    shift,
+    origin,
+    directions,
+    support_low,
+    support_high,
+    step,
+    low,
+    ramp_width,
+    density,
+    termination,
+    block,
+):
     """(R,) dvr colours of one view's rays from ``origin``: each ray's entry into the cube, its
     span through the support's box and its march, all in one pass (:func:`dvr_march` after the
     torch ray set-up of ``renderer._ray_chunks``, without the tensors between them)."""
@@ -134,5 +214,18 @@ def dvr_view(volume, origin, directions, support_low, support_high, step, low, r
         last = math.ceil((stop - entry) / step32 - np.float32(0.5))
         entries[r], firsts[r], lasts[r] = entry, first, max(first, last)
     return dvr_march(
-        volume, origin, directions, entries, firsts, lasts, step, low, ramp_width, density, termination, block
+        volume,
+        clear,
+        shift,
+        origin,
+        directions,
+        entries,
+        firsts,
+        lasts,
+        step,
+        low,
+        ramp_width,
+        density,
+        termination,
+        block,
     )

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.render.grid_march import dvr_view
+from cubecloud_cli.render.grid_march import CELL_SHIFT, dvr_view
 from cubecloud_cli.render.image_models import ACCUMULATORS, MIN_RAMP_WIDTH, ImageModel
 from cubecloud_cli.render.rays import camera_rays, ray_box, tiled_order
 from cubecloud_cli.render.samplers import GridField, ScalarField, Support
@@ -133,6 +133,8 @@ def march_grid_view(field: GridField, model: ImageModel, origin, directions, sup
     low, high = support.bounds()
     colours = dvr_view(
         field.volume.numpy(),
+        field.clear_cells(float(transfer.low)),
+        CELL_SHIFT,
         origin.double().numpy(),
         directions.numpy(),
         low.numpy().astype(np.float32),

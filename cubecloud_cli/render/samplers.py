@@ -158,6 +158,16 @@ class GridField:
     def support(self, threshold: float) -> Support:
         return support_of_volume(self.volume, threshold)
 
+    def clear_cells(self, low: float) -> np.ndarray:
+        """The fused march's cells in which no sample exceeds ``low`` (``grid_march.clear_cells``),
+        made once per transfer function."""
+        from cubecloud_cli.render.grid_march import CELL_SHIFT, clear_cells
+
+        cached = self.__dict__.setdefault("_cached_clear", {})
+        if low not in cached:
+            cached[low] = clear_cells(self.volume.numpy(), float(low), CELL_SHIFT)
+        return cached[low]
+
 
 class FunctionField:
     """Any callable field (for example CuNeRF's cube renders) with a given support."""
