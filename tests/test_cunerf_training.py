@@ -200,4 +200,6 @@ def test_body_voxels_listed_slab_by_slab_are_every_training_voxel_in_x_y_z_order
     voxels = supervision.TrainingVoxels(volume, train_scale, held_out=[4, 9], body_fraction=0.8)
     lattice, slices = range(0, 17, train_scale), [k for k in range(0, 17, train_scale) if k not in (4, 9)]
     expected = [(i, j, k) for i in lattice for j in lattice for k in slices if volume[i, j, k] > 0]
+    # Counted without being listed: a start that trains no iteration never holds the list.
+    assert voxels.body_voxels == len(expected) and "_body" not in voxels.__dict__
     assert [tuple(row) for row in voxels.body.tolist()] == expected and voxels.body.dtype == torch.int32

@@ -67,22 +67,46 @@ class TrainingVoxels:
         self.slices = lattice[keep[lattice]]  # training slice indices (axis 2)
         if self.slices.numel() == 0:
             raise ValueError("no slice is left for training: hold out fewer slices")
-        index_type = torch.int32 if size < 2**15 else torch.int64
-        # Slab by slab along x, in the same (x, y, z) order as one pass: int64 indices of every
-        # body voxel at once would take several GB at 512³.
-        parts = []
-        for start in range(0, lattice.numel(), BODY_SLAB):
-            rows = lattice[start : start + BODY_SLAB]
-            local = torch.nonzero(self.volume[rows][:, lattice][:, :, self.slices] > 0)
-            voxels = (rows[local[:, 0]], lattice[local[:, 1]], self.slices[local[:, 2]])
-            parts.append(torch.stack(voxels, dim=1).to(index_type))
-        self.body = torch.cat(parts) if len(parts) > 1 else parts[0]
         n_xy, n_z = lattice.numel(), self.slices.numel()
         self.training_voxels = n_xy * n_xy * n_z
 
+    def _body_slabs(self):
+        """Each slab of BODY_SLAB lattice rows along x: its rows and the (x, y, z) lattice offsets of
+        its body voxels, in the order of one pass over the training lattice."""
+        lattice = self.lattice
+        for start in range(0, lattice.numel(), BODY_SLAB):
+            rows = lattice[start : start + BODY_SLAB]
+            yield rows, self.volume[rows][:, lattice][:, :, self.slices] > 0
+
     @property
     def body_voxels(self) -> int:
-        return int(self.body.shape[0])
+        """Training voxels inside the body (above 0), counted without listing them."""
+        cached = self.__dict__.get("_body_count")
+        if cached is None:
+            cached = sum(int(inside.sum()) for _, inside in self._body_slabs())
+            self.__dict__["_body_count"] = cached
+        return cached
+
+    @property
+    def body(self) -> torch.Tensor:
+        """(N, 3) int32 (int64 from 2¹⁵ voxels a side) indices of the body voxels, listed at the first
+        batch that draws from the body: 1.3 GB at 512³, which a fitted start that trains no
+        iteration never needs. Written slab by slab into one tensor: int64 indices of every body
+        voxel at once, or the slabs and their concatenation side by side, would take several GB."""
+        cached = self.__dict__.get("_body")
+        if cached is None:
+            index_type = torch.int32 if self.size < 2**15 else torch.int64
+            cached = torch.empty((self.body_voxels, 3), dtype=index_type, device=self.volume.device)
+            filled = 0
+            for rows, inside in self._body_slabs():
+                local = torch.nonzero(inside)
+                count = local.shape[0]
+                cached[filled : filled + count, 0] = rows[local[:, 0]]
+                cached[filled : filled + count, 1] = self.lattice[local[:, 1]]
+                cached[filled : filled + count, 2] = self.slices[local[:, 2]]
+                filled += count
+            self.__dict__["_body"] = cached
+        return cached
 
     def batch(self, count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """(centres (B, 3) world, targets (B,)) for one iteration."""
