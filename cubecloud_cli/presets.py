@@ -94,8 +94,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 # (--grid-init volume, cunerf/grid_init.py), which beats 3000 iterations from random features on
 # every measure of the field (3D PSNR 42.3 against 32.7 dB, held-out slices 30.3 against 29.1 dB,
 # renders against the volume's 58.1 against 52.2 dB) in 8 s instead of 79, and the splats trained
-# on its renders score as before (docs/history/cunerf-start.md). `balanced` and `paper`
-# train from random features. Measured earlier on the bundled CT at 128³ (bench/cunerf.py):
+# on its renders score as before (docs/history/cunerf-start.md). `balanced` and `detail` start
+# there too (docs/results.md, "Presets"); `paper` trains its MLP from random weights. Measured earlier on the bundled CT at 128³ (bench/cunerf.py):
 # 2³ points per cube for 4000 iterations beat 3³ for 2000 in the same time (37.3 vs 35.4 dB 3D
 # PSNR); a batch of 2048 cubes costs the splats 0.07 dB against 4096 (docs/history/cunerf-speed.md "The
 # CuNeRF batch").
@@ -121,6 +121,15 @@ _MLP_CPU_LONG = {
     "val_every": 1000,
     "checkpoint_every": 250,
 }
+# The fitted start with the large batch its held-out validation renders in.
+_GRID_FITTED_LARGE = {
+    **_GRID,
+    "grid_init": "volume",
+    "iterations": 0,
+    "batch_size": 8192,
+    "val_every": 1000,
+    "checkpoint_every": 500,
+}
 CUNERF_DEFAULT_MODEL = {"fast": "fast", "balanced": "fast", "detail": "fast", "paper": "cunerf"}
 CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
@@ -143,22 +152,9 @@ CUNERF_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "checkpoint_every": 100,
         },
     },
-    "balanced": {
-        "fast": {**_GRID, "iterations": 5000, "batch_size": 8192, "val_every": 1000, "checkpoint_every": 500},
-        "cunerf": _MLP_CPU_LONG,
-    },
-    # detail: the fitted start, as fast (its grid has one vertex per voxel at any size).
-    "detail": {
-        "fast": {
-            **_GRID,
-            "grid_init": "volume",
-            "iterations": 0,
-            "batch_size": 8192,
-            "val_every": 1000,
-            "checkpoint_every": 500,
-        },
-        "cunerf": _MLP_CPU_LONG,
-    },
+    # balanced and detail: the fitted start, as fast (its grid has one vertex per voxel at any size).
+    "balanced": {"fast": _GRID_FITTED_LARGE, "cunerf": _MLP_CPU_LONG},
+    "detail": {"fast": _GRID_FITTED_LARGE, "cunerf": _MLP_CPU_LONG},
     "paper": {
         "fast": {**_GRID, "iterations": 20000, "batch_size": 8192, "val_every": 2000, "checkpoint_every": 1000},
         "cunerf": {
