@@ -86,8 +86,8 @@ KNOBS = {
         choices=("volume", "random"),
         with_choice=(("volume", ("--iterations", "0")), ("random", ("--iterations", "3000"))),
     ),
-    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # balanced: 625, 1250, 2500
-    "cunerf_batch": Knob("cunerf", "--batch-size", (0.5, 2.0)),  # fast: 1024, 4096
+    "cunerf_iterations": Knob("cunerf", "--iterations", (0.125, 0.25, 0.5)),  # from 5000: 625, 1250, 2500
+    "cunerf_batch": Knob("cunerf", "--batch-size", (0.5, 2.0)),  # from 2048: 1024, 4096
     "cameras": Knob("export", "--cameras", choices=("orbit", "sphere")),
     "views": Knob("export", "--views", (0.5, 2.0)),  # fast: 60, 240
     "points_per_cube": Knob("export", "--points-per-cube", (0.25, 4.0)),  # fast: 128, 2048
