@@ -7,13 +7,13 @@ from __future__ import annotations
 import math
 
 # size -> (seconds from the scan to the report, peak memory in GB): `bench/scaling.py` on the
-# chest CT with `--preset detail`, both splat runs included, numba's first compilation included.
+# chest CT with `--preset detail`, both splat runs included, numba's first compilation included
+# (docs/results.md, "The scan's own detail": runs R and T; 512³'s peak is export's, as cunerf's
+# was 4.71 GB in run U).
 MEASURED_DETAIL: dict[int, tuple[float, float]] = {
-    128: (262.0, 0.66),
-    192: (293.0, 0.92),
-    256: (445.0, 1.41),
-    384: (993.0, 3.05),
-    512: (1915.0, 5.99),
+    128: (231.0, 0.67),
+    256: (352.0, 1.15),
+    512: (1165.0, 4.81),
 }
 
 
@@ -48,5 +48,5 @@ def describe_cost(size: int, measured: dict[int, tuple[float, float]] = MEASURED
     seconds, memory = cost
     return (
         f"a {size}³ detail run takes about {seconds / 60:.0f} min and {memory:.1f} GB on a 2-core CPU "
-        f"(as measured on the chest CT at 128³ to 512³; more cores or a GPU take less)"
+        f"(as measured on the chest CT at 128³, 256³ and 512³; more cores or a GPU take less)"
     )
