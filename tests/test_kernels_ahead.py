@@ -68,7 +68,7 @@ def test_the_helper_compiles_every_rasterizer_signature_the_splat_and_eval_stage
     # Only kernels of the stages before splat (the grid field's, the march), which compile their own.
     compiled_late = eval(by_stage.split(":", 1)[1])
     assert not {"forward", "backward", "project_forward", "project_backward", "bin_tiles"} & set(compiled_late)
-    marches = {"dvr_march", "dvr_view", "_slab_interval"}
+    marches = {"dvr_march", "dvr_view", "_slab_interval", "clear_cells"}
     assert set(compiled_late) <= {"encode_forward", "mlp_forward", "encode_backward", "mlp_backward"} | marches
 
 
