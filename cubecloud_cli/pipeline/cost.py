@@ -8,12 +8,11 @@ import math
 
 # size -> (seconds from the scan to the report, peak memory in GB): `bench/scaling.py` on the
 # chest CT with `--preset detail`, both splat runs included, numba's first compilation included
-# (docs/results.md, "The scan's own detail": runs R and T; 512³'s peak is export's, as cunerf's
-# was 4.71 GB in run U).
+# (docs/results.md, "The scan's own detail": runs W and T).
 MEASURED_DETAIL: dict[int, tuple[float, float]] = {
     128: (231.0, 0.67),
     256: (352.0, 1.15),
-    512: (1165.0, 4.81),
+    512: (1231.0, 5.03),
 }
 
 
