@@ -22,7 +22,7 @@ import torch
 from numba import njit, prange
 
 from cubecloud_cli.cunerf.fields import POINT_LIMIT, GridField
-from cubecloud_cli.cunerf.grid_kernels import _corner_base
+from cubecloud_cli.cunerf.grid_kernels import corner_base
 from cubecloud_cli.cunerf.model import CubeModel
 from cubecloud_cli.cunerf.rendering import MAX_DENSITY, shell_intervals
 from cubecloud_cli.cunerf.sampling import cube_offsets
@@ -99,7 +99,7 @@ def _cube_value(cx, cy, cz, offsets, shell, area, delta, table, resolutions, sta
         z = min(max(cz + offsets[s, 2], -limit), limit)
         for level in range(levels):
             r = resolutions[level]
-            base, fx, fy, fz = _corner_base(x, y, z, r)
+            base, fx, fy, fz = corner_base(x, y, z, r)
             base += starts[level]
             for f in range(features):
                 encoded[level * features + f] = zero

@@ -23,7 +23,7 @@ from cubecloud_cli.numerics.jit import EXACT_FASTMATH, PRANGE_ONLY
 
 
 @njit(cache=True, inline="always")
-def _corner_base(x, y, z, r):
+def corner_base(x, y, z, r):
     """The low corner's row and the fractions along x, y, z, as ``trilinear_corners``: vertex v
     at world (2v + 1)/r − 1, clamped to the outermost vertices, NaN read as the first vertex."""
     half = np.float32(0.5) * np.float32(r)
@@ -57,7 +57,7 @@ def encode_forward(points, table, resolutions, offsets, cells, fractions):
     for p in prange(count):
         for level in range(levels):
             r = resolutions[level]
-            base, fx, fy, fz = _corner_base(points[p, 0], points[p, 1], points[p, 2], r)
+            base, fx, fy, fz = corner_base(points[p, 0], points[p, 1], points[p, 2], r)
             if keep:
                 cells[p, level, 0], cells[p, level, 1] = base + offsets[level], base // (r * r)
                 fractions[p, level, 0], fractions[p, level, 1], fractions[p, level, 2] = fx, fy, fz

@@ -277,9 +277,11 @@ def _render(
         images = _render_saving_views(
             cunerf_images_field, cameras, job.image_model, device, progress, "images", count_views("images", 0)
         )
+    # One field for both: its support and clear cells are made once.
+    volume_field = GridField(volume, device)
     with writer.phase("render_reference"):
         reference = _render_saving_views(
-            GridField(volume, device),
+            volume_field,
             cameras,
             job.image_model,
             device,
@@ -290,7 +292,7 @@ def _render(
     with writer.phase("render_novel"):
         # The novel views face the origin: a stack's per-view slice planes do not apply to them.
         novel_reference = render_novel_references(
-            GridField(volume, device),
+            volume_field,
             job.novel,
             replace(job.image_model, slice_offsets=()),
             device,

@@ -76,7 +76,7 @@ def clear_cells(volume, low, shift):
         return clear
     top = np.zeros((cells, cells, cells), dtype=np.float32)
     for a in prange(cells):
-        for i in range(max(a << shift, 0), min((a + 1) << shift + 0, size - 1) + 1):
+        for i in range(max(a << shift, 0), min((a + 1) << shift, size - 1) + 1):
             for j in range(size):
                 for k in range(size):
                     value = volume[i, j, k]

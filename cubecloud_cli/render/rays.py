@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -45,9 +47,11 @@ def ray_box(
     return near, far
 
 
+@functools.lru_cache(maxsize=8)
 def tiled_order(height: int, width: int, tile: int = RAY_TILE) -> np.ndarray:
     """The row-major pixel indices of an image listed tile by tile (tiles row-major, pixels in a
-    tile row-major); edge tiles are cut to the image."""
+    tile row-major); edge tiles are cut to the image. Made once per image size and shared by
+    every view of an export, so callers only index with it."""
     v, u = np.divmod(np.arange(height * width), width)
     tiles_across = -(-width // tile)
     key = (v // tile * tiles_across + u // tile) * tile * tile + (v % tile) * tile + u % tile
