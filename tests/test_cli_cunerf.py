@@ -200,6 +200,8 @@ def test_interrupted_run_resumes_to_the_same_model(preprocessed, tmp_path, monke
         (["--grid-init", "volume", "--grid-hidden", "1"], "--grid-hidden of at least 2"),
         (["--batch-size", "1000000", "--importance", "512"], "GiB.*--batch-size"),
         (["--resume"], "no interrupted run"),
+        (["--precision", "bf16"], "--precision bf16 is for --model cunerf"),
+        (["--model", "cunerf", "--precision", "tf32", "--device", "cpu"], "needs a CUDA GPU.*--precision float32"),
     ],
 )
 def test_bad_options_give_one_line_errors(preprocessed, tmp_path, arguments, message):

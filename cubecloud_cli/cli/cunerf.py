@@ -22,6 +22,7 @@ from cubecloud_cli.cli.common import (
 from cubecloud_cli.cli.options import build_settings, settings_option
 from cubecloud_cli.cli.progress_bar import stage_bar
 from cubecloud_cli.core.artifacts import stage_dir_name
+from cubecloud_cli.cunerf.precision import Precision
 from cubecloud_cli.cunerf.settings import DENSITY_ACTIVATIONS, CunerfSettings, GridInit, Model, TrainLayout
 from cubecloud_cli.presets import DEFAULT_PRESET
 
@@ -71,6 +72,7 @@ def cunerf_command(
     export_scale: Annotated[Optional[float], _option("export_scale")] = None,
     skip_air: Annotated[Optional[bool], _option("skip_air", "--skip-air/--no-skip-air")] = None,
     seed: Annotated[Optional[int], _option("seed")] = None,
+    precision: Annotated[Optional[Precision], _option("precision")] = None,
     device: DeviceOption = None,
     threads: ThreadsOption = None,
     name: NameOption = None,
@@ -89,6 +91,8 @@ def cunerf_command(
       cubecloud cunerf work                                 # fast grid model, under 3 min on 2 cores
 
       cubecloud cunerf work --model cunerf --preset paper   # the paper's network (GPU)
+
+      cubecloud cunerf work --preset paper --precision bf16 --device cuda   # its MLP in bfloat16
 
       cubecloud cunerf work --train-scale 2 --export-scale 2 --name sr2   # zero-shot super-resolution
     """
@@ -119,6 +123,7 @@ def cunerf_command(
         "export_scale": export_scale,
         "skip_air": skip_air,
         "seed": seed,
+        "precision": precision,
     }
     from cubecloud_cli.cunerf.stage import train_cunerf  # torch: imported when the stage runs
 

@@ -44,6 +44,7 @@ from cubecloud_cli.cli.options import build_settings, settings_option
 from cubecloud_cli.cli.progress_bar import PipelineProgress, stage_bar
 from cubecloud_cli.cli.splat import describe_splat
 from cubecloud_cli.core.artifacts import read_manifest
+from cubecloud_cli.cunerf.precision import Precision
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.export.settings import ExportSettings
@@ -71,6 +72,9 @@ def run_command(
     series: SeriesOption = None,
     cunerf_iterations: Annotated[
         Optional[int], settings_option(CunerfSettings, "iterations", "--cunerf-iterations")
+    ] = None,
+    cunerf_precision: Annotated[
+        Optional[Precision], settings_option(CunerfSettings, "precision", "--cunerf-precision")
     ] = None,
     splat_iterations: Annotated[
         Optional[int], settings_option(SplatSettings, "iterations", "--splat-iterations")
@@ -120,7 +124,7 @@ def run_command(
     from cubecloud_cli.pipeline.runner import only_stage, run_stages  # the stages: torch
     from cubecloud_cli.pipeline.table import stage_table
 
-    cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations})
+    cunerf = build_settings(CunerfSettings, preset, {"iterations": cunerf_iterations, "precision": cunerf_precision})
     export = build_settings(ExportSettings, preset, {"views": views, "resolution": resolution, "view": view})
     splat = build_settings(SplatSettings, preset, {"iterations": splat_iterations})
     stages = stage_table(

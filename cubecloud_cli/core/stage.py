@@ -18,7 +18,13 @@ from cubecloud_cli.core.progress import ProgressCallback
 
 # Parameters added after stages were first written, with the value that older manifests implied,
 # so that `run` does not refuse a work directory made before they existed.
-ADDED_PARAMETERS = {"cameras": "orbit", "novel_directions": 0, "antialias": False, "grid_init": "random"}
+ADDED_PARAMETERS = {
+    "cameras": "orbit",
+    "novel_directions": 0,
+    "antialias": False,
+    "grid_init": "random",
+    "precision": "float32",
+}
 # Parameters recorded for provenance only: the scene a splat run read is identified by its files'
 # hashes, so `-o work` and `-o /abs/work` (or a moved work directory) are the same stage.
 PROVENANCE_PARAMETERS = {"scene"}

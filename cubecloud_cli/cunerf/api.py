@@ -101,6 +101,9 @@ class CunerfField:
                 f"rerun `cubecloud cunerf WORK --force`"
             ) from None
         model.to(target).eval()
+        # The arithmetic it trained in, where the device has it (cunerf/precision.py).
+        if target.type == "cuda":
+            model.set_precision((payload.get("settings") or {}).get("precision", "float32"))
         occupancy = None
         if payload.get("occupancy") is not None:
             occupancy = Occupancy(

@@ -54,10 +54,14 @@ class RenderConfig:
 
 
 RENDER_POINTS_PER_CHUNK = 1 << 18  # ~1 GB of activations for the 8×256 MLP without gradients
+# A GPU takes 4× as many: each chunk costs a few kernel launches and a host sync (the air test),
+# which at 2¹⁸ points are as long as the paper MLP's bfloat16 products themselves.
+GPU_CHUNK_FACTOR = 4
 
 
-def render_chunk(config: RenderConfig) -> int:
-    """Cubes per chunk for test renders, so a chunk holds about 262 k points whatever the
-    model's points per cube (8 for the fast preset, 128 for the paper's)."""
+def render_chunk(config: RenderConfig, device_type: str = "cpu") -> int:
+    """Cubes per chunk for test renders, so a chunk holds about 262 k points (1 M on a GPU)
+    whatever the model's points per cube (8 for the fast preset, 128 for the paper's)."""
     points = config.samples_per_axis**3 + max(config.importance, 0)
-    return max(64, min(32768, RENDER_POINTS_PER_CHUNK // points))
+    budget = RENDER_POINTS_PER_CHUNK * (GPU_CHUNK_FACTOR if device_type == "cuda" else 1)
+    return max(64, min(32768 * GPU_CHUNK_FACTOR, budget // points))

@@ -27,6 +27,7 @@ from torch import nn
 
 from cubecloud_cli.cunerf import grid_kernels
 from cubecloud_cli.cunerf.config import DENSITY_ACTIVATIONS, FieldConfig
+from cubecloud_cli.cunerf.precision import hidden_layers_autocast, matmul_scope
 
 POINT_LIMIT = 16.0
 
@@ -77,6 +78,8 @@ class CuNeRFField(NeuralField):
     def __init__(self, config: FieldConfig):
         super().__init__()
         self.config = config
+        # How the hidden layers compute (cunerf/precision.py): a way of running, not a weight.
+        self.precision = "float32"
         self.encoding = PositionalEncoding(config.frequencies)
         encoded = self.encoding.out_features
         layers = []
@@ -92,11 +95,12 @@ class CuNeRFField(NeuralField):
         # The official code scales each axis to [−π, π] (docs/cunerf.md §3.3).
         encoded = self.encoding(points * math.pi)
         hidden = encoded
-        for index, layer in enumerate(self.layers):
-            if index == self.config.skip_at:
-                hidden = torch.cat((encoded, hidden), dim=-1)
-            hidden = F.relu(layer(hidden))
-        return self.head(hidden)
+        with matmul_scope(self.precision, points.device), hidden_layers_autocast(self.precision, points.device):
+            for index, layer in enumerate(self.layers):
+                if index == self.config.skip_at:
+                    hidden = torch.cat((encoded, hidden), dim=-1)
+                hidden = F.relu(layer(hidden))
+        return self.head(hidden.float())
 
 
 class GridField(NeuralField):

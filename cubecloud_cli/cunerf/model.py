@@ -54,6 +54,13 @@ class CubeModel(nn.Module):
                     module.register_buffer(name, value.to(device), persistent=False)
         return model
 
+    def set_precision(self, precision: str) -> None:
+        """How the paper's MLP computes from now on (cunerf/precision.py); the grid field
+        always computes in float32."""
+        for field in (self.coarse, self.fine):
+            if field is not None and hasattr(field, "precision"):
+                field.precision = precision
+
     @property
     def final_field(self) -> NeuralField:
         """The field whose values the prediction is made of (fine when there is one)."""
@@ -110,7 +117,7 @@ def render_many(
 ) -> torch.Tensor:
     """Test renders of any number of cubes, ``chunk`` at a time. Cubes for which ``keep``
     is False (air, by the occupancy grid) are not rendered and read 0."""
-    chunk = chunk or render_chunk(model.render_config)
+    chunk = chunk or render_chunk(model.render_config, centres.device.type)
     values = torch.zeros(centres.shape[0], device=centres.device)
     was_training = model.training
     model.eval()

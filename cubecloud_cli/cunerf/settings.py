@@ -8,6 +8,7 @@ from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.cunerf.config import DENSITY_ACTIVATIONS, RENDER_POINTS_PER_CHUNK, FieldConfig, RenderConfig
+from cubecloud_cli.cunerf.precision import Precision, precision_problem
 from cubecloud_cli.presets import preset_default
 
 Model = Literal["fast", "cunerf"]
@@ -77,6 +78,9 @@ class CunerfSettings:
     """Skip rendering blocks that hold no non-zero training voxel (they read 0)."""
     seed: int = 0
     """Seed of every random draw; the same seed repeats a run."""
+    precision: Precision = "float32"
+    """cunerf model on a CUDA GPU: float32 (as the paper), tf32 (tensor cores in the matrix products) or bf16
+    (hidden layers in bfloat16; encoding, head and renderer in float32). The CPU computes in float32."""
 
     def validate(self) -> None:
         """Refuse options that no volume makes right, with a one-line error naming the fix."""
@@ -126,6 +130,15 @@ class CunerfSettings:
             raise bad(f"--body-fraction {self.body_fraction:g} must be within 0..1")
         if not (math.isfinite(self.export_scale) and 0.05 <= self.export_scale <= 8):
             raise bad(f"--export-scale {self.export_scale:g} must be within 0.05..8")
+        problem = precision_problem(self.precision, self.model, "cuda")  # the device is checked where it is known
+        if problem:
+            raise bad(problem)
+
+    def check_for_device(self, device_type: str) -> None:
+        """Refuse options that the device cannot run."""
+        problem = precision_problem(self.precision, self.model, device_type)
+        if problem:
+            raise CubecloudError(problem)
 
     def check_for_volume(self, volume_size: int) -> None:
         """Refuse options that do not fit a volume of ``volume_size``³ voxels."""

@@ -163,6 +163,7 @@ def train_cunerf(
     size = int(preprocess["volume"]["shape"][0])
     settings.check_for_volume(size)
     device = runtime.apply()
+    settings.check_for_device(device.type)
     reset_peak_memory(device)
 
     _check_memory(settings, size, device)
@@ -273,6 +274,7 @@ def _prepare(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(settings.seed)
         model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
+    model.set_precision(settings.precision)
     generator = torch.Generator(device=device).manual_seed(settings.seed)
     trainer = Trainer(model, voxels, settings, generator, context=context)
     if state is not None:
@@ -354,22 +356,22 @@ def _train(trainer: Trainer, checkpoint: Path, on_progress: ProgressCallback) ->
     with checkpointed_loop(checkpoint, "lower --lr and pass --force to start again") as interrupt:
         while trainer.iteration < total:
             trainer.step()
-            running = trainer.smoothed_loss
             it = trainer.iteration
-            row = None
-            if it % settings.val_every == 0 or it == total:
-                latest = trainer.held_out_scores()
-                row = {**latest}
-            if row is not None or it % log_every == 0:
+            validate = it % settings.val_every == 0 or it == total
+            if validate or it % log_every == 0:
+                trainer.flush_losses()  # the row's loss is this iteration's, and the wait is training time
+                if validate:
+                    latest = trainer.held_out_scores()
                 trainer.history.append(
                     {
                         "iteration": it,
                         "seconds": round(trainer.elapsed_s, 3),
-                        "loss": running,
+                        "loss": trainer.smoothed_loss,
                         "lr": trainer.optimizer.param_groups[0]["lr"],
-                        **(row or {}),
+                        **(latest if validate else {}),
                     }
                 )
+            running = trainer.smoothed_loss
             fields = {"loss": running}
             if "val_psnr" in latest:
                 fields["val PSNR"] = latest["val_psnr"]

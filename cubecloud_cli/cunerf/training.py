@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
+from cubecloud_cli.cunerf.precision import matmul_scope
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.supervision import TrainingVoxels, voxel_centres
 from cubecloud_cli.numerics.adam import Optimizer, adam
@@ -25,6 +26,10 @@ from cubecloud_cli.numerics.metrics import psnr, ssim_and_masked
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_SEED = 1234
+# On a GPU, reading the loss back each step would make the host wait for the step to finish
+# before it queues the next one (issue 54: "no host syncs in the loop"); losses are read in
+# groups, at most this many steps late. On the CPU each step's loss is read at once.
+LOSS_READ_EVERY_ON_GPU = 64
 
 
 def learning_rate(step: int, settings: CunerfSettings) -> float:
@@ -65,30 +70,51 @@ class Trainer:
     iteration: int = 0
     elapsed_s: float = 0.0
     history: list[dict[str, float]] = field(default_factory=list)
-    smoothed_loss: float | None = None  # running mean shown in the bar and log.csv
+    smoothed_loss: float | None = None  # running mean shown in the bar and log.csv, as of the last read
     context: dict[str, Any] = field(default_factory=dict)  # saved as is, e.g. the input's sha256
+    loss_read_every: int | None = None  # steps between reads of the losses: 1 on a CPU, LOSS_READ_EVERY_ON_GPU else
 
     def __post_init__(self) -> None:
         self.optimizer = make_optimizer(self.model, self.settings)
+        if self.loss_read_every is None:
+            on_cpu = self.voxels.volume.device.type == "cpu"
+            self.loss_read_every = 1 if on_cpu else LOSS_READ_EVERY_ON_GPU
+        self._unread_losses: list[torch.Tensor] = []
 
-    def step(self) -> float:
-        """One iteration; returns the loss."""
+    def step(self) -> torch.Tensor:
+        """One iteration; returns its loss as a 0-d tensor (reading it waits for the step)."""
         started = time.perf_counter()
         for group in self.optimizer.param_groups:
             group["lr"] = learning_rate(self.iteration, self.settings)
-        centres, targets = self.voxels.batch(self.settings.batch_size, self.generator)
-        output = self.model.render(centres, train=True, generator=self.generator)
-        loss = adaptive_mse(output, targets)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        device = self.voxels.volume.device
+        with matmul_scope(self.settings.precision, device):
+            centres, targets = self.voxels.batch(self.settings.batch_size, self.generator)
+            output = self.model.render(centres, train=True, generator=self.generator)
+            loss = adaptive_mse(output, targets)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
         self.optimizer.step()
         self.iteration += 1
         self.elapsed_s += time.perf_counter() - started
-        value = float(loss.detach())
-        if not math.isfinite(value):
-            raise FloatingPointError(f"the loss became {value} at iteration {self.iteration}")
-        self.smoothed_loss = value if self.smoothed_loss is None else 0.9 * self.smoothed_loss + 0.1 * value
-        return value
+        self._unread_losses.append(loss.detach())
+        if len(self._unread_losses) >= (self.loss_read_every or 1):
+            self.flush_losses()
+        return loss.detach()
+
+    def flush_losses(self) -> None:
+        """Read the losses of the steps not yet read: raise on the first that is not finite,
+        and update the running mean. The wait for the device counts as training time."""
+        if not self._unread_losses:
+            return
+        started = time.perf_counter()
+        values = torch.stack(self._unread_losses).tolist()
+        self.elapsed_s += time.perf_counter() - started
+        first = self.iteration - len(values) + 1
+        self._unread_losses.clear()
+        for offset, value in enumerate(values):
+            if not math.isfinite(value):
+                raise FloatingPointError(f"the loss became {value} at iteration {first + offset}")
+            self.smoothed_loss = value if self.smoothed_loss is None else 0.9 * self.smoothed_loss + 0.1 * value
 
     def held_out_scores(self, chunk: int | None = None) -> dict[str, float]:
         """PSNR/SSIM on the held-out slices (whole image and body only)."""
@@ -116,6 +142,7 @@ class Trainer:
     # -- checkpoints -------------------------------------------------------------------------
 
     def state(self) -> dict[str, Any]:
+        self.flush_losses()  # a checkpoint never holds weights past a loss that was not finite
         return {
             "format": CHECKPOINT_FORMAT,
             "settings": self.settings.as_dict(),
