@@ -11,6 +11,11 @@ to draw for both models; the grid model is also scored on the whole volume at th
     python bench/cunerf.py --models cunerf --seconds 1800 --device cuda
     python bench/cunerf.py --models fast --train-scale 2    # zero-shot ×2 super-resolution
     python bench/cunerf.py --models cunerf --preset paper --size 512 --seconds 120   # the paper's rate
+    python bench/cunerf.py --models cunerf --preset paper --size 512 --stop-at 4000 --seconds 1e9 \
+        --precision bf16 --bake-slices 8 --device cuda    # issue 54: the MLP in bfloat16, and its 512³ bake
+
+With --bake-slices K the cunerf model also times the test render of K middle x-slices of the
+volume (air skipped, as the stage does) and projects the whole bake from it.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from cubecloud_cli.core.runtime import resolve_device
 from cubecloud_cli.numerics.metrics import psnr, volume_metrics
 from cubecloud_cli.presets import resolve_cunerf
 
-volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale, preset, grid_init = sys.argv[1:11]
+volume_path, model_name, seconds, points, eval_every, device_name, iterations, train_scale, preset, grid_init, precision, bake_slices, stop_at, profile_steps = sys.argv[1:15]
 train_scale = int(train_scale)
 device = resolve_device(device_name)
 volume = np.load(volume_path)
@@ -44,9 +49,11 @@ overrides = {"iterations": int(iterations)} if int(iterations) > 0 else {}
 overrides["train_scale"] = train_scale
 if model_name == "fast":
     overrides["grid_init"] = grid_init
+overrides["precision"] = precision
 settings = CunerfSettings(**resolve_cunerf(preset, model_name, overrides))
 torch.manual_seed(0)
 model = CubeModel(settings.field_config(size), settings.render_config(size)).to(device)
+model.set_precision(settings.precision)
 held = holdout_slices(volume, settings.holdout, train_scale)
 voxels = TrainingVoxels(torch.from_numpy(volume).to(device), train_scale, held, settings.body_fraction)
 if settings.grid_init == "volume":
@@ -66,14 +73,18 @@ next_eval = every
 print(json.dumps({"event": "start", "model": model_name, "settings": settings.as_dict(), "device": str(device)}), flush=True)
 p, pb = score()
 print(json.dumps({"event": "point", "iteration": 0, "train_s": 0.0, "loss": float("nan"), "psnr_est": p, "psnr_body_est": pb}), flush=True)
-while trainer.iteration < settings.iterations and trainer.elapsed_s < budget:
-    loss = trainer.step()
-    if trainer.elapsed_s >= next_eval or trainer.iteration == settings.iterations:
+stop = int(stop_at) or settings.iterations
+while trainer.iteration < stop and trainer.elapsed_s < budget:
+    trainer.step()
+    if trainer.elapsed_s >= next_eval or trainer.iteration == stop:
         next_eval += every
+        trainer.flush_losses()
+        loss = trainer.smoothed_loss
         p, pb = score()
         print(json.dumps({"event": "point", "iteration": trainer.iteration, "train_s": trainer.elapsed_s,
                           "loss": loss, "psnr_est": p, "psnr_body_est": pb}), flush=True)
-final = {"event": "end", "model": model_name, "iterations": trainer.iteration, "train_s": trainer.elapsed_s,
+trainer.flush_losses()
+final = {"event": "end", "model": model_name, "precision": settings.precision, "iterations": trainer.iteration, "train_s": trainer.elapsed_s,
          "s_per_1000": 1000 * trainer.elapsed_s / max(trainer.iteration, 1),
          "parameters": sum(p.numel() for p in model.parameters())}
 if model_name == "fast":
@@ -89,6 +100,40 @@ if model_name == "fast":
         up = torch.nn.functional.interpolate(low, size=(n - 1) * train_scale + 1, mode="trilinear", align_corners=True)[0, 0]
         baseline = np.pad(up.numpy(), [(0, size - up.shape[0])] * 3, mode="edge")
         final.update({f"trilinear_{k}_3d": v for k, v in volume_metrics(volume, baseline).items()})
+if model_name == "cunerf" and int(bake_slices) > 0:
+    # The stage's bake, timed over the middle slices (more body than the average slice).
+    from cubecloud_cli.cunerf.api import grid_centres
+    slices = int(bake_slices)
+    low = (size - slices) // 2
+    keep = voxels.occupancy().occupied
+    centres = grid_centres(size, device, (low, low + slices))
+    render_many(model, centres[:4096], keep=keep)  # warm-up
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    render_many(model, centres, keep=keep, generator=torch.Generator(device=device).manual_seed(0))
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    final["bake_slices"] = slices
+    final["bake_slices_s"] = time.perf_counter() - start
+    final["bake_projected_s"] = final["bake_slices_s"] * size / slices
+if int(profile_steps) > 0 and device.type == "cuda":
+    # Where a step's time goes: the GPU's kernels against the wall clock (issue 54).
+    from torch.profiler import ProfilerActivity, profile
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        start = time.perf_counter()
+        for _ in range(int(profile_steps)):
+            trainer.step()
+        trainer.flush_losses()
+        torch.cuda.synchronize()
+        wall = time.perf_counter() - start
+    events = prof.key_averages()
+    gpu_us = sum(e.self_device_time_total for e in events)
+    launches = sum(e.count for e in events if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+    final["profile"] = {"steps": int(profile_steps), "wall_ms_per_step": 1000 * wall / int(profile_steps),
+                        "gpu_ms_per_step": gpu_us / 1000 / int(profile_steps), "launches_per_step": launches / int(profile_steps)}
+    print(events.table(sort_by="self_device_time_total", row_limit=14), file=sys.stderr, flush=True)
 final["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 if device.type == "cuda":
     final["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
@@ -129,6 +174,14 @@ def main() -> None:
         "beside trilinear interpolation of the same voxels",
     )
     parser.add_argument("--grid-init", default="random", choices=["random", "volume"], help="the fast model's start")
+    parser.add_argument(
+        "--precision", default="float32", choices=["float32", "tf32", "bf16"], help="the MLP's arithmetic"
+    )
+    parser.add_argument(
+        "--stop-at", type=int, default=0, help="stop at this iteration, on the preset's schedule (0: its end)"
+    )
+    parser.add_argument("--profile-steps", type=int, default=0, help="on CUDA: profile this many more steps")
+    parser.add_argument("--bake-slices", type=int, default=0, help="cunerf model: time the bake of this many x-slices")
     parser.add_argument("--work", type=Path, default=None, help="reuse this work directory's preprocess/")
     args = parser.parse_args()
 
@@ -150,11 +203,15 @@ def main() -> None:
                 str(args.train_scale),
                 args.preset,
                 args.grid_init,
+                args.precision,
+                str(args.bake_slices),
+                str(args.stop_at),
+                str(args.profile_steps),
             ]
             process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
             assert process.stdout is not None
             print(
-                f"\n== {model}, {args.preset} preset, on the bundled CT at {args.size}³ ({args.device}, train scale {args.train_scale}) =="
+                f"\n== {model}, {args.preset} preset, on the bundled CT at {args.size}³ ({args.device}, {args.precision}, train scale {args.train_scale}) =="
             )
             print(f"{'iteration':>9} {'train s':>8} {'loss':>10} {'PSNR est':>9} {'body':>7}")
             for line in process.stdout:

@@ -17,8 +17,14 @@
 #    gsplat builds. Its field is the grid model for 2000 iterations: the splat's speed is the
 #    figure, and the paper's MLP spends ~10 min on the H200 reconstructing 512³ (docs/gpu.md).
 #
+# 7. (issue 54, asked for by name) cunerf-precision: the paper's CuNeRF at 512³ to iteration
+#    $STOP_AT (4000) of its schedule in float32, tf32 and bf16, each scored on 2^20 voxels and
+#    timed baking 4 slices; then paper-cunerf-run: `cubecloud cunerf --preset paper` in the
+#    fastest precision within 0.3 dB of float32 (or $PRECISION), cut at the deadline with its
+#    checkpoint copied to OUT, and resumed from $CARRIED_CHECKPOINT when that file exists.
+#
 # STEPS picks among cuda-metrics, torch-tests, gsplat-tests, fast, balanced, paper-cunerf, paper-splat
-# and fast-torch (default: all of them), and suite (asked for by name only): the whole test suite
+# and fast-torch (default: all of them), and suite, cunerf-precision and paper-cunerf-run (asked for by name only): the whole test suite
 # apart from the cuda tests, on 7 pytest-xdist workers of 2 threads each, as CI's 2 cores give
 # each test (about 140 s on an H100 machine's 16 cores; docs/gpu.md, the fourth session). The paper's splat gets all the time left, and is cut
 # (with its checkpoint saved) at the deadline.
@@ -130,6 +136,68 @@ if wanted paper-splat && [[ -f $PAPER/export/manifest.json ]]; then
 	fi
 	[[ -f $OUT/paper_splat.tty ]] && tr '\r' '\n' <"$OUT/paper_splat.tty" | sed 's/\x1b\[[0-9;]*[A-Za-z]//g' | grep -a "it/s" | awk 'NR % 50 == 0' | tail -n 40
 	stages "$PAPER"
+fi
+MLP=/tmp/gpu-paper-mlp
+if wanted cunerf-precision || wanted paper-cunerf-run; then
+	[[ -f $MLP/preprocess/manifest.json ]] || step "paper volume, 512³ (not timed)" 150 cubecloud preprocess -o "$MLP" --preset paper -q
+fi
+if wanted cunerf-precision; then
+	for precision in float32 tf32 bf16; do
+		step "paper CuNeRF at 512³ to iteration ${STOP_AT:-4000}, $precision" 200 \
+			python3 bench/cunerf.py --models cunerf --preset paper --size 512 --work "$MLP" --stop-at "${STOP_AT:-4000}" \
+			--seconds 1e9 --eval-every 1e9 --points 1048576 --precision $precision --bake-slices 4 --profile-steps 20 --device cuda |
+			tee "$OUT/precision_$precision.txt"
+	done
+	# The fastest precision whose 3D PSNR estimate is within 0.3 dB of float32's at the same iteration.
+	PRECISION=${PRECISION:-$(python3 - "$OUT" <<'PY'
+import json, sys
+from pathlib import Path
+runs = {}
+for path in Path(sys.argv[1]).glob("precision_*.txt"):
+    lines = path.read_text().splitlines()
+    points = [l.split() for l in lines if l.strip() and l.split()[0].isdigit()]
+    summary = [json.loads(l.split(":", 1)[1]) for l in lines if l.startswith("summary:")]
+    if points and summary:
+        runs[summary[0]["precision"]] = (float(points[-1][3]), summary[0]["s_per_1000"])
+best = "float32"
+if "float32" in runs:
+    good = [p for p, (score, _) in runs.items() if score >= runs["float32"][0] - 0.3]
+    best = min(good, key=lambda p: runs[p][1])
+print(best)
+PY
+)}
+	echo "== chosen precision: $PRECISION"
+fi
+if wanted paper-cunerf-run; then
+	resume=""
+	if [[ -f ${CARRIED_CHECKPOINT:-/nonexistent} ]]; then
+		mkdir -p "$MLP/.cunerf.partial" && cp "$CARRIED_CHECKPOINT" "$MLP/.cunerf.partial/checkpoint.pt" && resume=--resume
+	fi
+	export COLUMNS=200
+	left=$((DEADLINE - $(date +%s) - 40))
+	if ((left < 20)); then
+		echo "== paper CuNeRF run: skipped, ${left}s left"
+	else
+		step "paper CuNeRF, 200 000 iterations, ${PRECISION:-bf16} $resume" $((left + 30)) \
+			script -qfec "timeout -s INT -k 20 $left cubecloud cunerf $MLP --preset paper --precision ${PRECISION:-bf16} --device cuda $resume" "$OUT/paper_cunerf.tty"
+	fi
+	[[ -f $OUT/paper_cunerf.tty ]] && tr '\r' '\n' <"$OUT/paper_cunerf.tty" | sed 's/\x1b\[[0-9;]*[A-Za-z]//g' | grep -a "it/s" | awk 'NR % 400 == 0' | tail -n 30
+	cp "$MLP/.cunerf.partial/checkpoint.pt" "$OUT/paper_cunerf_checkpoint.pt" 2>/dev/null
+	python3 - "$MLP" <<'PY'
+import json, sys, torch
+from pathlib import Path
+work = Path(sys.argv[1])
+manifest = work / "cunerf" / "manifest.json"
+if manifest.exists():
+    data = json.loads(manifest.read_text())
+    print("complete:", json.dumps({"timings_s": data.get("timings_s"), "metrics": data.get("metrics")}))
+checkpoint = work / ".cunerf.partial" / "checkpoint.pt"
+if checkpoint.exists():
+    state = torch.load(checkpoint, weights_only=False, map_location="cpu")
+    print("checkpoint: iteration", state["iteration"], "training seconds", round(state["elapsed_s"], 1))
+    for row in state["history"][:: max(1, len(state["history"]) // 25)] + state["history"][-1:]:
+        print(json.dumps(row))
+PY
 fi
 if wanted fast-torch && [[ $built == yes ]]; then
 	export PYTHONPATH=$PLAIN_PATH
