@@ -17,9 +17,10 @@ bfloat16 (8 bits; products of the hidden layers only) at several times that rate
 from __future__ import annotations
 
 import contextlib
-from typing import ContextManager, Iterator, Literal, get_args
+from typing import TYPE_CHECKING, ContextManager, Iterator, Literal, get_args
 
-import torch
+if TYPE_CHECKING:  # the options are read where no stage runs: torch is imported in the scopes
+    import torch
 
 Precision = Literal["float32", "tf32", "bf16"]
 PRECISIONS: tuple[str, ...] = get_args(Precision)
@@ -46,6 +47,8 @@ def matmul_scope(precision: str, device: torch.device) -> Iterator[None]:
     if precision != "tf32" or device.type != "cuda":
         yield
         return
+    import torch
+
     previous = torch.get_float32_matmul_precision()
     torch.set_float32_matmul_precision("high")
     try:
@@ -59,4 +62,6 @@ def hidden_layers_autocast(precision: str, device: torch.device) -> ContextManag
     pass follows the forward's casts wherever it runs. On a CPU only tests ask for it."""
     if precision != "bf16":
         return contextlib.nullcontext()
+    import torch
+
     return torch.autocast(device.type, dtype=torch.bfloat16)
