@@ -8,11 +8,11 @@ import math
 
 # size -> (seconds from the scan to the report, peak memory in GB): `bench/scaling.py` on the
 # chest CT with `--preset detail`, both splat runs included, numba's first compilation included
-# (docs/results.md, "The scan's own detail": runs W and T).
+# (docs/results.md, "The scan's own detail": runs Y and T).
 MEASURED_DETAIL: dict[int, tuple[float, float]] = {
     128: (231.0, 0.67),
     256: (352.0, 1.15),
-    512: (1231.0, 5.03),
+    512: (1187.0, 4.67),
 }
 
 
