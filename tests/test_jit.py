@@ -192,46 +192,39 @@ def _fresh_then_cached(script, arrays, tmp_path):
     ]
 
 
-def test_a_kernel_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
-    """The compositing forward and the grid field's MLP (the kernels whose bits differed) run on
-    one input in a process that compiles them into an empty cache, then in one that loads them
-    from it: the same bits. A render where they differed by one float32 ulp in 92 of 960 pixels.
-    Both the RGB rows and the grey ones (training's, narrow rows included). The compositing
-    backward has a test of its own; the projection's kernels take no fast-math freedom."""
+BACKWARD_FRESH_OR_CACHED = """
+backward_head, backward_tail = [inputs[f"head_{i}"] for i in range(9)], [inputs[f"tail_{i}"] for i in range(6)]
+row_grads, gaussian_rows = compositing.backward(*backward_head, *inputs["sizes"], *backward_tail)
+print(hashlib.sha256(np.ascontiguousarray(row_grads).tobytes() + gaussian_rows.tobytes()).hexdigest())
+"""
+
+
+def test_kernels_compiled_in_the_process_give_the_bits_of_ones_loaded_from_the_cache(tmp_path):
+    """The compositing forward and backward and the grid field's MLP (the kernels whose bits
+    differed) run on one input in a process that compiles them into an empty cache, then in one
+    that loads them from it: the same bits. A render where they differed by one float32 ulp in 92
+    of 960 pixels. The forward on RGB rows and on grey ones (training's, narrow rows included);
+    the backward on one frame's grey gradients, whose conic terms, as products of three factors,
+    were grouped one way in each copy (compositing.pair_geometry_gradients). The projection's
+    kernels take no fast-math freedom. One pair of processes for all three: each fresh process
+    compiles for tens of seconds."""
     offsets, entries, per_gaussian, tiles_x = _binned_scene()
     forward = (offsets, entries, *per_gaussian)
     rng = np.random.default_rng(0)
     mlp = [rng.normal(size=shape).astype(np.float32) for shape in ((3000, 6), (6, 32), (32,), (2, 32), (2,))]
     arrays = {f"forward_{i}": a for i, a in enumerate((*forward, np.zeros(2, np.float32)))}
     arrays.update({f"mlp_{i}": a for i, a in enumerate(mlp)}, sizes=np.array([W, H, tiles_x]))
-    runs = _fresh_then_cached(FRESH_OR_CACHED, arrays, tmp_path)
-    assert len(runs[0].split()) == 11 and runs[0] == runs[1]
 
-
-BACKWARD_FRESH_OR_CACHED = """
-import hashlib, sys
-import numpy as np
-from cubecloud_cli.raster.cpu import compositing
-inputs = np.load(sys.argv[1])
-width, height, tiles_x = inputs["sizes"]
-head, tail = [inputs[f"head_{i}"] for i in range(9)], [inputs[f"tail_{i}"] for i in range(6)]
-row_grads, gaussian_rows = compositing.backward(*head, width, height, tiles_x, *tail)
-print(hashlib.sha256(np.ascontiguousarray(row_grads).tobytes() + gaussian_rows.tobytes()).hexdigest())
-"""
-
-
-def test_the_compositing_backward_compiled_in_the_process_gives_the_bits_of_one_loaded_from_the_cache(tmp_path):
-    """As above for the compositing backward, on one frame's gradients: its conic terms, as
-    products of three factors, were grouped one way in each copy (compositing.pair_geometry_gradients)."""
-    offsets, entries, (bounds, means2d, conics, colours, effective, levels), tiles_x = _binned_scene()
+    bounds, means2d, conics, colours, effective, levels = per_gaussian
     grey = np.ascontiguousarray(colours[:, :1])  # training's case (CT), whose rows take the vector loops
-    arrays = (bounds, means2d, conics, grey, effective, levels, np.zeros(1, np.float32))
-    _, transmittance, *blended = compositing.forward(offsets, entries, *arrays, W, H, tiles_x)
+    grey_arrays = (bounds, means2d, conics, grey, effective, levels, np.zeros(1, np.float32))
+    _, transmittance, *blended = compositing.forward(offsets, entries, *grey_arrays, W, H, tiles_x)
     grad = np.random.default_rng(0).standard_normal((W * H, 1)).astype(np.float32)
-    head, tail = (offsets, entries, *arrays), (transmittance, *blended, grad)
-    inputs = {f"head_{i}": a for i, a in enumerate(head)} | {f"tail_{i}": a for i, a in enumerate(tail)}
-    runs = _fresh_then_cached(BACKWARD_FRESH_OR_CACHED, inputs | {"sizes": np.array([W, H, tiles_x])}, tmp_path)
-    assert len(runs[0].split()) == 1 and runs[0] == runs[1]
+    arrays.update({f"head_{i}": a for i, a in enumerate((offsets, entries, *grey_arrays))})
+    arrays.update({f"tail_{i}": a for i, a in enumerate((transmittance, *blended, grad))})
+
+    runs = _fresh_then_cached(FRESH_OR_CACHED + BACKWARD_FRESH_OR_CACHED, arrays, tmp_path)
+    assert len(runs[0].split()) == 12 and runs[0] == runs[1]
 
 
 @pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads x86 assembly")
