@@ -23,13 +23,10 @@ from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.cunerf.supervision import TrainingVoxels, voxel_centres
 from cubecloud_cli.numerics.adam import Optimizer, adam
 from cubecloud_cli.numerics.metrics import psnr, ssim_and_masked
+from cubecloud_cli.numerics.readback import GroupedReads
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_SEED = 1234
-# On a GPU, reading the loss back each step would make the host wait for the step to finish
-# before it queues the next one (issue 54: "no host syncs in the loop"); losses are read in
-# groups, at most this many steps late. On the CPU each step's loss is read at once.
-LOSS_READ_EVERY_ON_GPU = 64
 
 
 def learning_rate(step: int, settings: CunerfSettings) -> float:
@@ -72,14 +69,12 @@ class Trainer:
     history: list[dict[str, float]] = field(default_factory=list)
     smoothed_loss: float | None = None  # running mean shown in the bar and log.csv, as of the last read
     context: dict[str, Any] = field(default_factory=dict)  # saved as is, e.g. the input's sha256
-    loss_read_every: int | None = None  # steps between reads of the losses: 1 on a CPU, LOSS_READ_EVERY_ON_GPU else
+    loss_read_every: int | None = None  # steps between reads of the losses (numerics/readback.py); None: the device's
 
     def __post_init__(self) -> None:
         self.optimizer = make_optimizer(self.model, self.settings)
-        if self.loss_read_every is None:
-            on_cpu = self.voxels.volume.device.type == "cpu"
-            self.loss_read_every = 1 if on_cpu else LOSS_READ_EVERY_ON_GPU
-        self._unread_losses: list[torch.Tensor] = []
+        device = self.voxels.volume.device
+        self._losses = GroupedReads(self.loss_read_every) if self.loss_read_every else GroupedReads.for_device(device)
 
     def step(self) -> torch.Tensor:
         """One iteration; returns its loss as a 0-d tensor (reading it waits for the step)."""
@@ -96,24 +91,19 @@ class Trainer:
         self.optimizer.step()
         self.iteration += 1
         self.elapsed_s += time.perf_counter() - started
-        self._unread_losses.append(loss.detach())
-        if len(self._unread_losses) >= (self.loss_read_every or 1):
+        if self._losses.push(self.iteration, loss.detach().reshape(1)):
             self.flush_losses()
         return loss.detach()
 
     def flush_losses(self) -> None:
         """Read the losses of the steps not yet read: raise on the first that is not finite,
         and update the running mean. The wait for the device counts as training time."""
-        if not self._unread_losses:
-            return
         started = time.perf_counter()
-        values = torch.stack(self._unread_losses).tolist()
+        read = self._losses.read()
         self.elapsed_s += time.perf_counter() - started
-        first = self.iteration - len(values) + 1
-        self._unread_losses.clear()
-        for offset, value in enumerate(values):
+        for iteration, (value,) in read:
             if not math.isfinite(value):
-                raise FloatingPointError(f"the loss became {value} at iteration {first + offset}")
+                raise FloatingPointError(f"the loss became {value} at iteration {iteration}")
             self.smoothed_loss = value if self.smoothed_loss is None else 0.9 * self.smoothed_loss + 0.1 * value
 
     def held_out_scores(self, chunk: int | None = None) -> dict[str, float]:

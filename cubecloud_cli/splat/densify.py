@@ -220,6 +220,11 @@ class DensityStrategy(Protocol):
         """After the iteration's backward, before the optimizer's step: gather statistics."""
         ...
 
+    def changes_at(self, iteration: int) -> bool:
+        """Whether ``step_post_optimizer`` densifies, prunes or resets at ``iteration`` (the
+        trainer first reads its pending values back, numerics/readback.py)."""
+        ...
+
     def step_post_optimizer(self, iteration: int, trainable: Trainable) -> bool:
         """After the optimizer's step: densify, prune or reset; True when Gaussians were added or
         removed."""
@@ -254,6 +259,9 @@ class ReferenceStrategy:
         screen_gradient = rendered.screen_gradient() if self.gathers_statistics(iteration) else None
         if screen_gradient is not None:
             self.stats.add(screen_gradient, rendered.radii, width, height)
+
+    def changes_at(self, iteration: int) -> bool:
+        return self.schedule.densify_due(iteration) or self.schedule.reset_due(iteration)
 
     def step_post_optimizer(self, iteration: int, trainable: Trainable) -> bool:
         densified = self.schedule.densify_due(iteration)
@@ -317,6 +325,9 @@ class NoDensification:
 
     def step_post_backward(self, iteration: int, rendered: Rasterized, width: int, height: int) -> None:
         pass
+
+    def changes_at(self, iteration: int) -> bool:
+        return False
 
     def step_post_optimizer(self, iteration: int, trainable: Trainable) -> bool:
         return False

@@ -13,6 +13,7 @@ import torch
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.numerics.adam import adam
 from cubecloud_cli.numerics.metrics import psnr_from_mse
+from cubecloud_cli.numerics.readback import GroupedReads
 from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.raster.cpu.backward_compile import BackwardCompile
 from cubecloud_cli.splat.densify import DensityStrategy, Trainable
@@ -109,6 +110,9 @@ class SplatTrainer:
         self.iteration = 0
         self._stepped = False
         self.elapsed_s = 0.0
+        # Each step's loss and whether its parameters are finite, read back in groups on a GPU.
+        self._reads = GroupedReads.for_device(device)
+        self.last_loss: float | None = None  # the loss of the last step read back
         self.history: list[dict] = []
         self._queue: list[int] = []
         self.images = scene.images.to(device)
@@ -166,18 +170,30 @@ class SplatTrainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         # One sum per parameter: NaN and ±Inf propagate into it, at a fraction of isfinite's cost.
-        if not bool(
-            torch.isfinite(
-                torch.stack([getattr(self.gaussians, name).detach().sum() for name in TRAINED_PARAMETERS])
-            ).all()
-        ):
-            raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {self.iteration}")
+        sums = torch.stack([getattr(self.gaussians, name).detach().sum() for name in TRAINED_PARAMETERS])
+        finite = torch.isfinite(sums).all().to(loss.dtype)
+        due = self._reads.push(self.iteration, torch.stack((loss.detach(), finite)))
+        if due or self.strategy.changes_at(self.iteration):
+            self.read_back()  # the set of Gaussians changes only once its values are known finite
         if self.strategy.step_post_optimizer(self.iteration, Trainable(self.gaussians, self.optimizer, self.generator)):
             self._update_smoothing()  # for the Gaussians added and removed
         if not refining and self.iteration % RECOMPUTE_EVERY == 0:
             self._update_smoothing()  # the means still move a little once densification stops
         self.elapsed_s += time.perf_counter() - started
-        return float(loss.detach())
+        return loss.detach()
+
+    def read_back(self) -> None:
+        """Read the steps' values not yet read: raise at the first step whose parameters or loss
+        are not finite, else keep the last loss. The wait for the device counts as training time."""
+        started = time.perf_counter()
+        read = self._reads.read()
+        self.elapsed_s += time.perf_counter() - started
+        for iteration, (loss, finite) in read:
+            if finite < 1.0:
+                raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {iteration}")
+            if not math.isfinite(loss):
+                raise FloatingPointError(f"the loss is {loss} at iteration {iteration}")
+            self.last_loss = loss
 
     # -- evaluation and checkpoints -------------------------------------------------------
 
@@ -195,6 +211,7 @@ class SplatTrainer:
         return {"psnr": float(np.mean(scores)), "l1": float(np.mean(errors))}
 
     def state(self) -> dict:
+        self.read_back()  # a checkpoint never holds Gaussians past a step that was not finite
         return {
             "iteration": self.iteration,
             "elapsed_s": self.elapsed_s,
