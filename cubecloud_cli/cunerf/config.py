@@ -63,5 +63,5 @@ def render_chunk(config: RenderConfig, device_type: str = "cpu") -> int:
     """Cubes per chunk for test renders, so a chunk holds about 262 k points (1 M on a GPU)
     whatever the model's points per cube (8 for the fast preset, 128 for the paper's)."""
     points = config.samples_per_axis**3 + max(config.importance, 0)
-    budget = RENDER_POINTS_PER_CHUNK * (GPU_CHUNK_FACTOR if device_type == "cuda" else 1)
-    return max(64, min(32768 * GPU_CHUNK_FACTOR, budget // points))
+    factor = GPU_CHUNK_FACTOR if device_type == "cuda" else 1
+    return max(64, min(32768 * factor, RENDER_POINTS_PER_CHUNK * factor // points))

@@ -153,7 +153,7 @@ def ssim_and_masked(reference, estimate, mask, data_range: float = 1.0) -> tuple
 # instead of a dozen copies of the whole volume (about 18 GB).
 VOLUME_SLAB = 32
 # From this size on, a volume's SSIM goes through ``ssim_kernel`` (its first compilation takes
-# about 7 s; 512³: 18 s against 116 s through scipy on the 2-core VM). Below, scipy's passes
+# about 7 s; 512³: 35 s against 116–134 s through scipy on the 2-core VM). Below, scipy's passes
 # cost less than that compilation (128³: under 1 s).
 KERNEL_MIN_VOXELS = 256**3
 

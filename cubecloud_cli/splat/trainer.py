@@ -174,7 +174,9 @@ class SplatTrainer:
         finite = torch.isfinite(sums).all().to(loss.dtype)
         due = self._reads.push(self.iteration, torch.stack((loss.detach(), finite)))
         if due or self.strategy.changes_at(self.iteration):
-            self.read_back()  # the set of Gaussians changes only once its values are known finite
+            # The set of Gaussians changes only once its values are known finite; the step's own
+            # clock counts this wait (read_back would count it twice).
+            self._check(self._reads.read())
         if self.strategy.step_post_optimizer(self.iteration, Trainable(self.gaussians, self.optimizer, self.generator)):
             self._update_smoothing()  # for the Gaussians added and removed
         if not refining and self.iteration % RECOMPUTE_EVERY == 0:
@@ -188,6 +190,9 @@ class SplatTrainer:
         started = time.perf_counter()
         read = self._reads.read()
         self.elapsed_s += time.perf_counter() - started
+        self._check(read)
+
+    def _check(self, read: list[tuple[int, list[float]]]) -> None:
         for iteration, (loss, finite) in read:
             if finite < 1.0:
                 raise FloatingPointError(f"a Gaussian parameter became NaN or Inf at iteration {iteration}")
