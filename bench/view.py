@@ -8,6 +8,7 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py --coarse 3000          # each page gets 3000 Gaussians first instead of 10 000
     python bench/view.py --query fixedDpr=0.5   # the canvas at half the resolution (viser's URL option)
     python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
+    python bench/view.py --work work --bytes    # also the bytes that reach the page, per load
 
 
 Chromium is driven over the DevTools protocol, and the page's frames are taken from a screencast
@@ -162,6 +163,9 @@ def main() -> None:
     parser.add_argument("--coarse", type=int, default=COARSE_GAUSSIANS, help="Gaussians each page gets first")
     parser.add_argument("--trade", action="store_true", help="with --work: held-out PSNR at each detail, no browser")
     parser.add_argument("--query", default="", help="added to the page's URL, e.g. fixedDpr=0.5 (viser's pixel ratio)")
+    parser.add_argument("--bytes", action="store_true",
+                        help="count the bytes that reach the page (DevTools' network events; they also carry "
+                             "each scene message to this script, so the times are not comparable then)")  # fmt: skip
     parser.add_argument("--save", type=Path, help="write the last load's first frame here (a PNG), to look at")
     args = parser.parse_args()
     if args.trade:
@@ -179,12 +183,17 @@ def main() -> None:
               f"server ready in {serve_s:.2f} s")  # fmt: skip
         try:
             url = f"{viewer.url}/?{args.query}" if args.query else viewer.url
-            with Chromium(WINDOW) as browser:
+            with Chromium(WINDOW, count_bytes=args.bytes) as browser:
                 for load in range(args.loads):
                     first, whole, frame = time_frames(browser, url, viewer)
                     state = "cold" if load == 0 else "warm"
                     print(f"load {load + 1} ({state}): first frame with the scene after {first:.2f} s, "
                           f"with every Gaussian after {whole:.2f} s")  # fmt: skip
+                    if args.bytes:
+                        http, websocket = browser.received["http"], browser.received["websocket"]
+                        print(f"  reached the page: {websocket / 1e6:.2f} MB over the websocket (the scene), "
+                              f"{http / 1e6:.2f} MB over HTTP (the viewer's page and script, "
+                              f"{'from the browser cache' if http < 1e5 and load else 'fresh'})")  # fmt: skip
             if args.save:
                 import imageio.v3 as iio
 

@@ -2,11 +2,32 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
-import nibabel as nib
-import numpy as np
-import pytest
+
+def _pin_this_worker() -> None:
+    """Under pytest-xdist each worker keeps to its own share of the cores, and so do the processes
+    its tests start (the CLI sizes its threads by the cores it may use). Otherwise two workers'
+    torch and numba threads, two each on a 2-core host, wait on each other: the suite ran 1.5×
+    slower than with one thread each. numba's pool keeps its full size, so a test may still widen
+    the kernels (on the worker's cores)."""
+    worker, count = os.environ.get("PYTEST_XDIST_WORKER"), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if not worker or count < 2 or not hasattr(os, "sched_setaffinity"):
+        return
+    cores = sorted(os.sched_getaffinity(0))
+    os.environ.setdefault("NUMBA_NUM_THREADS", str(len(cores)))
+    index = int(worker.removeprefix("gw"))
+    os.sched_setaffinity(0, cores[index % len(cores) :: count] or cores)
+
+
+_pin_this_worker()  # before numpy, torch or numba start their threads
+
+import nibabel as nib  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CUBECLOUD_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -22,6 +43,37 @@ def ctrl_c_is_delivered():
         signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, previous)
+
+
+def _numba_cache_is_cold() -> bool:
+    """Whether the rasterizer's backward kernel was never compiled into numba's cache here."""
+    root = Path(os.environ.get("NUMBA_CACHE_DIR") or REPO / "cubecloud_cli" / "raster" / "cpu" / "__pycache__")
+    return not any(root.rglob("compositing.backward-*.nbi")) if root.exists() else True
+
+
+def pytest_sessionstart(session):
+    """On a cold numba cache (a fresh clone, CI), compile the kernels before any test runs, in two
+    processes at once (tests/compile_ahead.py). Only the first process does this: pytest-xdist's
+    workers start after it."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or not _numba_cache_is_cold():
+        return
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    start = time.perf_counter()
+    jobs = {
+        job: subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name("compile_ahead.py")), job],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )  # fmt: skip
+        for job in ("float32", "float64")
+    }
+    for job, process in jobs.items():
+        output, _ = process.communicate()
+        if process.returncode != 0 and reporter is not None:  # the tests then compile for themselves
+            reporter.write_line(f"compile ahead ({job}) failed:\n{output[-3000:]}", red=True)
+    if reporter is not None:
+        reporter.write_line(f"numba's kernels compiled ahead in {time.perf_counter() - start:.0f} s (a cold cache)")
 
 
 def pytest_collection_modifyitems(config, items):

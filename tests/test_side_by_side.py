@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import multiprocessing.spawn
 import shutil
+import sys
+import types
 
 import numba
 import pytest
@@ -119,10 +121,13 @@ def test_a_run_that_fails_stops_the_other_and_says_why_in_one_line(work, monkeyp
     assert not (work / "splat").exists()
 
 
-def test_a_child_does_not_run_the_callers_script_again():
-    # pytest's own __main__ stands for a user's script here: spawn would import it in the child.
-    if not {"init_main_from_path", "init_main_from_name"} & set(multiprocessing.spawn.get_preparation_data("x")):
-        pytest.skip("this process's __main__ is no script (a pytest-xdist worker): nothing to hide")
+def test_a_child_does_not_run_the_callers_script_again(tmp_path, monkeypatch):
+    # A user's script as __main__ (pytest's own, or none under a pytest-xdist worker, would not
+    # stand for one): spawn would import it in the child.
+    script = types.ModuleType("__main__")
+    script.__file__, script.__spec__ = str(tmp_path / "users_script.py"), None
+    monkeypatch.setitem(sys.modules, "__main__", script)
+    assert "init_main_from_path" in multiprocessing.spawn.get_preparation_data("x")
     with without_main_module():
         data = multiprocessing.spawn.get_preparation_data("x")
     assert not {"init_main_from_path", "init_main_from_name"} & set(data)

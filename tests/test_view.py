@@ -1,5 +1,6 @@
 """`cubecloud view`: the bad-input contract, the server's clipping, and the page in a real browser."""
 
+import base64
 import math
 import shutil
 import socket
@@ -7,8 +8,10 @@ import socket
 import numpy as np
 import pytest
 from cli_helpers import assert_one_line_error, invoke, tiny_work
+from hypothesis import given
+from hypothesis import strategies as st
 
-from cubecloud_cli.view.browser import chromium, screenshot
+from cubecloud_cli.view.browser import chromium, received_bytes, screenshot
 
 QUICK = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "100", "-q"]
 
@@ -40,6 +43,21 @@ def test_bad_input_is_one_line_with_exit_2(work, tmp_path):
         taken.listen()
         port = taken.getsockname()[1]
         assert_one_line_error(invoke("view", work, "--port", str(port)), rf"cannot listen on 127.0.0.1:{port}.*--port")
+
+
+@given(st.binary(max_size=40), st.text(max_size=40), st.integers(0, 10**9))
+def test_the_byte_count_reads_what_devtools_says_reached_the_page(payload, text, encoded):
+    def frame(opcode, data):
+        return {
+            "method": "Network.webSocketFrameReceived",
+            "params": {"response": {"opcode": opcode, "payloadData": data}},
+        }
+
+    assert received_bytes(frame(2, base64.b64encode(payload).decode())) == ("websocket", len(payload))
+    assert received_bytes(frame(1, text)) == ("websocket", len(text.encode()))
+    finished = {"method": "Network.loadingFinished", "params": {"encodedDataLength": encoded}}
+    assert received_bytes(finished) == ("http", encoded)
+    assert received_bytes({"method": "Page.screencastFrame", "params": {"data": "AAAA"}}) == ("", 0)
 
 
 def test_a_port_whose_last_connection_is_closing_counts_as_free():

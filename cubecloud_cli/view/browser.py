@@ -43,10 +43,32 @@ def background_in(image: np.ndarray) -> bool:
     return float(image[-10:, width // 3 : 2 * width // 3].mean()) < 10
 
 
-class Chromium:
-    """One headless Chromium with one page, and the few DevTools calls a screenshot needs."""
+def received_bytes(message: dict) -> tuple[str, int]:
+    """What one DevTools network event says reached the page: ("http", bytes on the wire) for a
+    finished load (the viewer's HTML, script and styles), ("websocket", payload bytes) for a
+    message from the server (the scene), or ("", 0) for any other event."""
+    params = message.get("params", {})
+    if message.get("method") == "Network.loadingFinished":
+        return "http", int(params.get("encodedDataLength", 0))
+    if message.get("method") == "Network.webSocketFrameReceived":
+        frame = params.get("response", {})
+        payload = frame.get("payloadData", "")
+        # DevTools hands binary frames (opcode 2) over in base64 (4 characters per 3 bytes, "="
+        # padding), text frames as they are.
+        if frame.get("opcode") == 2:
+            size = len(payload) // 4 * 3 - len(payload[-2:]) + len(payload[-2:].rstrip("="))
+        else:
+            size = len(payload.encode())
+        return "websocket", size
+    return "", 0
 
-    def __init__(self, size: tuple[int, int] = (900, 700)):
+
+class Chromium:
+    """One headless Chromium with one page, and the few DevTools calls a screenshot needs.
+    ``received`` counts the bytes that reached the page, by kind, since the last ``open``/``frames``
+    (while ``count_bytes``: the network events cost the page nothing, but each is one more message)."""
+
+    def __init__(self, size: tuple[int, int] = (900, 700), count_bytes: bool = False):
         from websockets.sync.client import connect  # viser's dependency: present wherever view runs
 
         browser = chromium()
@@ -63,7 +85,10 @@ class Chromium:
             page = next(target for target in targets if target["type"] == "page")
             self.socket = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=60)
             self.next_id = 0
+            self.received = {"http": 0, "websocket": 0}
             self.call("Page.enable")
+            if count_bytes:
+                self.call("Network.enable")
             self.call("Emulation.setDeviceMetricsOverride", width=size[0], height=size[1], deviceScaleFactor=1,
                       mobile=False)  # fmt: skip
         except BaseException:
@@ -90,15 +115,22 @@ class Chromium:
         self.send(method, **params)
         while True:
             message = json.loads(self.socket.recv(timeout=300))
+            self._tally(message)
             if message.get("id") == self.next_id:
                 if "error" in message:
                     raise RuntimeError(f"{method}: {message['error']}")
                 return message["result"]
 
+    def _tally(self, message: dict) -> None:
+        kind, size = received_bytes(message)
+        if kind:
+            self.received[kind] += size
+
     def open(self, url: str) -> None:
         """Load ``url`` afresh, as a person opening the page (a blank page first: the same URL
         again would otherwise keep the old page's state)."""
         self.call("Page.navigate", url="about:blank")
+        self.received = {"http": 0, "websocket": 0}
         self.call("Page.navigate", url=url)
 
     def capture(self) -> np.ndarray | None:
@@ -134,6 +166,7 @@ class Chromium:
                     raise
                 time.sleep(0.05)
         start, start_wall = time.perf_counter(), time.time()
+        self.received = {"http": 0, "websocket": 0}
         navigation = self.send("Page.navigate", url=url)
         try:
             while time.perf_counter() - start < timeout_s:
@@ -141,6 +174,7 @@ class Chromium:
                     message = json.loads(self.socket.recv(timeout=1.0))
                 except TimeoutError:
                     continue
+                self._tally(message)
                 if message.get("id") == navigation and (message.get("error") or message["result"].get("errorText")):
                     raise CubecloudError(f"chromium could not open {url}: {message.get('error') or message['result']}")
                 if message.get("method") != "Page.screencastFrame":

@@ -1,0 +1,65 @@
+"""numba's first compilation of the kernels the suite calls, before the tests start, as two jobs
+on the two cores (tests/conftest.py starts them when the cache is cold).
+
+In a fresh clone the suite compiled for about 4 minutes in the pytest process alone, on one core:
+the rasterizer's forward, backward and projection kernels in float32 and float64 (about 20 s each
+on the 2-core VM), the SSIM kernel, the bake, the march. Under pytest-xdist both workers would
+compile the same kernels at once. Here one job runs a tiny pipeline through the CLI (every
+float32 kernel a stage calls, with the stages' own dtypes and layouts) and the other the float64
+rasterizer (the oracle tests), both dtypes of the SSIM kernel and the grid bake. numba writes each
+to its cache, and the tests load them from it. A kernel called here with other types than a test
+uses only costs that test its own compilation, as before: nothing here changes a result.
+
+    python tests/compile_ahead.py float32|float64
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+
+def float32_stages() -> None:
+    """A tiny work directory through every stage, as the CLI tests make them."""
+    from cli_helpers import invoke
+
+    with tempfile.TemporaryDirectory(prefix="cubecloud-compile-ahead-") as scratch:
+        work = Path(scratch) / "work"
+        for args in (
+            ["preprocess", "-o", work, "--size", "32"],
+            ["cunerf", work, "--iterations", "20", "--batch-size", "1024", "--holdout", "2"],
+            ["export", work, "--resolution", "32", "--views", "4", "--max-points", "300", "--novel-directions", "2"],
+            ["splat", work, "--iterations", "2", "--device", "cpu"],
+            ["eval", work],
+        ):
+            result = invoke(*args, "-q")
+            if result.exit_code != 0:
+                raise SystemExit(f"compile ahead: {args[0]} failed: {result.output[-2000:]}")
+
+
+def float64_and_large() -> None:
+    """The float64 rasterizer with its gradients, the SSIM kernel in both dtypes, the grid bake."""
+    import numpy as np
+    import torch
+    from test_grid_bake import model_with_structure
+    from test_raster import H, W, render_and_differentiate, scene
+
+    from cubecloud_cli.cunerf import grid_bake
+    from cubecloud_cli.numerics.metrics import K1, K2, gaussian_window
+    from cubecloud_cli.numerics.ssim_kernel import stack_ssim_sums
+    from cubecloud_cli.raster.backends import NUMBA
+
+    weights = torch.rand(H, W, 2, dtype=torch.float64)
+    render_and_differentiate(NUMBA, scene(count=20), weights, torch.zeros(2, dtype=torch.float64), False)
+    window = gaussian_window().numpy()
+    for dtype in (np.float32, np.float64):
+        stack = np.random.default_rng(0).random((2, 16, 16)).astype(dtype)
+        stack_ssim_sums(stack, stack, stack > 0.5, window, K1**2, K2**2)
+    grid_bake.bake_lattice(model_with_structure(), 8, None, np.empty((8, 8, 8), dtype=np.float32))
+
+
+JOBS = {"float32": float32_stages, "float64": float64_and_large}
+
+if __name__ == "__main__":
+    JOBS[sys.argv[1]]()
