@@ -5,9 +5,9 @@ In a fresh clone the suite compiled for about 4 minutes in the pytest process al
 the rasterizer's forward, backward and projection kernels in float32 and float64 (about 20 s each
 on the 2-core VM), the SSIM kernel, the bake, the march. Under pytest-xdist both workers would
 compile the same kernels at once. Here one job runs a tiny pipeline through the CLI (every
-float32 kernel a stage calls, with the stages' own dtypes and layouts) and the other the float64
-rasterizer (the oracle tests), both dtypes of the SSIM kernel and the grid bake. numba writes each
-to its cache, and the tests load them from it. A kernel called here with other types than a test
+float32 kernel a stage calls, with the stages' own dtypes and layouts) and the grid bake, the
+other the float64 rasterizer (the oracle tests) and both dtypes of the SSIM kernel. numba writes
+each to its cache, and the tests load them from it. A kernel called here with other types than a test
 uses only costs that test its own compilation, as before: nothing here changes a result.
 
     python tests/compile_ahead.py float32|float64
@@ -21,8 +21,15 @@ from pathlib import Path
 
 
 def float32_stages() -> None:
-    """A tiny work directory through every stage, as the CLI tests make them."""
+    """A tiny work directory through every stage, as the CLI tests make them, and the grid bake
+    (which the stages take from 256³ on)."""
+    import numpy as np
     from cli_helpers import invoke
+    from test_grid_bake import model_with_structure
+
+    from cubecloud_cli.cunerf import grid_bake
+
+    grid_bake.bake_lattice(model_with_structure(), 8, None, np.empty((8, 8, 8), dtype=np.float32))
 
     with tempfile.TemporaryDirectory(prefix="cubecloud-compile-ahead-") as scratch:
         work = Path(scratch) / "work"
@@ -39,13 +46,12 @@ def float32_stages() -> None:
 
 
 def float64_and_large() -> None:
-    """The float64 rasterizer with its gradients, the SSIM kernel in both dtypes, the grid bake."""
+    """The float64 rasterizer with its gradients and the SSIM kernel in both dtypes (the two jobs
+    take about as long: 2 minutes each on the 2-core VM)."""
     import numpy as np
     import torch
-    from test_grid_bake import model_with_structure
     from test_raster import H, W, render_and_differentiate, scene
 
-    from cubecloud_cli.cunerf import grid_bake
     from cubecloud_cli.numerics.metrics import K1, K2, gaussian_window
     from cubecloud_cli.numerics.ssim_kernel import stack_ssim_sums
     from cubecloud_cli.raster.backends import NUMBA
@@ -56,7 +62,6 @@ def float64_and_large() -> None:
     for dtype in (np.float32, np.float64):
         stack = np.random.default_rng(0).random((2, 16, 16)).astype(dtype)
         stack_ssim_sums(stack, stack, stack > 0.5, window, K1**2, K2**2)
-    grid_bake.bake_lattice(model_with_structure(), 8, None, np.empty((8, 8, 8), dtype=np.float32))
 
 
 JOBS = {"float32": float32_stages, "float64": float64_and_large}

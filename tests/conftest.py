@@ -18,6 +18,7 @@ def _pin_this_worker() -> None:
     if not worker or count < 2 or not hasattr(os, "sched_setaffinity"):
         return
     cores = sorted(os.sched_getaffinity(0))
+    os.environ["CUBECLOUD_TEST_ALL_CORES"] = ",".join(map(str, cores))
     os.environ.setdefault("NUMBA_NUM_THREADS", str(len(cores)))
     index = int(worker.removeprefix("gw"))
     os.sched_setaffinity(0, cores[index % len(cores) :: count] or cores)
@@ -74,6 +75,19 @@ def pytest_sessionstart(session):
             reporter.write_line(f"compile ahead ({job}) failed:\n{output[-3000:]}", red=True)
     if reporter is not None:
         reporter.write_line(f"numba's kernels compiled ahead in {time.perf_counter() - start:.0f} s (a cold cache)")
+
+
+@pytest.fixture
+def every_core():
+    """The machine's cores for this test, as outside pytest-xdist (tests of how runs share them)."""
+    cores = os.environ.get("CUBECLOUD_TEST_ALL_CORES")
+    if not cores:
+        yield
+        return
+    own = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {int(core) for core in cores.split(",")})
+    yield
+    os.sched_setaffinity(0, own)
 
 
 def pytest_collection_modifyitems(config, items):

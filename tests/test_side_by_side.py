@@ -29,6 +29,7 @@ from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
 
 ITERATIONS = 60
+pytestmark = pytest.mark.usefixtures("every_core")  # the runs share the machine's cores, as in `run`
 
 
 @pytest.fixture(scope="module")
