@@ -91,8 +91,12 @@ def every_core():
 
 
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``cuda`` need a GPU that torch can see; everywhere else they skip."""
+    """Tests marked ``slow`` (whole files of them) run first, so that pytest-xdist's workers end
+    together rather than one waiting on another's last long test. Tests marked ``cuda`` need a
+    GPU that torch can see; everywhere else they skip."""
     import torch
+
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: files stay in order
 
     if torch.cuda.is_available():
         return

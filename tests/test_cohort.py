@@ -16,6 +16,8 @@ from cli_helpers import assert_one_line_error, invoke
 
 from cubecloud_cli.sample_data import sample_ct_path
 
+pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
+
 pytest.importorskip("snakemake", reason="needs the cohort extra: pip install 'cubecloud[cohort]'")
 
 TINY = ["--size", "32", "--cunerf-iterations", "60", "--splat-iterations", "60", "--views", "8", "--resolution", "32"]

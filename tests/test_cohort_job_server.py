@@ -18,6 +18,8 @@ from cli_helpers import invoke
 from cubecloud_cli.cli.cohort import CUBECLOUD_JOBS
 from cubecloud_cli.cohort.job_server import job_server
 
+pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
+
 PLAIN = [sys.executable, "-m", "cubecloud_cli"]
 
 

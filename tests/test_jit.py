@@ -31,6 +31,8 @@ from cubecloud_cli.raster.cpu import binning, compositing, projection_kernels
 from cubecloud_cli.raster.cpu.autograd import _numpy, project_cpu
 from cubecloud_cli.splat import smoothing
 
+pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
+
 
 def test_parallel_kernels_convert_no_numpy_call_into_a_loop_of_its_own():
     parallel = {}

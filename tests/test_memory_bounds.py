@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 from cli_helpers import invoke
 
+pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
+
 SIZE = 256
 # Over the imports' own peak: a 64 MB volume, a 136 MB CuNeRF table and the work of a few views.
 EXPORT_BOUND_MB = 560

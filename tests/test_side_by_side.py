@@ -29,7 +29,8 @@ from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.stage import train_splat
 
 ITERATIONS = 60
-pytestmark = pytest.mark.usefixtures("every_core")  # the runs share the machine's cores, as in `run`
+# The runs share the machine's cores, as in `run`; slow tests run first (pytest-xdist's workers end together).
+pytestmark = [pytest.mark.usefixtures("every_core"), pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
+
 SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "trade_study.py"
 
 

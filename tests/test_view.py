@@ -13,6 +13,8 @@ from hypothesis import strategies as st
 
 from cubecloud_cli.view.browser import chromium, received_bytes, screenshot
 
+pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
+
 QUICK = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "100", "-q"]
 
 
@@ -257,6 +259,7 @@ def agreement(shot: np.ndarray, pixels: np.ndarray, values: np.ndarray) -> float
 
 
 @pytest.mark.skipif(chromium() is None, reason="needs chromium (.ci/run installs it)")
+@pytest.mark.usefixtures("every_core")  # SwiftShader on one core took 3 times as long
 def test_a_real_browser_shows_the_exports_first_view_a_cut_and_slices_that_line_up(viewer, work, tmp_path):
     from cubecloud_cli.view.layers import camera_view, slice_pixel_world
 
