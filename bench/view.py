@@ -192,8 +192,7 @@ def main() -> None:
                     if args.bytes:
                         http, websocket = browser.received["http"], browser.received["websocket"]
                         print(f"  reached the page: {websocket / 1e6:.2f} MB over the websocket (the scene), "
-                              f"{http / 1e6:.2f} MB over HTTP (the viewer's page and script, "
-                              f"{'from the browser cache' if http < 1e5 and load else 'fresh'})")  # fmt: skip
+                              f"{http / 1e6:.2f} MB over HTTP (the viewer's page and script)")  # fmt: skip
             if args.save:
                 import imageio.v3 as iio
 

@@ -152,6 +152,7 @@ def test_the_slices_points_and_cameras_follow_their_controls(viewer, work):
     assert np.all(viewer._nodes["slice axial"].image[..., 3] == 128)
 
     points = len(context.points)
+    assert len(viewer._nodes["points"].points) == 0  # hidden points are not sent to the pages
     viewer.show_points(True)
     assert viewer._nodes["points"].visible and len(viewer._nodes["points"].points) == points
     viewer.set_clip("coronal", 0.0)

@@ -89,6 +89,8 @@ class Chromium:
             self.call("Page.enable")
             if count_bytes:
                 self.call("Network.enable")
+                # viser's page talks to its server from a web worker: its frames are the worker's.
+                self.call("Target.setAutoAttach", autoAttach=True, waitForDebuggerOnStart=False, flatten=True)
             self.call("Emulation.setDeviceMetricsOverride", width=size[0], height=size[1], deviceScaleFactor=1,
                       mobile=False)  # fmt: skip
         except BaseException:
@@ -105,10 +107,14 @@ class Chromium:
             time.sleep(0.05)
         raise CubecloudError("chromium did not open its DevTools port within a minute: is it installed whole?")
 
-    def send(self, method: str, **params) -> int:
-        """Send a DevTools command without waiting for its answer; its message id."""
+    def send(self, method: str, session: str | None = None, **params) -> int:
+        """Send a DevTools command (to an attached worker's ``session``, or the page) without
+        waiting for its answer; its message id."""
         self.next_id += 1
-        self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        message = {"id": self.next_id, "method": method, "params": params}
+        if session is not None:
+            message["sessionId"] = session
+        self.socket.send(json.dumps(message))
         return self.next_id
 
     def call(self, method: str, **params) -> dict:
@@ -122,6 +128,8 @@ class Chromium:
                 return message["result"]
 
     def _tally(self, message: dict) -> None:
+        if message.get("method") == "Target.attachedToTarget":  # only while counting bytes
+            self.send("Network.enable", session=message["params"]["sessionId"])
         kind, size = received_bytes(message)
         if kind:
             self.received[kind] += size

@@ -282,8 +282,13 @@ class SceneViewer:
         self.delivery.show(self._shown_splats())
 
     def _draw_points(self) -> None:
-        """The Cube-Cloud points on the kept side of the clipping plane."""
+        """The Cube-Cloud points on the kept side of the clipping plane; none while they are hidden
+        (they start hidden, and a `detail` scene's 200k points were 2.2 MB of the 5.5 MB that
+        reached each page)."""
+        shown = self._nodes["points"].visible if "points" in self._nodes else False
         points, colours = self.context.points, self.context.point_colours
+        if not shown:
+            points, colours = points[:0], colours[:0]
         normal = self.clip.normal()
         if normal is not None:
             keep = clip_mask(points, normal, self.clip.position, self.clip.keep)  # type: ignore[arg-type]
@@ -291,7 +296,7 @@ class SceneViewer:
         half_voxel = 1.0 / (self.slices.size or FALLBACK_VOXELS)  # a whole voxel would fill the body solid
         self._nodes["points"] = self.server.scene.add_point_cloud(
             "/cube_cloud", points * self.scale, colours, point_size=half_voxel * self.scale, point_shape="circle",
-            visible=self._nodes["points"].visible if "points" in self._nodes else False,
+            visible=shown,
         )  # fmt: skip
 
     def _add_labels(self) -> None:
