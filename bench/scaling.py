@@ -168,7 +168,8 @@ def main() -> None:
             rows.append(run_size(args.scan, size, args.preset, extra, args.keep))
             print(f"size {size}: {rows[-1]['wall_s']:.0f} s", flush=True)
     print(table(rows))
-    print("growth exponents (time ∝ size^k):", json.dumps({k: round(v, 2) for k, v in exponents(rows).items()}))
+    if len({row["size"] for row in rows}) > 1:  # a slope needs two sizes
+        print("growth exponents (time ∝ size^k):", json.dumps({k: round(v, 2) for k, v in exponents(rows).items()}))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "scaling.json").write_text(json.dumps({"rows": rows, "exponents": exponents(rows)}, indent=1))
