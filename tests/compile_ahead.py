@@ -24,25 +24,19 @@ def float32_stages() -> None:
     """A tiny work directory through every stage, as the CLI tests make them, and the grid bake
     (which the stages take from 256³ on)."""
     import numpy as np
-    from cli_helpers import invoke
+    from cli_helpers import invoke, tiny_work
     from test_grid_bake import model_with_structure
 
     from cubecloud_cli.cunerf import grid_bake
 
     grid_bake.bake_lattice(model_with_structure(), 8, None, np.empty((8, 8, 8), dtype=np.float32))
-
     with tempfile.TemporaryDirectory(prefix="cubecloud-compile-ahead-") as scratch:
         work = Path(scratch) / "work"
-        for args in (
-            ["preprocess", "-o", work, "--size", "32"],
-            ["cunerf", work, "--iterations", "20", "--batch-size", "1024", "--holdout", "2"],
-            ["export", work, "--resolution", "32", "--views", "4", "--max-points", "300", "--novel-directions", "2"],
-            ["splat", work, "--iterations", "2", "--device", "cpu"],
-            ["eval", work],
-        ):
-            result = invoke(*args, "-q")
-            if result.exit_code != 0:
-                raise SystemExit(f"compile ahead: {args[0]} failed: {result.output[-2000:]}")
+        splat = ["--iterations", "2", "--device", "cpu"]
+        tiny_work(work, cunerf_iterations=20, views=4, max_points=300, novel_directions=2, splat=splat)
+        result = invoke("eval", work, "-q")
+        if result.exit_code != 0:
+            raise SystemExit(f"compile ahead: eval failed: {result.output[-2000:]}")
 
 
 def float64_and_large() -> None:

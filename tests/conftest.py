@@ -7,6 +7,8 @@ import sys
 import time
 from pathlib import Path
 
+MACHINE_CORES: set[int] | None = None  # the cores before this worker was pinned to its share
+
 
 def _pin_this_worker() -> None:
     """Under pytest-xdist each worker keeps to its own share of the cores, and so do the processes
@@ -17,8 +19,9 @@ def _pin_this_worker() -> None:
     worker, count = os.environ.get("PYTEST_XDIST_WORKER"), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if not worker or count < 2 or not hasattr(os, "sched_setaffinity"):
         return
-    cores = sorted(os.sched_getaffinity(0))
-    os.environ["CUBECLOUD_TEST_ALL_CORES"] = ",".join(map(str, cores))
+    global MACHINE_CORES
+    MACHINE_CORES = os.sched_getaffinity(0)
+    cores = sorted(MACHINE_CORES)
     os.environ.setdefault("NUMBA_NUM_THREADS", str(len(cores)))
     index = int(worker.removeprefix("gw"))
     os.sched_setaffinity(0, cores[index % len(cores) :: count] or cores)
@@ -80,12 +83,11 @@ def pytest_sessionstart(session):
 @pytest.fixture
 def every_core():
     """The machine's cores for this test, as outside pytest-xdist (tests of how runs share them)."""
-    cores = os.environ.get("CUBECLOUD_TEST_ALL_CORES")
-    if not cores:
+    if MACHINE_CORES is None:
         yield
         return
     own = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, {int(core) for core in cores.split(",")})
+    os.sched_setaffinity(0, MACHINE_CORES)
     yield
     os.sched_setaffinity(0, own)
 

@@ -85,7 +85,7 @@ class Chromium:
             page = next(target for target in targets if target["type"] == "page")
             self.socket = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=60)
             self.next_id = 0
-            self.received = {"http": 0, "websocket": 0}
+            self.received = dict.fromkeys(("http", "websocket"), 0)
             self.call("Page.enable")
             if count_bytes:
                 self.call("Network.enable")
@@ -138,7 +138,7 @@ class Chromium:
         """Load ``url`` afresh, as a person opening the page (a blank page first: the same URL
         again would otherwise keep the old page's state)."""
         self.call("Page.navigate", url="about:blank")
-        self.received = {"http": 0, "websocket": 0}
+        self.received = dict.fromkeys(("http", "websocket"), 0)
         self.call("Page.navigate", url=url)
 
     def capture(self) -> np.ndarray | None:
@@ -174,7 +174,7 @@ class Chromium:
                     raise
                 time.sleep(0.05)
         start, start_wall = time.perf_counter(), time.time()
-        self.received = {"http": 0, "websocket": 0}
+        self.received = dict.fromkeys(("http", "websocket"), 0)
         navigation = self.send("Page.navigate", url=url)
         try:
             while time.perf_counter() - start < timeout_s:
