@@ -9,8 +9,9 @@ Prints one row per size (wall, each stage's seconds and peak memory, Gaussians, 
 and foreground, file sizes), the fitted growth exponent k of each stage's time (time ∝ size^k, a
 least-squares line through log time against log size), and the work each stage's model says it
 does (rays × steps for export, pixels × Gaussians for splat) so the two growths can be compared.
-With --out it writes scaling.json and the charts time.svg and psnr.svg there. Run it alone: two
-cores shared with anything else give other numbers.
+With --out it writes scaling.json and the charts time.svg and psnr.svg there; --from-json merges
+the rows of earlier runs' scaling.json files (sizes run on different days) and redraws. Run it
+alone: two cores shared with anything else give other numbers.
 """
 
 from __future__ import annotations
@@ -85,14 +86,15 @@ def run_size(scan: str | None, size: int, preset: str, extra: list[str], keep: P
 
 
 def growth_exponent(sizes: list[float], values: list[float]) -> float:
-    """The slope of log value against log size (least squares); NaN with fewer than two points."""
+    """The slope of log value against log size (least squares); NaN with fewer than two points or
+    sizes too close together (under about 0.1 % apart) for their rounding not to set the slope."""
     pairs = [(math.log(s), math.log(v)) for s, v in zip(sizes, values) if s > 0 and v and v > 0]
     if len(pairs) < 2:
         return float("nan")
     mean_x = sum(x for x, _ in pairs) / len(pairs)
     mean_y = sum(y for _, y in pairs) / len(pairs)
     spread = sum((x - mean_x) ** 2 for x, _ in pairs)
-    return sum((x - mean_x) * (y - mean_y) for x, y in pairs) / spread if spread > 0 else float("nan")
+    return sum((x - mean_x) * (y - mean_y) for x, y in pairs) / spread if spread > 1e-6 else float("nan")
 
 
 def exponents(rows: list[dict]) -> dict[str, float]:
@@ -129,14 +131,16 @@ def charts(rows: list[dict], out: Path) -> None:
     from cubecloud_cli.eval.figures import line_plot_svg
 
     sizes = [float(r["size"]) for r in rows]
-    logs = [math.log2(s) for s in sizes]
-    series = [
-        (stage, logs, [math.log10(r["seconds"][stage]) if r["seconds"].get(stage) else math.nan for r in rows])
-        for stage in STAGES
-    ] + [("wall", logs, [math.log10(r["wall_s"]) for r in rows])]
+    series = [(stage, sizes, [r["seconds"].get(stage) or math.nan for r in rows]) for stage in STAGES]
+    series.append(("wall", sizes, [r["wall_s"] for r in rows]))
     (out / "time.svg").write_text(
         line_plot_svg(
-            series, "Time against cube size (chest CT, detail)", "log2 cube side (7 = 128, 9 = 512)", "log10 seconds"
+            series,
+            "Time against cube size (chest CT, detail; log-log)",
+            "cube side (voxels; views as many pixels)",
+            "seconds",
+            log_axes=(True, True),
+            x_ticks=tuple(sizes),
         )
     )
     scores = []
@@ -145,7 +149,11 @@ def charts(rows: list[dict], out: Path) -> None:
         scores.append((f"{label}, body", sizes, [r.get(run, {}).get("novel_psnr_foreground", math.nan) for r in rows]))
     (out / "psnr.svg").write_text(
         line_plot_svg(
-            scores, "Novel-view PSNR against cube size", "cube side (voxels; views as many pixels)", "PSNR (dB)"
+            scores,
+            "Novel-view PSNR against cube size",
+            "cube side (voxels; views as many pixels)",
+            "PSNR (dB)",
+            x_ticks=tuple(sizes),
         )
     )
 
@@ -157,11 +165,16 @@ def main() -> None:
     parser.add_argument("--preset", default="detail")
     parser.add_argument("--keep", type=Path, help="keep each size's work directory under this folder")
     parser.add_argument("--out", type=Path, help="write scaling.json, time.svg and psnr.svg here")
-    parser.add_argument("--from-json", type=Path, help="redraw from a scaling.json instead of running")
+    parser.add_argument(
+        "--from-json",
+        type=Path,
+        nargs="+",
+        help="redraw from scaling.json files (their rows merged) instead of running",
+    )
     args, extra = parser.parse_known_args()
     extra = [a for a in extra if a != "--"]
     if args.from_json:
-        rows = json.loads(args.from_json.read_text())["rows"]
+        rows = sorted((r for f in args.from_json for r in json.loads(f.read_text())["rows"]), key=lambda r: r["size"])
     else:
         rows = []
         for size in (int(s) for s in args.sizes.split(",")):
@@ -169,7 +182,10 @@ def main() -> None:
             print(f"size {size}: {rows[-1]['wall_s']:.0f} s", flush=True)
     print(table(rows))
     if len({row["size"] for row in rows}) > 1:  # a slope needs two sizes
-        print("growth exponents (time ∝ size^k):", json.dumps({k: round(v, 2) for k, v in exponents(rows).items()}))
+        print(
+            "growth exponents (time ∝ size^k):",
+            json.dumps({k: round(v, 2) for k, v in exponents(rows).items()}, ensure_ascii=False),
+        )
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "scaling.json").write_text(json.dumps({"rows": rows, "exponents": exponents(rows)}, indent=1))

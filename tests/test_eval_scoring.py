@@ -123,6 +123,36 @@ def test_point_labels_never_overlap_each_other_or_a_point_and_stay_in_the_frame(
             assert not (a[0] < x + 3.5 and x - 3.5 < a[2] and a[1] < y + 3.5 and y - 3.5 < a[3])
 
 
+def _texts(svg: str) -> list[str]:
+    return [e.text for e in ElementTree.fromstring(svg).iter() if e.tag.endswith("text")]
+
+
+def test_log_axes_label_ticks_in_the_data_units_and_place_points_by_ratio():
+    sizes, seconds = [128.0, 256.0, 512.0], [2.0, 20.0, 2000.0]
+    svg = line_plot_svg([("t", sizes, seconds)], "t", "x", "y", log_axes=(True, True), x_ticks=tuple(sizes))
+    texts = _texts(svg)
+    assert {"128", "256", "512"} <= set(texts) and {"10", "100", "1,000"} <= set(texts)
+    circles = [e for e in ElementTree.fromstring(svg).iter() if e.tag.endswith("circle")]
+    xs = [float(c.get("cx")) for c in circles]
+    ys = [float(c.get("cy")) for c in circles]
+    assert xs[1] - xs[0] == pytest.approx(xs[2] - xs[1], abs=0.2)  # each doubling is the same width
+    assert ys[0] - ys[1] == pytest.approx((ys[1] - ys[2]) / 2, abs=0.2)  # ×10 is half of ×100
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=0, max_size=6))
+def test_log_axes_leave_out_values_a_log_cannot_show_and_still_draw(values):
+    xs = [float(i + 1) for i in range(len(values))]
+    svg = line_plot_svg([("v", xs, values)], "t", "x", "y", log_axes=(True, True))
+    root = ElementTree.fromstring(svg)
+    drawable = [v for v in values if math.isfinite(v) and 0 < v and math.isfinite(math.log10(v))]
+    assert sum(1 for e in root.iter() if e.tag.endswith("circle")) == len(drawable)
+    for e in root.iter():
+        for attribute in ("cx", "cy", "x1", "y1", "x", "y"):
+            if e.get(attribute) is not None:
+                assert math.isfinite(float(e.get(attribute)))
+
+
 def test_plot_keeps_every_point_off_the_axes():
     svg = line_plot_svg([("a", [0.0, 50.0, 100.0], [33.61, 40.0, 47.36])], "t", "x", "y", markers_only=True)
     root = ElementTree.fromstring(svg)

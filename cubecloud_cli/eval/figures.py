@@ -108,6 +108,35 @@ def _nice_ticks(low: float, high: float, count: int = 5) -> list[float]:
     return [first + i * step for i in range(int((high - first) / step + 1e-9) + 1)]
 
 
+def _log_ticks(low: float, high: float) -> list[float]:
+    """Ticks for an axis drawn in log10 units from ``low`` to ``high``: the exponents of the
+    1-2-5 values in between (only the powers of ten when those are enough), so labels read in
+    the data's own units (10 s, 100 s) rather than as logarithms."""
+    if not (math.isfinite(low) and math.isfinite(high)) or high <= low:
+        return _nice_ticks(low, high)
+    decades = range(math.floor(low), math.ceil(high) + 1)
+    powers = [float(k) for k in decades if low <= k <= high]
+    if len(powers) >= 3:
+        return powers[:: math.ceil(len(powers) / 8)]  # a label every few decades on a wide range
+    steps = [k + math.log10(m) for k in decades for m in (1, 2, 5)]
+    ticks = [t for t in steps if low <= t <= high]
+    return ticks if len(ticks) >= 2 else _nice_ticks(low, high)
+
+
+def _tick_label(value: float, log: bool) -> str:
+    """A tick's label in data units; three significant digits with thousands separators (1,000
+    rather than 1e+03) on a log axis."""
+    return f"{float(f'{10.0**value:.3g}'):,g}" if log else f"{value:g}"
+
+
+def _to_axis(values: list[float], log: bool) -> list[float]:
+    """Values in the axis's drawing units: unchanged, or log10 with non-positive values left out
+    (NaN) since they have no place on a log axis."""
+    if not log:
+        return [float(v) for v in values]
+    return [math.log10(v) if math.isfinite(v) and v > 0 else math.nan for v in map(float, values)]
+
+
 Box = tuple[float, float, float, float]  # left, top, right, bottom, in SVG pixels
 LABEL_FONT_PX = 10
 # Sans-serif glyphs average a bit over half an em; an estimate that errs wide keeps labels apart.
@@ -167,19 +196,27 @@ def line_plot_svg(
     point_labels: dict[str, list[str]] | None = None,
     size: tuple[int, int] = (640, 400),
     y_include: tuple[float, ...] = (),
+    log_axes: tuple[bool, bool] = (False, False),
+    x_ticks: tuple[float, ...] = (),
 ) -> str:
     """An SVG plot of ``(label, xs, ys)`` series: lines (or points), axes with ticks, a legend.
     Non-finite points are left out. ``point_labels`` names points of a series; a name is drawn
     where it overlaps no other name or point, further out with a leader line when it must, and
     left out when the plot has no free spot for it. The y range always spans ``y_include`` (a
-    reference such as 0)."""
+    reference such as 0). ``log_axes`` draws x and/or y on a log scale, labelled in the data's
+    units; ``x_ticks`` (data units) replaces the chosen x ticks, for example the sizes measured."""
+    log_x, log_y = log_axes
+    series = [(label, _to_axis(xs, log_x), _to_axis(ys, log_y)) for label, xs, ys in series]
+    y_include = tuple(_to_axis(list(y_include), log_y))
     (width, height), left, right, top, bottom = size, 70, 170, 40, 50
     points = [(x, y) for _, xs, ys in series for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
     xs_all, ys_all = [p[0] for p in points] or [0.0, 1.0], ([p[1] for p in points] or [0.0, 1.0]) + list(y_include)
     (x_low, x_high), (y_low, y_high) = _padded_range(xs_all), _padded_range(ys_all)
-    x_ticks, y_ticks = _nice_ticks(x_low, x_high), _nice_ticks(y_low, y_high)
-    x0, x1 = min(x_ticks[0], x_low), max(x_ticks[-1], x_high)
-    y0, y1 = min(y_ticks[0], y_low), max(y_ticks[-1], y_high)
+    given_x = sorted(t for t in _to_axis(list(x_ticks), log_x) if math.isfinite(t))
+    x_positions = given_x or (_log_ticks if log_x else _nice_ticks)(x_low, x_high)
+    y_positions = (_log_ticks if log_y else _nice_ticks)(y_low, y_high)
+    x0, x1 = min(x_positions[0], x_low), max(x_positions[-1], x_high)
+    y0, y1 = min(y_positions[0], y_low), max(y_positions[-1], y_high)
     x1, y1 = (x1 if x1 > x0 else x0 + 1.0), (y1 if y1 > y0 else y0 + 1.0)
 
     def sx(x: float) -> float:
@@ -195,15 +232,15 @@ def line_plot_svg(
         f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
         f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>',
     ]
-    for x in x_ticks:
+    for x in x_positions:
         parts.append(
             f'<line x1="{sx(x):.1f}" y1="{height - bottom}" x2="{sx(x):.1f}" y2="{height - bottom + 5}" stroke="black"/>'
-            f'<text x="{sx(x):.1f}" y="{height - bottom + 18}" text-anchor="middle">{x:g}</text>'
+            f'<text x="{sx(x):.1f}" y="{height - bottom + 18}" text-anchor="middle">{_tick_label(x, log_x)}</text>'
         )
-    for y in y_ticks:
+    for y in y_positions:
         parts.append(
             f'<line x1="{left - 5}" y1="{sy(y):.1f}" x2="{width - right}" y2="{sy(y):.1f}" stroke="#e5e5e5"/>'
-            f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{y:g}</text>'
+            f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{_tick_label(y, log_y)}</text>'
         )
     parts.append(
         f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(x_label)}</text>'
