@@ -40,8 +40,8 @@ def preprocessed_volume(work: Path | None, size: int) -> tuple[np.ndarray, dict]
 
 def time_renders(volume: np.ndarray, manifest: dict, args) -> None:
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-    from cubecloud_cli.export.transfer import resolve_transfer
     from cubecloud_cli.render import GridField, ImageModel, render_views
+    from cubecloud_cli.transfer.tissue_presets import resolve_transfer
 
     size = volume.shape[0]
     cameras = orbit_cameras(OrbitSpec(views=args.views, resolution=args.resolution))
@@ -61,9 +61,9 @@ def time_renders(volume: np.ndarray, manifest: dict, args) -> None:
 
 def step_trade(volume: np.ndarray, manifest: dict, args) -> None:
     from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-    from cubecloud_cli.export.transfer import resolve_transfer
     from cubecloud_cli.numerics.metrics import psnr
     from cubecloud_cli.render import GridField, ImageModel, render_views
+    from cubecloud_cli.transfer.tissue_presets import resolve_transfer
 
     size = volume.shape[0]
     cameras = orbit_cameras(OrbitSpec(views=args.views, resolution=args.resolution))

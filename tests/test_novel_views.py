@@ -10,8 +10,9 @@ from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet
 from cubecloud_cli.eval.novel_scores import NovelTest, angle_bin, annotate, pictured_views, summarize_novel
 from cubecloud_cli.eval.outputs import cell_table
-from cubecloud_cli.render import GridField, ImageModel, TransferFunction, render_view
+from cubecloud_cli.render import GridField, ImageModel, render_view
 from cubecloud_cli.render.pixel_area import pixel_area_render, subpixel_points
+from cubecloud_cli.transfer.function import TransferFunction
 
 
 def blob_volume(size=24, seed=0):

@@ -5,9 +5,10 @@ import pytest
 import torch
 
 from cubecloud_cli.cameras.novel import NovelViewSet
-from cubecloud_cli.render import GridField, ImageModel, TransferFunction, pixel_area, render_view
+from cubecloud_cli.render import GridField, ImageModel, pixel_area, render_view
 from cubecloud_cli.render.pixel_area import pixel_area_render, subpixel_points
 from cubecloud_cli.render.rays import tiled_order
+from cubecloud_cli.transfer.function import TransferFunction
 
 
 @pytest.mark.parametrize(("height", "width", "tile"), [(8, 8, 4), (7, 10, 4), (5, 3, 8), (6, 6, 1)])

@@ -9,8 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
-from cubecloud_cli.render import GridField, ImageModel, TransferFunction, render_views
+from cubecloud_cli.render import GridField, ImageModel, render_views
 from cubecloud_cli.render.rays import ray_box
+from cubecloud_cli.transfer.function import TransferFunction
 
 S = 32
 

@@ -9,8 +9,9 @@ from hypothesis import strategies as st
 
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras
 from cubecloud_cli.render import grid_march, renderer
-from cubecloud_cli.render.image_models import MIN_RAMP_WIDTH, ImageModel, TransferFunction
+from cubecloud_cli.render.image_models import ImageModel
 from cubecloud_cli.render.samplers import GridField
+from cubecloud_cli.transfer.function import MIN_RAMP_WIDTH, TransferFunction
 
 
 def both_marches(monkeypatch, field, cameras, index, model, subpixel=(0.5, 0.5)):

@@ -26,8 +26,8 @@ from cubecloud_cli.cli.options import build_settings, settings_option
 from cubecloud_cli.cli.progress_bar import stage_bar
 from cubecloud_cli.core.artifacts import stage_dir_name
 from cubecloud_cli.export.settings import CameraPath, ExportSettings, RenderSource
-from cubecloud_cli.export.transfer import TRANSFER_PRESETS
 from cubecloud_cli.presets import DEFAULT_PRESET
+from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS
 
 log = logging.getLogger("cubecloud")
 

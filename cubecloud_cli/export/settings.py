@@ -8,9 +8,9 @@ from typing import ClassVar, Literal, get_args
 from cubecloud_cli.cameras import OrbitSpec, PinholeCameras, orbit_cameras, sphere_cameras, stack_cameras, stack_offsets
 from cubecloud_cli.cameras.novel import DEFAULT_DIRECTIONS, NovelViewSet
 from cubecloud_cli.core.errors import CubecloudError
-from cubecloud_cli.export.transfer import DEFAULT_TRANSFER, TRANSFER_PRESETS
 from cubecloud_cli.presets import preset_default
 from cubecloud_cli.render.image_model_names import IMAGE_MODELS
+from cubecloud_cli.transfer.tissue_presets import DEFAULT_TRANSFER, TRANSFER_PRESETS
 
 RenderSource = Literal["grid", "field"]
 RENDER_SOURCES = get_args(RenderSource)

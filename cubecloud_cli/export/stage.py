@@ -43,9 +43,9 @@ from cubecloud_cli.export.novel_references import render_novel_references, write
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
 from cubecloud_cli.export.scene_files import held_out_views, write_scene
 from cubecloud_cli.export.settings import ExportSettings
-from cubecloud_cli.export.transfer import resolve_transfer
 from cubecloud_cli.numerics.metrics import image_metrics
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
+from cubecloud_cli.transfer.tissue_presets import resolve_transfer
 
 log = logging.getLogger("cubecloud")
 

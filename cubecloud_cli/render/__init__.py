@@ -5,7 +5,6 @@ from cubecloud_cli.core.lazy import lazy_exports
 _EXPORTS = {
     "IMAGE_MODELS": "image_model_names",
     "ImageModel": "image_models",
-    "TransferFunction": "image_models",
     "render_view": "renderer",
     "render_views": "renderer",
     "FunctionField": "samplers",
@@ -21,7 +20,6 @@ __all__ = [
     "IMAGE_MODELS",
     "ImageModel",
     "Support",
-    "TransferFunction",
     "render_view",
     "render_views",
     "support_of_volume",

@@ -21,9 +21,10 @@ import torch
 
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.render.grid_march import CELL_SHIFT, dvr_view
-from cubecloud_cli.render.image_models import ACCUMULATORS, MIN_RAMP_WIDTH, ImageModel
+from cubecloud_cli.render.image_models import ACCUMULATORS, ImageModel
 from cubecloud_cli.render.rays import camera_rays, ray_box, tiled_order
 from cubecloud_cli.render.samplers import GridField, ScalarField, Support
+from cubecloud_cli.transfer.function import MIN_RAMP_WIDTH
 
 RAYS_PER_CHUNK = 1 << 14
 STEPS_PER_BLOCK = 32

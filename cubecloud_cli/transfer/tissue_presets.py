@@ -10,12 +10,9 @@ the ramp to what the volume can still tell apart.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from cubecloud_cli.core.errors import CubecloudError
-
-if TYPE_CHECKING:  # the presets are read by the command line, which imports no torch
-    from cubecloud_cli.render.image_models import TransferFunction
+from cubecloud_cli.transfer.function import TransferFunction
 
 
 @dataclass(frozen=True)
@@ -54,8 +51,6 @@ def resolve_transfer(
 ) -> TransferFunction:
     """The preset as a TransferFunction for this volume; ``low``/``high`` (intensities) and
     ``density`` override it."""
-    from cubecloud_cli.render.image_models import TransferFunction
-
     if preset not in TRANSFER_PRESETS:
         raise CubecloudError(f"--transfer {preset!r} is not a preset: choose one of {', '.join(TRANSFER_PRESETS)}")
     chosen = TRANSFER_PRESETS[preset]
