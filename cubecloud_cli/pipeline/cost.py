@@ -8,11 +8,13 @@ import math
 
 # size -> (seconds from the scan to the report, peak memory in GB): `bench/scaling.py` on the
 # chest CT with `--preset detail`, both splat runs included, numba's first compilation included
-# (docs/results.md, "The scan's own detail": runs Y and T).
+# (docs/results.md, "The scan's own detail": the scaling table, runs U and Z).
 MEASURED_DETAIL: dict[int, tuple[float, float]] = {
-    128: (231.0, 0.67),
-    256: (352.0, 1.15),
-    512: (1187.0, 4.67),
+    128: (211.0, 0.67),
+    192: (250.0, 0.81),
+    256: (367.0, 1.15),
+    384: (642.0, 2.36),
+    512: (1171.0, 4.76),
 }
 
 
@@ -47,5 +49,5 @@ def describe_cost(size: int, measured: dict[int, tuple[float, float]] = MEASURED
     seconds, memory = cost
     return (
         f"a {size}³ detail run takes about {seconds / 60:.0f} min and {memory:.1f} GB on a 2-core CPU "
-        f"(as measured on the chest CT at 128³, 256³ and 512³; more cores or a GPU take less)"
+        f"(as measured on the chest CT from 128³ to 512³; more cores or a GPU take less)"
     )
