@@ -201,7 +201,7 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
     import os
     import signal
 
-    import cubecloud_cli.export.stage as stage
+    import cubecloud_cli.export.renders as stage
 
     work = _copy_upstream(trained, tmp_path)
     original, calls = stage.render_view, []
@@ -229,7 +229,7 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
 
 
 def _interrupt_after(monkeypatch, renders: int) -> None:
-    import cubecloud_cli.export.stage as stage
+    import cubecloud_cli.export.renders as stage
 
     original, calls = stage.render_view, []
 
@@ -327,7 +327,7 @@ def test_the_overlay_example_reads_the_scene(exported, tmp_path):
 def test_export_takes_the_cunerf_stages_own_bake_where_baking_would_give_the_same_grid(
     trained, exported, tmp_path, monkeypatch
 ):
-    import cubecloud_cli.export.stage as export_stage
+    import cubecloud_cli.export.renders as export_stage
 
     assert "cunerf/recon.nii.gz" in json.loads((exported / "manifest.json").read_text())["inputs"]
     monkeypatch.setattr(export_stage, "saved_bake", lambda *args: None)

@@ -143,7 +143,7 @@ def test_run_trains_cunerf_and_resumes_an_interrupted_one(tmp_path, phantom_nift
 
 
 def test_run_continues_an_interrupted_export(tmp_path, phantom_nifti, monkeypatch):
-    import cubecloud_cli.export.stage as stage
+    import cubecloud_cli.export.renders as stage
 
     work = tmp_path / "w"
     original, calls = stage.render_view, []

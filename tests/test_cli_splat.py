@@ -18,6 +18,7 @@ from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
 from cubecloud_cli.splat.densify import strategy_for
+from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
 from cubecloud_cli.splat.trainer import SplatTrainer, render
@@ -178,12 +179,48 @@ def test_a_foreign_colmap_scene_with_png_images(exported, tmp_path):
         (["--channels", "2"], r"--channels 2 must be 1"),
         (["--sh-degree", "4"], r"--sh-degree 4 must be within 0..3"),
         (["--max-gaussians", "0"], r"--max-gaussians 0"),
+        (["--scalar", "--channels", "3"], r"--scalar Gaussians carry one scan value"),
     ],
 )
 def test_bad_options(exported, tmp_path, args, pattern):
     work = _copy(exported, tmp_path)
     assert_one_line_error(invoke("splat", work, *args), pattern)
     assert not (work / "splat").exists()
+
+
+def test_a_scalar_scene_trains_as_well_as_a_baked_one_under_its_transfer_function(exported, tmp_path):
+    """Under the one transfer function it was trained on, a scalar scene (value and optical length
+    per Gaussian) shows what a baked one (grey level and opacity) shows: its test PSNR is at most
+    1 dB below (measured: 36.4 against 34.1 dB) after 300 iterations on the 32² scene, both on
+    the Gaussians they start with. With density control on this scene of 10 views, the opacity
+    resets every 30 iterations cost the scalar scene more (27.3 against 32.6 dB); at the fast
+    preset it scores above the baked one all the same (docs/history/scalar-scenes.md)."""
+    work = _copy(exported, tmp_path)
+    longer = ["--iterations", "300", "--eval-every", "300", "--no-refine", *CPU, "-q"]
+    for extra in ([], ["--scalar", "--name", "scalar"]):
+        result = invoke("splat", work, *longer, *extra)
+        assert result.exit_code == 0, result.output
+    baked = json.loads((work / "splat" / "manifest.json").read_text())
+    scalar = json.loads((work / "splat-scalar" / "manifest.json").read_text())
+    assert scalar["params"]["scalar"] is True and baked["params"]["scalar"] is False
+    assert scalar["metrics"]["test_psnr"] > baked["metrics"]["test_psnr"] - 1.0
+    properties = read_scalar_properties(work / "splat-scalar" / "point_cloud.ply")
+    model = json.loads((work / "export" / "manifest.json").read_text())["image_model"]["transfer"]
+    assert (
+        properties.drawn_under.low == pytest.approx(model["low"])
+        and len(properties.values) == scalar["metrics"]["gaussians"]
+    )
+    assert read_gaussians_ply(work / "splat-scalar" / "point_cloud.ply").channels == 1
+
+
+def test_a_scalar_scene_needs_the_transfer_function_its_images_were_rendered_under(exported, tmp_path):
+    scene = tmp_path / "foreign"
+    shutil.copytree(exported / "export", scene)
+    (scene / "manifest.json").unlink()  # a COLMAP scene that does not say how its images were made
+    assert_one_line_error(
+        invoke("splat", tmp_path / "work", "--scene", scene, "--scalar", *QUICK),
+        r"does not say which transfer function",
+    )
 
 
 def test_missing_export_or_scene(exported, tmp_path):

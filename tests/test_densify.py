@@ -11,8 +11,8 @@ from cubecloud_cli.splat.densify import (
     GradientStats,
     apply_plan,
     plan_densification,
-    reset_opacity,
 )
+from cubecloud_cli.splat.gaussians import reset_opacity
 
 EXTENT = 2.0  # percent_dense 0.01 → clone below a largest scale of 0.02, split above
 
@@ -43,7 +43,7 @@ def test_clone_split_prune_and_keep():
         means,
         log_scales,
         quaternions,
-        logits,
+        torch.sigmoid(logits),
         gradients,
         DensifySettings(),
         EXTENT,
@@ -68,7 +68,7 @@ def test_a_large_gaussian_with_a_high_gradient_is_split_before_the_size_rule():
         means,
         log_scales,
         quaternions,
-        logits,
+        torch.sigmoid(logits),
         torch.tensor([1e-3, 1e-3]),
         DensifySettings(),
         EXTENT,
@@ -83,8 +83,12 @@ def test_a_large_gaussian_with_a_high_gradient_is_split_before_the_size_rule():
 def test_large_gaussians_are_pruned_only_after_the_first_reset():
     means, log_scales, quaternions, logits = model([0.5, 0.01], [0.5, 0.5])
     gradients = torch.zeros(2)
-    early = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(), EXTENT, False)
-    late = plan_densification(means, log_scales, quaternions, logits, gradients, DensifySettings(), EXTENT, True)
+    early = plan_densification(
+        means, log_scales, quaternions, torch.sigmoid(logits), gradients, DensifySettings(), EXTENT, False
+    )
+    late = plan_densification(
+        means, log_scales, quaternions, torch.sigmoid(logits), gradients, DensifySettings(), EXTENT, True
+    )
     assert early.keep.tolist() == [True, True] and late.keep.tolist() == [False, True]
 
 
@@ -99,7 +103,7 @@ def test_split_children_are_drawn_from_the_parent():
         means,
         log_scales,
         quaternions,
-        logits,
+        torch.sigmoid(logits),
         torch.ones(count),
         DensifySettings(),
         EXTENT,
@@ -119,11 +123,25 @@ def test_the_budget_takes_the_largest_gradients_and_prunes_down():
     means, log_scales, quaternions, logits = model([0.01] * 6, [0.5, 0.6, 0.7, 0.4, 0.2, 0.9])
     gradients = torch.tensor([1e-3, 5e-3, 2e-3, 0.0, 0.0, 0.0])
     plan = plan_densification(
-        means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=7), EXTENT, False
+        means,
+        log_scales,
+        quaternions,
+        torch.sigmoid(logits),
+        gradients,
+        DensifySettings(max_gaussians=7),
+        EXTENT,
+        False,
     )
     assert plan.clone.tolist() == [1] and plan.new_count == 7  # room for one: the largest gradient
     over = plan_densification(
-        means, log_scales, quaternions, logits, gradients, DensifySettings(max_gaussians=4), EXTENT, False
+        means,
+        log_scales,
+        quaternions,
+        torch.sigmoid(logits),
+        gradients,
+        DensifySettings(max_gaussians=4),
+        EXTENT,
+        False,
     )
     assert over.keep.tolist() == [True, True, True, False, False, True]  # the two least opaque go
     assert over.clone.numel() == 0 and over.new_count == 4

@@ -75,6 +75,7 @@ def export_command(
     tf_low: Annotated[Optional[float], _option("tf_low")] = None,
     tf_high: Annotated[Optional[float], _option("tf_high")] = None,
     tf_density: Annotated[Optional[float], _option("tf_density")] = None,
+    transfer_set: Annotated[Optional[int], _option("transfer_set")] = None,
     step: Annotated[Optional[float], _option("step")] = None,
     render_from: Annotated[Optional[RenderSource], _option("render_from")] = None,
     bake_size: Annotated[Optional[int], _option("bake_size")] = None,
@@ -102,6 +103,8 @@ def export_command(
       cubecloud export work --cameras stack --view slice --axis lr --name sagittal-stack   # the paper's 3DGS baseline
 
       cubecloud export work --transfer bone --elevation 20 --resolution 256
+
+      cubecloud export work --transfer-set 8                 # views under 8 transfer functions, for splat --scalar
     """
     configure_logging(quiet)
     settings = export_settings(
@@ -122,6 +125,7 @@ def export_command(
         tf_low=tf_low,
         tf_high=tf_high,
         tf_density=tf_density,
+        transfer_set=transfer_set,
         step=step,
         render_from=render_from,
         bake_size=bake_size,

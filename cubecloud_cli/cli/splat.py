@@ -64,6 +64,7 @@ def splat_command(
     init: Annotated[Optional[Init], _option("init")] = None,
     random_points: Annotated[Optional[int], _option("random_points")] = None,
     iterations: IterationsOption = None,
+    scalar: Annotated[Optional[bool], _option("scalar", "--scalar/--baked")] = None,
     channels: Annotated[Optional[int], _option("channels")] = None,
     sh_degree: Annotated[Optional[int], _option("sh_degree")] = None,
     max_gaussians: Annotated[Optional[int], _option("max_gaussians")] = None,
@@ -92,6 +93,8 @@ def splat_command(
 
       cubecloud splat work --init random --name random       # the paper's baseline, beside it
 
+      cubecloud splat work --scalar --name scalar            # Gaussians that carry the scan's value
+
       cubecloud splat work --scene my_colmap_scene --channels 3 --sh-degree 3 --name mine
     """
     configure_logging(quiet)
@@ -101,6 +104,7 @@ def splat_command(
         max_gaussians=max_gaussians,
         init=init,
         random_points=random_points,
+        scalar=scalar,
         channels=channels,
         sh_degree=sh_degree,
         dssim_weight=dssim_weight,

@@ -24,6 +24,10 @@ ADDED_PARAMETERS = {
     "antialias": False,
     "grid_init": "random",
     "precision": "float32",
+    "scalar": False,
+    "transfer_set": 1,
+    "lr_value": 0.0025,
+    "lr_length": 0.025,
 }
 # Parameters recorded for provenance only: the scene a splat run read is identified by its files'
 # hashes, so `-o work` and `-o /abs/work` (or a moved work directory) are the same stage.

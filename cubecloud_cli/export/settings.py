@@ -19,6 +19,7 @@ CameraPath = Literal["sphere", "orbit", "stack"]
 CAMERA_PATHS = get_args(CameraPath)
 CAMERA_BUILDERS = {"sphere": sphere_cameras, "orbit": orbit_cameras, "stack": stack_cameras}
 MAX_NOVEL_DIRECTIONS = 256
+MAX_TRANSFER_SET = 64
 MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
 # A resolution the preset leaves to the volume: views as wide as the volume, up to this.
 RESOLUTION_FROM_VOLUME = "volume"
@@ -69,6 +70,10 @@ class ExportSettings:
     """dvr: intensity (0..1) of full absorption; overrides the preset."""
     tf_density: float | None = None
     """dvr: extinction per world unit at full absorption; higher is more opaque."""
+    transfer_set: int = 1
+    """dvr: render the training views under this many transfer functions: --transfer first, then the presets eval
+    does not hold out, then seeded random ramps. A `splat --scalar` run trains under all of them, so that it shows
+    other tissue without retraining; each one more costs a render of every training view."""
     step: float = 1.0  # voxels of the preprocessed volume between ray samples
     """Ray-march step in voxels of the preprocessed volume."""
     render_from: RenderSource = "grid"
@@ -144,6 +149,12 @@ class ExportSettings:
             raise CubecloudError(f"--view {self.view!r} must be one of {', '.join(IMAGE_MODELS)}")
         if self.transfer not in TRANSFER_PRESETS:
             raise CubecloudError(f"--transfer {self.transfer!r} must be one of {', '.join(TRANSFER_PRESETS)}")
+        if not 1 <= self.transfer_set <= MAX_TRANSFER_SET:
+            raise CubecloudError(f"--transfer-set {self.transfer_set} must be within 1..{MAX_TRANSFER_SET}")
+        if self.transfer_set > 1 and self.view != "dvr":
+            raise CubecloudError(
+                f"--transfer-set renders through transfer functions, which only --view dvr has (got --view {self.view})"
+            )
         if not (0.05 <= self.step <= 8.0):
             raise CubecloudError(f"--step {self.step:g} must be within 0.05..8 voxels (1 is the usual choice)")
         if self.render_from not in RENDER_SOURCES:

@@ -3,6 +3,8 @@
 WORK/export/ holds
   images/view_000.png …     training images rendered from CuNeRF (8-bit grey, stored as RGB)
   images.npy                the same as float32 (N, H, W): what `splat` trains on
+  transfer_images.npy       with --transfer-set K > 1: float32 (K, N, H, W), the training views under each
+                            transfer function the manifest's "transfers" lists (the first is images.npy)
   reference/view_000.png …  the same views rendered from the preprocessed volume (ground truth)
   reference.npy             float32 (N, H, W): what `eval` scores against
   sparse/0/                 cameras, images, points3D (.bin and .txt), points3D.ply, test.txt
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,19 +37,21 @@ from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
-from cubecloud_cli.export.cunerf_bake import saved_bake
 from cubecloud_cli.export.finished_views import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.images import view_names
 from cubecloud_cli.export.memory import check_export_memory
-from cubecloud_cli.export.novel_references import render_novel_references, write_novel
-from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
+from cubecloud_cli.export.novel_references import write_novel
+from cubecloud_cli.export.renders import ExportJob, ExportRenders, render_export
 from cubecloud_cli.export.scene_files import held_out_views, write_scene
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.numerics.metrics import image_metrics
-from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
+from cubecloud_cli.render import ImageModel
 from cubecloud_cli.transfer.tissue_presets import resolve_transfer
+from cubecloud_cli.transfer.training_set import NamedTransfer, training_transfers
 
 log = logging.getLogger("cubecloud")
+
+TRANSFER_IMAGES = "transfer_images.npy"
 
 
 def recorded_params(settings: ExportSettings, cunerf_name: str | None = None) -> dict:
@@ -140,40 +144,6 @@ def export_scene(
         raise
 
 
-@dataclass(frozen=True)
-class ExportJob:
-    """What one export works from, checked before anything is written."""
-
-    work: Path
-    settings: ExportSettings
-    cameras: PinholeCameras
-    novel: NovelViewSet
-    image_model: ImageModel
-    preprocess: dict  # the preprocess manifest
-    cunerf: dict  # the cunerf manifest
-    size: int  # the volume's side in voxels
-    device: torch.device
-    cunerf_name: str | None
-
-    @property
-    def cunerf_dir(self) -> Path:
-        return self.work / stage_dir_name("cunerf", self.cunerf_name)
-
-    @property
-    def total_views(self) -> int:
-        return 2 * len(self.cameras) + len(self.novel)
-
-
-@dataclass
-class ExportRenders:
-    """The rendered views and the point cloud, ready to be written."""
-
-    images: np.ndarray  # CuNeRF's renders: the training images
-    reference: np.ndarray  # the volume's renders of the same views
-    novel_reference: np.ndarray
-    cloud: PointCloud
-
-
 def _plan_export(
     work: Path, settings: ExportSettings, runtime: Runtime, cunerf_name: str | None
 ) -> tuple[ExportJob, dict]:
@@ -204,8 +174,21 @@ def _plan_export(
         image_model.validate()
     except ValueError as exc:
         raise CubecloudError(f"{exc}: choose a --step below the volume's {size} voxels, e.g. 1") from None
+    transfers = training_transfers(
+        NamedTransfer(settings.transfer, transfer), settings.transfer_set, preprocess.get("intensity"), settings.seed
+    )
     job = ExportJob(
-        work, settings, cameras, settings.novel_view_set(), image_model, preprocess, cunerf, size, device, cunerf_name
+        work,
+        settings,
+        cameras,
+        settings.novel_view_set(),
+        image_model,
+        preprocess,
+        cunerf,
+        size,
+        device,
+        cunerf_name,
+        tuple(transfers),
     )
     return job, cunerf
 
@@ -214,13 +197,15 @@ def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_pr
     with writer:
         with writer.phase("load"):
             volume, field = _load_inputs(job, writer)
-        renders = _render(job, volume, field, writer, progress, on_progress)
+        renders = render_export(job, volume, field, writer, progress, on_progress)
         if renders.cloud.stats["points"] == 0:
             log.warning("the field is air everywhere: points3D holds no point (lower --air-threshold?)")
         with writer.phase("write"):
             on_progress("write", job.total_views, job.total_views, {})
             names = view_names(len(job.cameras))
             write_scene(writer.directory, job.cameras, names, renders.images, renders.reference, renders.cloud)
+            if renders.transfer_images is not None:
+                np.save(writer.directory / TRANSFER_IMAGES, renders.transfer_images)
             if len(job.novel):
                 write_novel(writer.directory, job.novel, renders.novel_reference)
         _record(writer, job, names, renders)
@@ -256,120 +241,6 @@ def _load_inputs(job: ExportJob, writer: StageWriter) -> tuple[np.ndarray, Cuner
     return volume, field
 
 
-def _render(
-    job: ExportJob,
-    volume: np.ndarray,
-    field: CunerfField,
-    writer: StageWriter,
-    progress: ExportProgress,
-    on_progress: ProgressCallback,
-) -> ExportRenders:
-    """CuNeRF's views, the volume's views and novel references, and the point cloud, each phase timed."""
-    settings, cameras, device, views = job.settings, job.cameras, job.device, job.total_views
-
-    def count_views(phase: str, before: int):
-        return lambda done, total: on_progress(phase, before + done, views, {})
-
-    with writer.phase("bake"):
-        on_progress("bake", 0, views, {})
-        cunerf_images_field = _cunerf_scalar_field(field, job, writer, progress, on_progress)
-    with writer.phase("render_images"):
-        images = _render_saving_views(
-            cunerf_images_field, cameras, job.image_model, device, progress, "images", count_views("images", 0)
-        )
-    # One field for both: its support and clear cells are made once.
-    volume_field = GridField(volume, device)
-    with writer.phase("render_reference"):
-        reference = _render_saving_views(
-            volume_field,
-            cameras,
-            job.image_model,
-            device,
-            progress,
-            "reference",
-            count_views("reference", len(cameras)),
-        )
-    with writer.phase("render_novel"):
-        # The novel views face the origin: a stack's per-view slice planes do not apply to them.
-        novel_reference = render_novel_references(
-            volume_field,
-            job.novel,
-            replace(job.image_model, slice_offsets=()),
-            device,
-            progress,
-            count_views("novel", 2 * len(cameras)),
-        )
-    with writer.phase("point_cloud"):
-        on_progress("points", views, views, {})
-        cloud = build_point_cloud(
-            field.cube_values,
-            field.point_density,
-            cunerf_images_field,
-            job.size,
-            settings.cube,
-            settings.points_per_cube,
-            settings.max_points or None,
-            settings.air_threshold,
-            settings.seed,
-            device,
-        )
-    return ExportRenders(images, reference, novel_reference, cloud)
-
-
-def _render_saving_views(
-    field,
-    cameras: PinholeCameras,
-    model: ImageModel,
-    device: torch.device,
-    progress: ExportProgress,
-    prefix: str,
-    on_progress,
-) -> np.ndarray:
-    """render_views, saving each view as it is done and reusing views an interrupted run saved."""
-    images = np.empty((len(cameras), cameras.height, cameras.width), dtype=np.float32)
-    support = None
-    with torch.no_grad():
-        for index in range(len(cameras)):
-            saved = progress.load(f"{prefix}_view_{index:05d}")
-            if saved is not None and saved.shape == images.shape[1:]:
-                images[index] = saved
-            else:
-                if support is None and model.kind != "slice":
-                    support = field.support(model.support_threshold)
-                images[index] = render_view(field, cameras, index, model, support, device).cpu().numpy()
-                progress.save(f"{prefix}_view_{index:05d}", images[index])
-            on_progress(index + 1, len(cameras))
-    return images
-
-
-def _cunerf_scalar_field(
-    field: CunerfField, job: ExportJob, writer: StageWriter, progress: ExportProgress, on_progress
-):
-    """The field the training images are rendered from: CuNeRF baked to a grid (fast; the
-    cunerf stage's own bake where it is the same grid), or its cube renders queried at every ray
-    sample (``--render-from field``)."""
-    settings, size, device = job.settings, job.size, job.device
-    if settings.render_from == "grid":
-        bake_size = settings.bake_resolution(size)
-        baked = progress.load("bake")
-        if baked is None or baked.shape != (bake_size,) * 3:
-            saved = saved_bake(job.cunerf_dir, job.cunerf, bake_size, device)
-            if saved is not None:  # its hash checked against the cunerf manifest: recorded, not taken again
-                baked, path, digest = saved
-                writer.add_input(path, f"{job.cunerf_dir.name}/{path.name}", digest)
-            else:
-                baked = field.bake(bake_size, on_progress=lambda f: on_progress("bake", f, 1.0, {}))
-            progress.save("bake", baked)  # a resumed export renders from this grid, whatever its threads
-        return GridField(baked, device)
-    occupancy = field.occupancy
-    if occupancy is not None and occupancy.blocks.shape[0] * occupancy.block == size:
-        # The field reads exactly 0 in air blocks (their renders are skipped), so they need no marching.
-        support = Support.from_blocks(occupancy.blocks.to(device))
-    else:
-        support = Support.everywhere(device)
-    return FunctionField(field.cube_values, size, support)
-
-
 def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: ExportRenders) -> None:
     """The CuNeRF-vs-reference scores, the cameras, the image model and the frames, into the manifest."""
     settings, cameras, cloud, device, preprocess = job.settings, job.cameras, renders.cloud, job.device, job.preprocess
@@ -395,6 +266,7 @@ def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: Expo
                 "centres": cameras.centres().round(9).tolist(),
             },
             "image_model": {**job.image_model.as_dict(), "step_voxels": settings.step},
+            "transfers": [{"name": t.name, **asdict(t.function)} for t in job.transfers],
             "render_source": {
                 "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
                 "bake_size": settings.bake_resolution(job.size) if settings.render_from == "grid" else None,

@@ -30,11 +30,10 @@ import torch
 from cubecloud_cli.numerics.adam import Optimizer
 from cubecloud_cli.raster.backends import Rasterized
 from cubecloud_cli.raster.projection import quaternion_to_rotation
-from cubecloud_cli.splat.gaussians import TRAINED_PARAMETERS, Gaussians
 from cubecloud_cli.splat.optimizer import replace_parameters
+from cubecloud_cli.splat.scalar_gaussians import GaussianModel
 from cubecloud_cli.splat.settings import SplatSettings
 
-RESET_OPACITY = 0.01
 SPLIT_SCALE_DIVISOR = 1.6  # 0.8 · 2 children, as in the reference
 
 
@@ -119,7 +118,7 @@ def plan_densification(
     means: torch.Tensor,
     log_scales: torch.Tensor,
     quaternions: torch.Tensor,
-    opacity_logits: torch.Tensor,
+    opacities: torch.Tensor,
     mean_gradients: torch.Tensor,
     settings: DensifySettings,
     extent: float,
@@ -130,7 +129,7 @@ def plan_densification(
         count = means.shape[0]
         scales = torch.exp(log_scales)
         largest = scales.max(dim=1).values
-        opacity = torch.sigmoid(opacity_logits)
+        opacity = opacities
         transparent = opacity < settings.min_opacity
         too_large = (largest > settings.max_world_size * extent) if prune_large else torch.zeros_like(transparent)
         grow = (mean_gradients >= settings.grad_threshold) & ~transparent
@@ -187,18 +186,12 @@ def apply_plan(
     return torch.cat((kept, values[plan.clone], split_rows))
 
 
-def reset_opacity(opacity_logits: torch.Tensor) -> torch.Tensor:
-    """Opacities capped at 0.01 (the reference's periodic reset), as logits."""
-    capped = torch.sigmoid(opacity_logits).clamp(max=RESET_OPACITY)
-    return torch.logit(capped.clamp_min(1e-7))
-
-
 @dataclass
 class Trainable:
     """What a strategy may change: the Gaussians, the optimizer that holds them (parameters and
     moments are replaced together) and the run's generator (the split children's draws)."""
 
-    gaussians: Gaussians
+    gaussians: GaussianModel
     optimizer: Optimizer
     generator: torch.Generator
 
@@ -278,7 +271,7 @@ class ReferenceStrategy:
             g.means,
             g.log_scales,
             g.quaternions,
-            g.opacity_logits,
+            g.pruning_opacities(),
             self.stats.mean(),
             self.schedule.thresholds,
             self.extent,
@@ -288,7 +281,7 @@ class ReferenceStrategy:
         children = {"means": plan.child_means.to(device), "log_scales": plan.child_log_scales.to(device)}
         replaced = replace_parameters(
             trainable.optimizer,
-            TRAINED_PARAMETERS,
+            g.TRAINED,
             lambda name, old: apply_plan(plan, old, children.get(name)),
             lambda name, moment: apply_plan(plan, moment, new_rows_zero=True),
         )
@@ -298,13 +291,15 @@ class ReferenceStrategy:
 
     @staticmethod
     def _reset_opacity(trainable: Trainable) -> None:
+        g = trainable.gaussians
+        name = g.OPACITY_PARAMETER
         replaced = replace_parameters(
             trainable.optimizer,
-            ["opacity_logits"],
-            lambda name, old: reset_opacity(old),
+            [name],
+            lambda name, old: g.reset_transparency(old),
             lambda name, moment: torch.zeros_like(moment),
         )
-        trainable.gaussians.opacity_logits = replaced["opacity_logits"]
+        setattr(g, name, replaced[name])
 
     def state_dict(self) -> dict:
         return {"stats": (self.stats.total.cpu(), self.stats.views.cpu())}

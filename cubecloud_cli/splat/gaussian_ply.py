@@ -4,10 +4,17 @@ pre-activation (log scales, logit opacity, raw w-first quaternions), f_rest chan
 
 Viewers expect three colour channels, so a grey (C = 1) model is written with its coefficients
 in all three, and a comment records that; reading such a file gives C = 1 back.
+
+A scalar scene (``--scalar``) is written in that layout as drawn under its training transfer
+function, so every splat viewer opens it, plus two columns a viewer that knows them uses to draw
+it under any other: ``scan_value`` (the value in [0, 1]) and ``log_optical_length`` (log ℓ, world
+units); comments record the transfer functions, as JSON.
 """
 
 from __future__ import annotations
 
+import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +23,31 @@ from plyfile import PlyData, PlyElement
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
+from cubecloud_cli.transfer.function import TransferFunction
 
 GREY_COMMENT = "cubecloud channels 1"
+SCAN_VALUE = "scan_value"
+LOG_OPTICAL_LENGTH = "log_optical_length"
+DRAWN_UNDER = "cubecloud drawn under "  # the transfer function of the reference columns
+TRAINED_UNDER = "cubecloud trained under "  # every transfer function the scene was trained under
+
+
+@dataclass
+class ScalarProperties:
+    """What a scalar scene's PLY carries beyond the reference layout."""
+
+    values: np.ndarray  # (N,) float32 in (0, 1)
+    log_lengths: np.ndarray  # (N,) float32
+    drawn_under: TransferFunction
+    trained_under: list[TransferFunction]
+
+
+def scalar_properties(gaussians: ScalarGaussians) -> ScalarProperties:
+    with torch.no_grad():
+        values = gaussians.values().cpu().float().numpy()
+        log_lengths = gaussians.log_lengths.detach().cpu().float().numpy()
+    return ScalarProperties(values, log_lengths, gaussians.transfer, list(gaussians.transfers or [gaussians.transfer]))
 
 
 def attribute_names(sh_degree: int) -> list[str]:
@@ -29,7 +59,7 @@ def attribute_names(sh_degree: int) -> list[str]:
     )
 
 
-def write_gaussians_ply(path: Path, gaussians: Gaussians) -> None:
+def write_gaussians_ply(path: Path, gaussians: Gaussians, scalar: ScalarProperties | None = None) -> None:
     count, coefficients = len(gaussians), gaussians.sh.shape[1]
     sh = gaussians.sh.detach().cpu().float()
     if gaussians.channels == 1:
@@ -43,12 +73,19 @@ def write_gaussians_ply(path: Path, gaussians: Gaussians) -> None:
         gaussians.log_scales.detach().cpu().float().numpy(),
         gaussians.quaternions.detach().cpu().float().numpy(),
     ]
-    values = np.concatenate(columns, axis=1).astype(np.float32)
     names = attribute_names(gaussians.sh_degree)
+    comments = [GREY_COMMENT] if gaussians.channels == 1 else []
+    if scalar is not None:
+        columns += [scalar.values.reshape(count, 1), scalar.log_lengths.reshape(count, 1)]
+        names += [SCAN_VALUE, LOG_OPTICAL_LENGTH]
+        comments += [
+            DRAWN_UNDER + json.dumps(asdict(scalar.drawn_under)),
+            TRAINED_UNDER + json.dumps([asdict(t) for t in scalar.trained_under]),
+        ]
+    values = np.concatenate(columns, axis=1).astype(np.float32)
     vertices = np.empty(count, dtype=[(name, "f4") for name in names])
     for index, name in enumerate(names):
         vertices[name] = values[:, index]
-    comments = [GREY_COMMENT] if gaussians.channels == 1 else []
     PlyData([PlyElement.describe(vertices, "vertex")], comments=comments).write(str(path))
 
 
@@ -102,3 +139,26 @@ def read_gaussians_ply(path: Path) -> Gaussians:
         sh[:, :1].contiguous(),
         sh[:, 1:].contiguous(),
     )
+
+
+def read_scalar_properties(path: Path) -> ScalarProperties | None:
+    """The scalar columns and transfer functions of a scalar scene's PLY; None for any other PLY."""
+    data = PlyData.read(str(path))
+    vertex = data["vertex"]
+    names = {p.name for p in vertex.properties}
+    drawn = [c[len(DRAWN_UNDER) :] for c in data.comments if c.startswith(DRAWN_UNDER)]
+    trained = [c[len(TRAINED_UNDER) :] for c in data.comments if c.startswith(TRAINED_UNDER)]
+    if not {SCAN_VALUE, LOG_OPTICAL_LENGTH} <= names or not drawn:
+        return None
+    try:
+        drawn_under = TransferFunction(**json.loads(drawn[0]))
+        trained_under = [TransferFunction(**t) for t in json.loads(trained[0])] if trained else [drawn_under]
+        for function in (drawn_under, *trained_under):
+            function.validate()
+    except (ValueError, TypeError) as exc:
+        raise CubecloudError(f"{path} records a transfer function that is not one ({exc}): train it again") from None
+    values = np.asarray(vertex[SCAN_VALUE], dtype=np.float32)
+    log_lengths = np.asarray(vertex[LOG_OPTICAL_LENGTH], dtype=np.float32)
+    if not (np.isfinite(values).all() and np.isfinite(log_lengths).all()):
+        raise CubecloudError(f"{path} holds NaN or Inf scan values or optical lengths: train it again")
+    return ScalarProperties(values, log_lengths, drawn_under, trained_under)

@@ -28,6 +28,28 @@ LOG_SCALE_LIMIT = 10.0
 MIN_NEIGHBOUR_DISTANCE_SQUARED = 1e-7  # the reference clamp, for duplicated points
 # Baked opacities stay this far inside (0, 1), so that their logits are finite in float32.
 MIN_BAKED_OPACITY = 1e-7
+RESET_OPACITY = 0.01  # the reference's periodic reset caps every opacity at this
+
+
+def rendered_scales(log_scales: torch.Tensor, smoothing: torch.Tensor | None) -> torch.Tensor:
+    """The axis scales as rendered (with the 3D filter, when there is one)."""
+    clamped = log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT)
+    return torch.exp(clamped) if smoothing is None else smoothed_scales(clamped, smoothing)
+
+
+def rendered_opacities(
+    opacities: torch.Tensor, log_scales: torch.Tensor, smoothing: torch.Tensor | None
+) -> torch.Tensor:
+    """``opacities`` as rendered (times the 3D filter's attenuation, when there is one)."""
+    if smoothing is None:
+        return opacities
+    return opacities * smoothing_attenuation(log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT), smoothing)
+
+
+def reset_opacity(opacity_logits: torch.Tensor) -> torch.Tensor:
+    """Opacities capped at 0.01 (the reference's periodic reset), as logits."""
+    capped = torch.sigmoid(opacity_logits).clamp(max=RESET_OPACITY)
+    return torch.logit(capped.clamp_min(1e-7))
 
 
 @dataclass
@@ -39,6 +61,9 @@ class Gaussians:
     sh_dc: torch.Tensor  # (N, 1, C)
     sh_rest: torch.Tensor  # (N, K − 1, C)
     smoothing: torch.Tensor | None = None  # (N,) 3D filter variance, world units²; None: no filter
+
+    TRAINED = TRAINED_PARAMETERS
+    OPACITY_PARAMETER = "opacity_logits"  # the parameter the periodic reset rewrites
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -56,20 +81,21 @@ class Gaussians:
     def sh_degree(self) -> int:
         return int(round((self.sh_rest.shape[1] + 1) ** 0.5)) - 1
 
-    def _log_scales(self) -> torch.Tensor:
-        return self.log_scales.clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT)
-
     def scales(self) -> torch.Tensor:
         """The axis scales as rendered (with the 3D filter, when there is one)."""
-        if self.smoothing is None:
-            return torch.exp(self._log_scales())
-        return smoothed_scales(self._log_scales(), self.smoothing)
+        return rendered_scales(self.log_scales, self.smoothing)
 
     def opacities(self) -> torch.Tensor:
         """The opacities as rendered (with the 3D filter's attenuation, when there is one)."""
-        if self.smoothing is None:
-            return torch.sigmoid(self.opacity_logits)
-        return torch.sigmoid(self.opacity_logits) * smoothing_attenuation(self._log_scales(), self.smoothing)
+        return rendered_opacities(torch.sigmoid(self.opacity_logits), self.log_scales, self.smoothing)
+
+    def pruning_opacities(self) -> torch.Tensor:
+        """The opacities that densification prunes by (the reference's: without the 3D filter)."""
+        return torch.sigmoid(self.opacity_logits)
+
+    @staticmethod
+    def reset_transparency(opacity_logits: torch.Tensor) -> torch.Tensor:
+        return reset_opacity(opacity_logits)
 
     def baked(self) -> "Gaussians":
         """The same rendered Gaussians with the 3D filter folded into their scales and opacities,

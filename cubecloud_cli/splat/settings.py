@@ -24,6 +24,10 @@ class SplatSettings:
     """cloud: the scene's points (Cube-Cloud). random: uniform points in the volume's cube (the paper's baseline)."""
     random_points: int = 100_000
     """Points for --init random."""
+    scalar: bool = False
+    """Train Gaussians that carry the scan's value and an optical length instead of a baked grey level and opacity:
+    a transfer function gives their colour and opacity when drawn, so the scene shows other tissue without retraining.
+    Needs a dvr scene from `cubecloud export`."""
     channels: int = 1
     """Colour channels: 1 for CT (grey), 3 for RGB scenes."""
     sh_degree: int = 0
@@ -38,6 +42,8 @@ class SplatSettings:
     lr_opacity: float = 0.025
     lr_scales: float = 0.005
     lr_rotation: float = 0.001
+    lr_value: float = 0.0025  # a scalar scene's value logits (--scalar)
+    lr_length: float = 0.025  # a scalar scene's log optical lengths (--scalar)
     grad_threshold: float = 0.0002
     percent_dense: float = 0.01
     refine: bool = True
@@ -61,6 +67,8 @@ class SplatSettings:
             raise CubecloudError(f"--iterations {self.iterations} must be at least 1")
         if self.init not in INIT_CHOICES:
             raise CubecloudError(f"--init {self.init!r} must be cloud or random")
+        if self.scalar and self.channels != 1:
+            raise CubecloudError("--scalar Gaussians carry one scan value: leave --channels at 1")
         if self.channels not in (1, 3):
             raise CubecloudError(f"--channels {self.channels} must be 1 (grey CT) or 3")
         if not 0 <= self.sh_degree <= MAX_DEGREE:

@@ -42,12 +42,13 @@ from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.splat.densify import strategy_for
-from cubecloud_cli.splat.gaussian_ply import write_gaussians_ply
+from cubecloud_cli.splat.gaussian_ply import scalar_properties, write_gaussians_ply
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
 from cubecloud_cli.splat.on_cpu import SplatKernels, kernels_to_compile_ahead, threads_each
+from cubecloud_cli.splat.scalar_gaussians import GaussianModel, ScalarGaussians, scalar_gaussians_from_points
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.trainer import SplatTrainer
-from cubecloud_cli.splat.training_views import TrainingScene, load_scene
+from cubecloud_cli.splat.training_views import TRANSFER_IMAGES, TrainingScene, load_scene
 
 log = logging.getLogger("cubecloud")
 
@@ -64,7 +65,9 @@ def recorded_params(settings: SplatSettings, scene_dir: Path) -> dict:
 def input_files(scene_dir: Path) -> list[Path]:
     """The scene files a splat run trains from (the point cloud only seeds --init cloud, but a new
     export changes both)."""
-    return [Path(scene_dir) / "images.npy", Path(scene_dir) / "points3D.ply"]
+    files = [Path(scene_dir) / "images.npy", Path(scene_dir) / "points3D.ply"]
+    transfer_images = Path(scene_dir) / TRANSFER_IMAGES
+    return files + [transfer_images] if transfer_images.is_file() else files
 
 
 @dataclass(frozen=True)
@@ -111,9 +114,11 @@ class SplatStage(Stage):
         )
 
 
-def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
+def _initial_gaussians(scene: TrainingScene, settings: SplatSettings) -> GaussianModel:
     if settings.init == "random":
         xyz, grey = random_points(settings.random_points, settings.seed)
+        if settings.scalar:
+            return scalar_gaussians_from_points(xyz, grey, _scalar_transfers(scene))
         return gaussians_from_points(xyz, grey, settings.channels, settings.sh_degree)
     if scene.points is None:
         raise CubecloudError(
@@ -125,7 +130,21 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings):
             f"scan, or an --air-threshold too high); check the scan and its --window, or use --init random"
         )
     xyz, rgb = scene.points
+    if settings.scalar:
+        values = scene.point_values if scene.point_values is not None else rgb.mean(axis=1)
+        if not np.isfinite(values).all():
+            raise CubecloudError(f"the point values of {scene.directory} hold NaN or Inf: re-export the scene")
+        return scalar_gaussians_from_points(xyz, values, _scalar_transfers(scene))
     return gaussians_from_points(xyz, rgb, settings.channels, settings.sh_degree)
+
+
+def _scalar_transfers(scene: TrainingScene) -> list:
+    if not scene.transfers:
+        raise CubecloudError(
+            f"{scene.directory} does not say which transfer function its images were rendered under: --scalar "
+            f"trains on a dvr scene from `cubecloud export` (re-export with --view dvr), or drop --scalar"
+        )
+    return scene.transfers
 
 
 # Options that change how often things are reported, not what is trained.
@@ -169,7 +188,7 @@ def train_splat(
     device = runtime.apply()
     _bound_kernel_threads(runtime, device)
     reset_peak_memory(device)
-    scene = load_scene(scene_dir, settings.channels)
+    scene = load_scene(scene_dir, settings.channels, every_transfer=settings.scalar)
     if scene.single_centre:  # said here, not in load_scene, so that eval does not repeat it
         log.warning(
             f"every training camera of {scene_dir} sits in one place: 3DGS cannot tell their images apart "
@@ -239,8 +258,13 @@ def _build_trainer(
 
 
 def _write_outputs(trainer: SplatTrainer, directory: Path) -> None:
+    trainer.draw_under_first_transfer()
     # The 3D filter baked in: a viewer shows what eval scores.
-    write_gaussians_ply(directory / PLY_FILE, trainer.gaussians.baked())
+    gaussians = trainer.gaussians
+    if isinstance(gaussians, ScalarGaussians):
+        write_gaussians_ply(directory / PLY_FILE, gaussians.baked(), scalar_properties(gaussians))
+    else:
+        write_gaussians_ply(directory / PLY_FILE, gaussians.baked())
     write_csv_log(directory / "log.csv", LOG_COLUMNS, trainer.history)
     _write_preview(trainer, directory / "preview.png")
 

@@ -17,15 +17,15 @@ from cubecloud_cli.numerics.readback import GroupedReads
 from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.raster.cpu.backward_compile import BackwardCompile
 from cubecloud_cli.splat.densify import DensityStrategy, Trainable
-from cubecloud_cli.splat.gaussians import TRAINED_PARAMETERS, Gaussians
 from cubecloud_cli.splat.losses import photometric_loss
+from cubecloud_cli.splat.scalar_gaussians import GaussianModel
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
 from cubecloud_cli.splat.training_views import TrainingScene
 
 
 def render_camera(
-    gaussians: Gaussians,
+    gaussians: GaussianModel,
     cameras: PinholeCameras,
     view: int,
     sh_degree: int,
@@ -56,7 +56,7 @@ def render_camera(
 
 
 def render(
-    gaussians: Gaussians,
+    gaussians: GaussianModel,
     scene: TrainingScene,
     view: int,
     sh_degree: int,
@@ -73,7 +73,7 @@ class SplatTrainer:
 
     def __init__(
         self,
-        gaussians: Gaussians,
+        gaussians: GaussianModel,
         scene: TrainingScene,
         settings: SplatSettings,
         device: torch.device,
@@ -84,7 +84,7 @@ class SplatTrainer:
         self.device = device
         self.rasterizer = rasterizer_for(device)
         self.extent = scene.extent
-        for name in TRAINED_PARAMETERS:
+        for name in gaussians.TRAINED:
             setattr(gaussians, name, getattr(gaussians, name).detach().to(device).requires_grad_(True))
         self.gaussians = gaussians
         # What training started from; a restored checkpoint replaces the Gaussians, not this.
@@ -96,10 +96,10 @@ class SplatTrainer:
             "opacity_logits": settings.lr_opacity,
             "sh_dc": settings.lr_sh,
             "sh_rest": settings.lr_sh / 20.0,
+            "value_logits": settings.lr_value,
+            "log_lengths": settings.lr_length,
         }
-        groups = [
-            {"params": [getattr(gaussians, name)], "lr": rates[name], "name": name} for name in TRAINED_PARAMETERS
-        ]
+        groups = [{"params": [getattr(gaussians, name)], "lr": rates[name], "name": name} for name in gaussians.TRAINED]
         # Fused: one pass over each parameter instead of about ten elementwise ops, each with its
         # own temporary; on the CPU a 75k-Gaussian step took 3.5 ms and takes 0.9 ms on one thread.
         self.optimizer = adam(groups, eps=1e-15)
@@ -116,6 +116,8 @@ class SplatTrainer:
         self.history: list[dict] = []
         self._queue: list[int] = []
         self.images = scene.images.to(device)
+        # A scalar scene trained under several transfer functions: each step draws one.
+        self.transfer_images = None if scene.transfer_images is None else scene.transfer_images.to(device)
         self.identity: dict | None = None  # the scene, as the stage describes it in checkpoints
         self.training_cameras = scene.cameras.subset(scene.train)
         self._update_smoothing()
@@ -159,8 +161,9 @@ class SplatTrainer:
         if not self._stepped and self.rasterizer is NUMBA:
             backward_compile = BackwardCompile.start()
         self._stepped = True
+        target = self._target(view)
         rendered = self.render(view, retain=True)
-        loss = photometric_loss(rendered.image, self.images[view], self.settings.dssim_weight)
+        loss = photometric_loss(rendered.image, target, self.settings.dssim_weight)
         if backward_compile is not None:
             backward_compile.before_backward()
         loss.backward()
@@ -170,7 +173,7 @@ class SplatTrainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         # One sum per parameter: NaN and ±Inf propagate into it, at a fraction of isfinite's cost.
-        sums = torch.stack([getattr(self.gaussians, name).detach().sum() for name in TRAINED_PARAMETERS])
+        sums = torch.stack([getattr(self.gaussians, name).detach().sum() for name in self.gaussians.TRAINED])
         finite = torch.isfinite(sums).all().to(loss.dtype)
         due = self._reads.push(self.iteration, torch.stack((loss.detach(), finite)))
         if due or self.strategy.changes_at(self.iteration):
@@ -183,6 +186,21 @@ class SplatTrainer:
             self._update_smoothing()  # the means still move a little once densification stops
         self.elapsed_s += time.perf_counter() - started
         return loss.detach()
+
+    def _target(self, view: int) -> torch.Tensor:
+        """The view's image under this step's transfer function: the scene's one, or one drawn
+        from its set (the Gaussians are drawn under it until the next step's draw)."""
+        if self.transfer_images is None:
+            return self.images[view]
+        index = int(torch.randint(len(self.scene.transfers), (1,), generator=self.generator))
+        self.gaussians.transfer = self.scene.transfers[index]
+        return self.transfer_images[index, view]
+
+    def draw_under_first_transfer(self) -> None:
+        """Draw the Gaussians under the scene's own transfer function (that of ``images``), as
+        evaluation, the preview and the PLY's reference columns do."""
+        if self.transfer_images is not None:
+            self.gaussians.transfer = self.scene.transfers[0]
 
     def read_back(self) -> None:
         """Read the steps' values not yet read: raise at the first step whose parameters or loss
@@ -207,6 +225,7 @@ class SplatTrainer:
         """Mean PSNR (per view, then averaged) and L1 on ``views``."""
         if not views:
             return {}
+        self.draw_under_first_transfer()
         scores, errors = [], []
         for view in views:
             image = self.render(view).image.clamp(0.0, 1.0)
@@ -221,7 +240,7 @@ class SplatTrainer:
             "iteration": self.iteration,
             "elapsed_s": self.elapsed_s,
             "history": self.history,
-            "gaussians": {name: getattr(self.gaussians, name).detach().cpu() for name in TRAINED_PARAMETERS},
+            "gaussians": {name: getattr(self.gaussians, name).detach().cpu() for name in self.gaussians.TRAINED},
             "smoothing": None if self.gaussians.smoothing is None else self.gaussians.smoothing.cpu(),
             "optimizer": self.optimizer.state_dict(),
             **self.strategy.state_dict(),

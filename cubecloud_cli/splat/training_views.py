@@ -8,7 +8,7 @@ else ``sparse/0/test.txt`` (recent 3DGS), else every 8th image by name (the refe
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +17,10 @@ import torch
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
+from cubecloud_cli.transfer.function import TransferFunction
 
 HOLDOUT_EVERY = 8
+TRANSFER_IMAGES = "transfer_images.npy"  # our export's training views under each transfer function
 # Cameras within this fraction of their distance from the origin (or 1e-9 world units) of their
 # mean count as one place: poses written once and read back differ by rounding.
 SAME_CENTRE = 1e-6
@@ -33,6 +35,13 @@ class TrainingScene:
     train: list[int]
     test: list[int]
     points: tuple[np.ndarray, np.ndarray] | None  # xyz (P, 3), colours (P, 3) in [0, 1]
+    # The scan value at each point (our export's float intensity), which seeds a scalar scene.
+    point_values: np.ndarray | None = None
+    # The transfer functions the images were rendered under (our dvr export's); none for a
+    # scene that does not say. With more than one, transfer_images holds the views under each
+    # (K, V, H, W, C), the first being ``images``.
+    transfers: list[TransferFunction] = field(default_factory=list)
+    transfer_images: torch.Tensor | None = None
 
     def _centre_spread(self) -> tuple[float, float]:
         """The largest distance of a training camera from their mean, and that mean's distance
@@ -113,7 +122,50 @@ def _split(directory: Path, names: list[str]) -> list[int]:
     return [index for index, name in enumerate(names) if name in test]
 
 
-def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
+def _transfers(directory: Path) -> list[TransferFunction]:
+    """The transfer functions of our dvr export's training images, from its manifest (its
+    "transfers", else its image model's); none for other scenes."""
+    try:
+        manifest = json.loads((directory / "manifest.json").read_text())
+        model = manifest.get("image_model", {})
+    except (OSError, ValueError, AttributeError):
+        return []
+    if not isinstance(model, dict) or model.get("kind") != "dvr":
+        return []
+    listed = manifest.get("transfers") or [model.get("transfer")]
+    try:
+        functions = [TransferFunction(float(t["low"]), float(t["high"]), float(t["density"])) for t in listed]
+        for function in functions:
+            function.validate()
+    except (KeyError, TypeError, ValueError):
+        raise CubecloudError(
+            f"{directory / 'manifest.json'} records a transfer function that is not one ({listed}): re-export the scene"
+        ) from None
+    return functions
+
+
+def _transfer_images(directory: Path, transfers: int, views: int, height: int, width: int) -> torch.Tensor | None:
+    path = directory / TRANSFER_IMAGES
+    if transfers < 2:
+        return None
+    if not path.is_file():
+        raise CubecloudError(
+            f"{directory} lists {transfers} transfer functions but has no {TRANSFER_IMAGES}: re-export the scene"
+        )
+    stack = np.load(path, mmap_mode="r")
+    if stack.shape != (transfers, views, height, width):
+        raise CubecloudError(
+            f"{path} holds {stack.shape} but the scene has {transfers} transfer functions of {views} views of {width}x{height}: re-export the scene"
+        )
+    images = np.array(stack, dtype=np.float32)[..., None]
+    if not np.isfinite(images).all():
+        raise CubecloudError(f"{path} holds NaN or Inf values: re-export the scene")
+    return torch.from_numpy(images)
+
+
+def load_scene(directory: Path, channels: int = 1, every_transfer: bool = False) -> TrainingScene:
+    """The scene's cameras, images and points; ``every_transfer`` loads its views under every
+    transfer function too (a scalar run trains on them)."""
     directory = Path(directory)
     model = read_colmap_model(directory)
     cameras, names = model.cameras, model.image_names
@@ -140,11 +192,12 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
     train = [index for index in range(len(names)) if index not in set(test)]
     if not train:
         raise CubecloudError(f"{directory} leaves no image for training after the test split")
-    points = None
+    points, point_values = None, None
     for candidate in (directory / "points3D.ply", find_colmap_model(directory) / "points3D.ply"):
         if candidate.is_file():
-            xyz, rgb, _ = read_point_cloud_ply(candidate)
+            xyz, rgb, extras = read_point_cloud_ply(candidate)
             points = (xyz, rgb.astype(np.float32) / 255.0)
+            point_values = extras.get("intensity")
             break
     if points is None and len(model.xyz):
         points = (model.xyz, model.rgb.astype(np.float32) / 255.0)
@@ -152,8 +205,18 @@ def load_scene(directory: Path, channels: int = 1) -> TrainingScene:
         raise CubecloudError(
             f"the point cloud of {directory} holds NaN or Inf coordinates: fix it, or use --init random"
         )
+    transfers = _transfers(directory)
     scene = TrainingScene(
-        directory, cameras, names, torch.from_numpy(np.array(images, dtype=np.float32)), train, test, points
+        directory,
+        cameras,
+        names,
+        torch.from_numpy(np.array(images, dtype=np.float32)),
+        train,
+        test,
+        points,
+        point_values,
+        transfers,
+        _transfer_images(directory, len(transfers), len(names), height, width) if every_transfer else None,
     )
     if not scene.extent > 1e-9:
         raise CubecloudError(

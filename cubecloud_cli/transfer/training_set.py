@@ -1,0 +1,69 @@
+"""The transfer functions a scalar scene is trained under, and those it is tested under.
+
+A scalar scene must render tissue it was never shown, so it is trained under a set: the
+export's own transfer function first, then the presets eval does not hold out, then seeded
+random ramps over the value range, their start, width and density drawn so that the set covers
+faint and opaque, narrow and wide. eval holds out other presets and ramps of another seed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cubecloud_cli.transfer.function import TransferFunction
+from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, resolve_transfer
+
+# Shown to no training run, so that eval's scores on them measure transfer functions never seen.
+HELD_OUT_PRESETS = ("bone",)
+RANDOM_RAMP = "ramp"
+# Ramps start in [0.02, 0.9] of the value range, are 0.02 to 0.6 wide and 1 to 30 per world unit
+# dense (log-uniform: as many narrow as wide, as many faint as opaque).
+RAMP_START = (0.02, 0.9)
+RAMP_WIDTH = (0.02, 0.6)
+RAMP_DENSITY = (1.0, 30.0)
+HELD_OUT_SEED_OFFSET = 1_000_003  # eval's ramps come from a stream no training seed reaches
+
+
+@dataclass(frozen=True)
+class NamedTransfer:
+    name: str  # a preset's name, or ramp-N for a seeded random ramp
+    function: TransferFunction
+
+
+def random_ramps(count: int, seed: int) -> list[NamedTransfer]:
+    """``count`` seeded random ramps over the value range."""
+    rng = np.random.default_rng(seed)
+    ramps = []
+    for index in range(count):
+        low = float(rng.uniform(*RAMP_START))
+        width = math.exp(rng.uniform(math.log(RAMP_WIDTH[0]), math.log(RAMP_WIDTH[1])))
+        density = math.exp(rng.uniform(math.log(RAMP_DENSITY[0]), math.log(RAMP_DENSITY[1])))
+        ramps.append(NamedTransfer(f"{RANDOM_RAMP}-{index}", TransferFunction(low, min(1.0, low + width), density)))
+    return ramps
+
+
+def training_transfers(
+    primary: NamedTransfer, count: int, intensity_map: dict | None, seed: int
+) -> list[NamedTransfer]:
+    """``count`` transfer functions: ``primary``, then the presets not held out (in their order),
+    then seeded random ramps."""
+    if count < 1:
+        raise ValueError(f"a training set needs at least one transfer function, got {count}")
+    chosen = [primary]
+    for name in TRANSFER_PRESETS:
+        if len(chosen) == count:
+            break
+        if name != primary.name and name not in HELD_OUT_PRESETS:
+            chosen.append(NamedTransfer(name, resolve_transfer(name, intensity_map)))
+    chosen += random_ramps(count - len(chosen), seed)
+    return chosen
+
+
+def held_out_transfers(intensity_map: dict | None, seed: int, ramps: int = 1) -> list[NamedTransfer]:
+    """The transfer functions eval scores a scalar scene under, none of them in a training set."""
+    held = [NamedTransfer(name, resolve_transfer(name, intensity_map)) for name in HELD_OUT_PRESETS]
+    held += [NamedTransfer(f"held-out-{r.name}", r.function) for r in random_ramps(ramps, seed + HELD_OUT_SEED_OFFSET)]
+    return held

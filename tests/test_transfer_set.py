@@ -1,0 +1,116 @@
+"""Training under many transfer functions: the set (transfer/training_set.py), the export's views
+under each (--transfer-set) and a scalar splat run that trains under all of them."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from cli_helpers import assert_one_line_error, invoke
+
+from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
+from cubecloud_cli.transfer.function import TransferFunction
+from cubecloud_cli.transfer.tissue_presets import resolve_transfer
+from cubecloud_cli.transfer.training_set import (
+    HELD_OUT_PRESETS,
+    RAMP_DENSITY,
+    NamedTransfer,
+    held_out_transfers,
+    random_ramps,
+    training_transfers,
+)
+
+CT_WINDOW = {"modality": "ct", "low": -160.0, "high": 240.0}
+
+
+def test_the_set_starts_with_the_exports_own_and_never_holds_out_what_eval_tests():
+    primary = NamedTransfer("tissue", resolve_transfer("tissue", CT_WINDOW))
+    chosen = training_transfers(primary, 8, CT_WINDOW, seed=0)
+    assert len(chosen) == 8 and chosen[0] == primary
+    names = [t.name for t in chosen]
+    assert len(set(names)) == 8 and not set(names) & set(HELD_OUT_PRESETS)
+    assert names[1:3] == ["soft", "glow"] and all(n.startswith("ramp-") for n in names[3:])
+    held = held_out_transfers(CT_WINDOW, seed=0)
+    assert {t.function for t in held}.isdisjoint({t.function for t in chosen})
+    assert training_transfers(primary, 1, CT_WINDOW, seed=0) == [primary]
+    assert training_transfers(primary, 8, CT_WINDOW, seed=0) == chosen  # seeded: the same set again
+    with pytest.raises(ValueError):
+        training_transfers(primary, 0, CT_WINDOW, seed=0)
+
+
+def test_random_ramps_are_valid_transfer_functions_over_the_value_range():
+    ramps = random_ramps(200, seed=5)
+    for ramp in ramps:
+        ramp.function.validate()
+        assert RAMP_DENSITY[0] <= ramp.function.density <= RAMP_DENSITY[1]
+    widths = np.array([r.function.high - r.function.low for r in ramps])
+    assert widths.min() < 0.05 and widths.max() > 0.4  # narrow and wide alike
+
+
+@pytest.fixture(scope="module")
+def exported_under_three(tmp_path_factory):
+    work = tmp_path_factory.mktemp("transfer_set") / "work"
+    for args in (
+        ["preprocess", "-o", work, "--size", "32"],
+        ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
+        [
+            "export",
+            work,
+            "--resolution",
+            "32",
+            "--views",
+            "12",
+            "--cube",
+            "8",
+            "--points-per-cube",
+            "64",
+            "--max-points",
+            "1500",
+            "--novel-directions",
+            "0",
+            "--transfer-set",
+            "3",
+        ],  # fmt: skip
+    ):
+        result = invoke(*args, "-q")
+        assert result.exit_code == 0, result.output
+    return work
+
+
+def test_export_renders_the_training_views_under_each_transfer_function(exported_under_three):
+    export = exported_under_three / "export"
+    manifest = json.loads((export / "manifest.json").read_text())
+    listed = manifest["transfers"]
+    assert [t["name"] for t in listed] == ["tissue", "soft", "glow"]
+    assert listed[0] == {"name": "tissue", **manifest["image_model"]["transfer"]}
+    stack = np.load(export / "transfer_images.npy")
+    assert stack.shape == (3, 12, 32, 32)
+    np.testing.assert_array_equal(stack[0], np.load(export / "images.npy"))
+    # Other transfer functions show other images (glow shows every non-air voxel).
+    assert not np.allclose(stack[0], stack[1]) and not np.allclose(stack[0], stack[2])
+    assert "render_transfers" in manifest["timings_s"]
+
+
+def test_a_scalar_run_trains_under_the_whole_set(exported_under_three):
+    work = exported_under_three
+    result = invoke("splat", work, "--scalar", "--iterations", "40", "--eval-every", "40", "--device", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+    properties = read_scalar_properties(work / "splat" / "point_cloud.ply")
+    listed = json.loads((work / "export" / "manifest.json").read_text())["transfers"]
+    assert properties.trained_under == [TransferFunction(t["low"], t["high"], t["density"]) for t in listed]
+    assert properties.drawn_under == properties.trained_under[0]
+    manifest = json.loads((work / "splat" / "manifest.json").read_text())
+    assert "export/transfer_images.npy" in manifest["inputs"] and manifest["metrics"]["test_psnr"] > 15
+
+
+@pytest.mark.parametrize(
+    "args, pattern",
+    [
+        (["--transfer-set", "0"], r"--transfer-set 0 must be within 1\.\.64"),
+        (["--transfer-set", "2", "--view", "mip"], r"only --view dvr has"),
+    ],
+)
+def test_bad_transfer_sets_are_refused(exported_under_three, tmp_path, args, pattern):
+    assert_one_line_error(invoke("export", exported_under_three, "--force", *args), pattern)
+    assert (exported_under_three / "export" / "manifest.json").is_file()  # nothing lost
