@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from cubecloud_cli.splat.gaussian_ply import (
     read_gaussians_ply,
+    read_scalar_gaussians,
     read_scalar_properties,
     scalar_properties,
     write_gaussians_ply,
@@ -137,8 +138,17 @@ def test_the_ply_opens_as_a_reference_scene_and_keeps_the_scan_values(tmp_path):
     assert scalar.drawn_under == SOFT and scalar.trained_under == [SOFT, BONE]
     np.testing.assert_allclose(scalar.values, gaussians.values().numpy(), rtol=1e-6)
     np.testing.assert_allclose(scalar.log_lengths, gaussians.log_lengths.numpy(), rtol=1e-6)
+    # Read back, the scene draws under another transfer function as the trained one does, its 3D
+    # filter folded into the scales and the opacities' attenuation.
+    again = read_scalar_gaussians(path)
+    torch.testing.assert_close(
+        again.drawn_as(BONE).opacities(), gaussians.drawn_as(BONE).opacities(), rtol=1e-5, atol=1e-7
+    )
+    torch.testing.assert_close(again.scales(), gaussians.scales(), rtol=1e-5, atol=1e-7)
     write_gaussians_ply(tmp_path / "plain.ply", reference)
-    assert read_scalar_properties(tmp_path / "plain.ply") is None
+    assert (
+        read_scalar_properties(tmp_path / "plain.ply") is None and read_scalar_gaussians(tmp_path / "plain.ply") is None
+    )
 
 
 def test_a_scalar_model_is_drawn_by_every_rasterizer_as_a_baked_one():

@@ -68,7 +68,7 @@ def exported_under_three(tmp_path_factory):
             "--max-points",
             "1500",
             "--novel-directions",
-            "0",
+            "2",
             "--transfer-set",
             "3",
         ],  # fmt: skip
@@ -102,6 +102,45 @@ def test_a_scalar_run_trains_under_the_whole_set(exported_under_three):
     assert properties.drawn_under == properties.trained_under[0]
     manifest = json.loads((work / "splat" / "manifest.json").read_text())
     assert "export/transfer_images.npy" in manifest["inputs"] and manifest["metrics"]["test_psnr"] > 15
+
+
+def test_export_renders_the_novel_views_under_the_held_out_transfer_functions(exported_under_three):
+    novel = exported_under_three / "export" / "novel"
+    held = json.loads((novel / "transfers.json").read_text())["held_out"]
+    assert [t["name"] for t in held] == ["bone", "held-out-ramp-0"]
+    trained = json.loads((exported_under_three / "export" / "manifest.json").read_text())["transfers"]
+    assert {(t["low"], t["high"], t["density"]) for t in held}.isdisjoint(
+        {(t["low"], t["high"], t["density"]) for t in trained}
+    )
+    main = np.load(novel / "reference.npy")
+    for entry in held:
+        reference = np.load(novel / entry["file"])
+        assert reference.shape == main.shape and np.isfinite(reference).all() and not np.allclose(reference, main)
+
+
+def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_baked_one_not(
+    exported_under_three, tmp_path
+):
+    import shutil
+
+    work = tmp_path / "work"
+    for stage in ("preprocess", "cunerf", "export"):
+        shutil.copytree(exported_under_three / stage, work / stage)
+    quick = ["--iterations", "40", "--eval-every", "40", "--device", "cpu", "-q"]
+    for extra in (["--scalar"], ["--name", "baked"]):
+        assert invoke("splat", work, *quick, *extra).exit_code == 0
+    result = invoke("eval", work, "--turntable-frames", "0", "--device", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+    results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
+    held = results["splat"]["held_out_transfers"]
+    assert list(held) == ["bone", "held-out-ramp-0"]
+    for summary in held.values():
+        assert summary["views"] == 2 * 3 and 5 < summary["psnr"] < 100  # 2 directions × 0.75, 1, 1.33
+    assert "held_out_transfers" not in results["splat-baked"]
+    report = (work / "eval" / "report.md").read_text()
+    assert "## Transfer functions held out of training" in report and "| splat | bone |" in report
+    rows = (work / "eval" / "per_view.csv").read_text()
+    assert "held-out transfer function bone" in rows
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +17,10 @@ import numpy as np
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet, nearest_angles_deg
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.scoring import summarize
+from cubecloud_cli.transfer.function import TransferFunction
 
 NOVEL_DIR, VIEWS_FILE, REFERENCE_FILE = "novel", "views.json", "reference.npy"
+TRANSFERS_FILE = "transfers.json"  # the transfer functions held out of training, with their references
 # Angle from the nearest training camera: a sphere of 60 keeps every direction within about 15°;
 # a ring leaves the poles 90° away.
 ANGLE_BINS = (0.0, 10.0, 20.0, 45.0, 180.0)
@@ -32,9 +34,19 @@ PICTURED = (
 
 
 @dataclass
+class HeldOutTransfer:
+    """A transfer function no scalar scene trains under, and the novel views' references under it."""
+
+    name: str
+    function: TransferFunction
+    reference: np.ndarray  # (V, H, W) float32, as NovelTest.reference
+
+
+@dataclass
 class NovelTest:
     views: NovelViewSet
     reference: np.ndarray  # (V, H, W) float32, in views.entries() order
+    held_out: list[HeldOutTransfer] = field(default_factory=list)
 
 
 def load_novel_test(scene_dir: Path, fix: str) -> NovelTest | None:
@@ -54,7 +66,26 @@ def load_novel_test(scene_dir: Path, fix: str) -> NovelTest | None:
     reference = np.asarray(reference, dtype=np.float32)
     if not np.isfinite(reference).all():
         raise CubecloudError(f"{folder / REFERENCE_FILE} holds NaN or Inf: run `{fix}`")
-    return NovelTest(views, reference)
+    return NovelTest(views, reference, _held_out(folder, expected, fix))
+
+
+def _held_out(folder: Path, expected: tuple[int, int, int], fix: str) -> list[HeldOutTransfer]:
+    if not (folder / TRANSFERS_FILE).is_file():
+        return []
+    held = []
+    try:
+        for entry in json.loads((folder / TRANSFERS_FILE).read_text())["held_out"]:
+            function = TransferFunction(float(entry["low"]), float(entry["high"]), float(entry["density"]))
+            function.validate()
+            reference = np.asarray(np.load(folder / Path(entry["file"]).name, mmap_mode="r"), dtype=np.float32)
+            if reference.shape != expected or not np.isfinite(reference).all():
+                raise ValueError(f"{entry['file']} is not {expected} finite values")
+            held.append(HeldOutTransfer(str(entry["name"]), function, reference))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CubecloudError(
+            f"{folder / TRANSFERS_FILE} or a reference it names is unreadable ({exc}): run `{fix}`"
+        ) from None
+    return held
 
 
 def angle_bin(angle: float) -> str:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS
 from cubecloud_cli.core.artifacts import is_complete, read_manifest
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
@@ -181,3 +182,48 @@ def training_curve(run: SplatRun) -> tuple[list[float], list[float]]:
 
 def picture_name(view_name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(view_name).with_suffix("").as_posix())
+
+
+def score_held_out_transfers(
+    run: SplatRun, scalar, scored: ScoredScene, rasterizer, tick, per_view: list[dict], result: dict
+) -> None:
+    """Draw a scalar scene under each transfer function it never trained under and score it at
+    the headline novel views (0.75–1.33×) against the volume's references under that transfer
+    function; the summaries go into ``result["held_out_transfers"]`` by name."""
+    test = scored.novel
+    count = len(test.views.directions)
+    headline = [m for m in test.views.magnifications if any(abs(m - h) < 1e-9 for h in HEADLINE_MAGNIFICATIONS)]
+    storage = [test.views.magnifications.index(m) * count + d for m in headline for d in range(count)]
+    angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
+    summaries = {}
+    for held in test.held_out:
+        drawn = scalar.drawn_as(held.function)
+        renders = np.concatenate(
+            [
+                render_views(drawn, test.views.cameras(m), list(range(count)), rasterizer, tick, run.antialias)[0]
+                for m in headline
+            ]
+        )
+        if not np.isfinite(renders).all():
+            raise CubecloudError(f"{run.name} renders NaN or Inf under {held.name}: retrain it with `{run.retrain}`")
+        all_rows = annotate([{}] * len(test.views.entries()), test, angles)
+        rows = [
+            {**all_rows[index], **scores}
+            for index, scores in zip(storage, score_views(held.reference[storage], renders))
+        ]
+        per_view += [
+            {
+                "row": run.name,
+                "method": run.method,
+                "set": f"novel, held-out transfer function {held.name}",
+                "scene": str(scored.scene.directory),
+                "against": "volume, pixel area",
+                **row,
+            }
+            for row in rows
+        ]
+        summaries[held.name] = {
+            "transfer": {"low": held.function.low, "high": held.function.high, "density": held.function.density},
+            **summarize(rows),
+        }
+    result["held_out_transfers"] = summaries

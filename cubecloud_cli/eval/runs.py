@@ -26,8 +26,9 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.novel_scores import NovelTest, load_novel_test
 from cubecloud_cli.raster.backends import Rasterizer
 from cubecloud_cli.scene import read_colmap_model
-from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply
+from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply, read_scalar_gaussians
 from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
 from cubecloud_cli.splat.trainer import render_camera
 from cubecloud_cli.splat.training_views import TrainingScene, load_scene
 
@@ -64,9 +65,18 @@ class SplatRun:
         name = self.name[len("splat-") :] if self.name.startswith("splat-") else None
         return f"cubecloud splat {self.directory.parent}{f' --name {name}' if name else ''} --force"
 
+    @property
+    def scalar(self) -> bool:
+        """Whether it trained Gaussians that carry the scan's value (``splat --scalar``)."""
+        return bool(self.manifest.get("params", {}).get("scalar", False))
+
     def gaussians(self) -> Gaussians:
         """Read when needed, so that only one run's Gaussians are in memory at a time."""
         return read_gaussians_ply(self.directory / SPLAT_PLY)
+
+    def scalar_gaussians(self) -> ScalarGaussians | None:
+        """A scalar run's Gaussians, to draw under any transfer function; None for a baked run."""
+        return read_scalar_gaussians(self.directory / SPLAT_PLY) if self.scalar else None
 
 
 @dataclass

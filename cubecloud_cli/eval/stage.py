@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS
 from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
@@ -25,6 +26,7 @@ from cubecloud_cli.eval.rows import (
     cunerf_rows,
     picture_name,
     protocol_description,
+    score_held_out_transfers,
     score_novel,
     score_row,
     training_curve,
@@ -111,6 +113,8 @@ class LoadedRuns:
             scored, turntable = self.scene_of[run.name], self.turntables[run.name]
             total += len(scored.scene.test) + (len(turntable) if turntable else 0)
             total += len(scored.novel.views) if scored.novel else 0
+            if scored.novel and run.scalar:
+                total += len(scored.novel.held_out) * len(scored.novel.views.directions) * len(HEADLINE_MAGNIFICATIONS)
         return total
 
 
@@ -228,6 +232,9 @@ def _score_run(
     }
     if scored.novel is not None:
         pictured = score_novel(run, gaussians, scored, rasterizer, tick, scores.per_view, result)
+        scalar = run.scalar_gaussians() if scored.novel.held_out else None
+        if scalar is not None:
+            score_held_out_transfers(run, scalar.to(device), scored, rasterizer, tick, scores.per_view, result)
         if scored is loaded.main_scene:
             for index, render in pictured.items():
                 scores.novel_renders.setdefault(index, {})[run.name] = render

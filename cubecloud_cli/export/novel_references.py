@@ -10,11 +10,14 @@ sub-pixel rays (:data:`cubecloud_cli.cameras.novel.SUPERSAMPLING`,
 WORK/export/novel/ holds
   views.json          the directions, poses, magnifications and focal lengths (NovelViewSet.as_json)
   reference.npy       float32 (V, H, W), magnification-major, in the order of views.json's "views"
+  transfers.json      with --transfer-set K > 1: the transfer functions held out of training, and
+  reference-NAME.npy  the same views under each, for eval to score scalar scenes on
   contact_sheet.png   every novel reference, for people
 """
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
@@ -27,10 +30,12 @@ from cubecloud_cli.export.images import write_contact_sheet
 from cubecloud_cli.render import ImageModel
 from cubecloud_cli.render.pixel_area import pixel_area_render
 from cubecloud_cli.scene import write_json
+from cubecloud_cli.transfer.training_set import NamedTransfer
 
 NOVEL_DIR = "novel"
 VIEWS_FILE = "views.json"
 REFERENCE_FILE = "reference.npy"
+TRANSFERS_FILE = "transfers.json"
 
 
 def render_novel_references(
@@ -40,9 +45,10 @@ def render_novel_references(
     device: torch.device,
     progress: ExportProgress,
     on_progress: Callable[[int, int], None],
+    prefix: str = "novel",
 ) -> np.ndarray:
     """(V, H, W) pixel-area renders of ``field`` at every novel view, saving each as it is done
-    and reusing the ones an interrupted run saved."""
+    (under ``prefix``) and reusing the ones an interrupted run saved."""
     count = len(novel.directions)
     images = np.empty((len(novel), novel.resolution, novel.resolution), dtype=np.float32)
     support = None
@@ -52,7 +58,7 @@ def render_novel_references(
             cameras = novel.cameras(magnification)
             for direction in range(count):
                 index = group * count + direction
-                name = f"novel_view_{index:05d}"
+                name = f"{prefix}_view_{index:05d}"
                 saved = progress.load(name)
                 if saved is not None and saved.shape == images.shape[1:]:
                     images[index] = saved
@@ -79,3 +85,17 @@ def write_novel(directory: Path, novel: NovelViewSet, reference: np.ndarray) -> 
         f"{', '.join(f'{m:g}x' for m in novel.magnifications)}), reference renders",
         columns=len(novel.directions),
     )
+
+
+def held_out_reference_file(name: str) -> str:
+    return f"reference-{name}.npy"
+
+
+def write_held_out(directory: Path, held_out: list[tuple[NamedTransfer, np.ndarray]]) -> None:
+    """The references under each held-out transfer function, and the list that names them."""
+    folder = directory / NOVEL_DIR
+    listed = []
+    for named, reference in held_out:
+        np.save(folder / held_out_reference_file(named.name), reference)
+        listed.append({"name": named.name, **asdict(named.function), "file": held_out_reference_file(named.name)})
+    write_json(folder / TRANSFERS_FILE, {"held_out": listed})

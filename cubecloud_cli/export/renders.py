@@ -39,6 +39,7 @@ class ExportJob:
     device: torch.device
     cunerf_name: str | None
     transfers: tuple[NamedTransfer, ...]  # the training views' transfer functions; the first is image_model's
+    held_out: tuple[NamedTransfer, ...] = ()  # those the novel views are also rendered under, for eval
 
     @property
     def cunerf_dir(self) -> Path:
@@ -46,7 +47,7 @@ class ExportJob:
 
     @property
     def total_views(self) -> int:
-        return (1 + len(self.transfers)) * len(self.cameras) + len(self.novel)
+        return (1 + len(self.transfers)) * len(self.cameras) + (1 + len(self.held_out)) * len(self.novel)
 
 
 @dataclass
@@ -57,6 +58,7 @@ class ExportRenders:
     transfer_images: np.ndarray | None  # (K, N, H, W) under each training transfer function, K > 1
     reference: np.ndarray  # the volume's renders of the same views
     novel_reference: np.ndarray
+    held_out_references: list[tuple[NamedTransfer, np.ndarray]]  # the novel views under each held-out one
     cloud: PointCloud
 
 
@@ -115,6 +117,16 @@ def render_export(
             progress,
             count_views("novel", rendered + len(cameras)),
         )
+    held_out = []
+    if job.held_out:
+        with writer.phase("render_held_out"):
+            for index, named in enumerate(job.held_out):
+                counter = count_views("held-out", rendered + len(cameras) + (1 + index) * len(job.novel))
+                model = replace(job.image_model, transfer=named.function, slice_offsets=())
+                references = render_novel_references(
+                    volume_field, job.novel, model, device, progress, counter, prefix=f"held_out_{index}"
+                )
+                held_out.append((named, references))
     with writer.phase("point_cloud"):
         on_progress("points", views, views, {})
         cloud = build_point_cloud(
@@ -129,7 +141,7 @@ def render_export(
             settings.seed,
             device,
         )
-    return ExportRenders(images, transfer_images, reference, novel_reference, cloud)
+    return ExportRenders(images, transfer_images, reference, novel_reference, held_out, cloud)
 
 
 def _render_saving_views(

@@ -40,14 +40,14 @@ from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.export.finished_views import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.images import view_names
 from cubecloud_cli.export.memory import check_export_memory
-from cubecloud_cli.export.novel_references import write_novel
+from cubecloud_cli.export.novel_references import write_held_out, write_novel
 from cubecloud_cli.export.renders import ExportJob, ExportRenders, render_export
 from cubecloud_cli.export.scene_files import held_out_views, write_scene
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.numerics.metrics import image_metrics
 from cubecloud_cli.render import ImageModel
 from cubecloud_cli.transfer.tissue_presets import resolve_transfer
-from cubecloud_cli.transfer.training_set import NamedTransfer, training_transfers
+from cubecloud_cli.transfer.training_set import NamedTransfer, held_out_transfers, training_transfers
 
 log = logging.getLogger("cubecloud")
 
@@ -189,6 +189,9 @@ def _plan_export(
         device,
         cunerf_name,
         tuple(transfers),
+        tuple(held_out_transfers(preprocess.get("intensity"), settings.seed))
+        if settings.transfer_set > 1 and settings.novel_directions > 0
+        else (),
     )
     return job, cunerf
 
@@ -208,6 +211,8 @@ def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_pr
                 np.save(writer.directory / TRANSFER_IMAGES, renders.transfer_images)
             if len(job.novel):
                 write_novel(writer.directory, job.novel, renders.novel_reference)
+            if renders.held_out_references:
+                write_held_out(writer.directory, renders.held_out_references)
         _record(writer, job, names, renders)
         if len(job.novel):
             _record_novel(writer, job.cameras, names, job.novel)

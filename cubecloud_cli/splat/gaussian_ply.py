@@ -6,9 +6,10 @@ Viewers expect three colour channels, so a grey (C = 1) model is written with it
 in all three, and a comment records that; reading such a file gives C = 1 back.
 
 A scalar scene (``--scalar``) is written in that layout as drawn under its training transfer
-function, so every splat viewer opens it, plus two columns a viewer that knows them uses to draw
-it under any other: ``scan_value`` (the value in [0, 1]) and ``log_optical_length`` (log ℓ, world
-units); comments record the transfer functions, as JSON.
+function, so every splat viewer opens it, plus the columns a viewer that knows them uses to draw
+it under any other: ``scan_value`` (the value in [0, 1]), ``log_optical_length`` (log ℓ, world
+units) and ``filter_attenuation`` (what the 3D filter, folded into the scales, leaves of every
+opacity); comments record the transfer functions, as JSON.
 """
 
 from __future__ import annotations
@@ -23,12 +24,13 @@ from plyfile import PlyData, PlyElement
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.splat.gaussians import Gaussians
-from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
+from cubecloud_cli.splat.scalar_gaussians import VALUE_MARGIN, ScalarGaussians
 from cubecloud_cli.transfer.function import TransferFunction
 
 GREY_COMMENT = "cubecloud channels 1"
 SCAN_VALUE = "scan_value"
 LOG_OPTICAL_LENGTH = "log_optical_length"
+FILTER_ATTENUATION = "filter_attenuation"
 DRAWN_UNDER = "cubecloud drawn under "  # the transfer function of the reference columns
 TRAINED_UNDER = "cubecloud trained under "  # every transfer function the scene was trained under
 
@@ -39,6 +41,7 @@ class ScalarProperties:
 
     values: np.ndarray  # (N,) float32 in (0, 1)
     log_lengths: np.ndarray  # (N,) float32
+    attenuation: np.ndarray  # (N,) float32 in (0, 1]
     drawn_under: TransferFunction
     trained_under: list[TransferFunction]
 
@@ -47,7 +50,10 @@ def scalar_properties(gaussians: ScalarGaussians) -> ScalarProperties:
     with torch.no_grad():
         values = gaussians.values().cpu().float().numpy()
         log_lengths = gaussians.log_lengths.detach().cpu().float().numpy()
-    return ScalarProperties(values, log_lengths, gaussians.transfer, list(gaussians.transfers or [gaussians.transfer]))
+        attenuation = gaussians.filter_attenuation().detach().cpu().float().numpy()
+    return ScalarProperties(
+        values, log_lengths, attenuation, gaussians.transfer, list(gaussians.transfers or [gaussians.transfer])
+    )
 
 
 def attribute_names(sh_degree: int) -> list[str]:
@@ -77,7 +83,8 @@ def write_gaussians_ply(path: Path, gaussians: Gaussians, scalar: ScalarProperti
     comments = [GREY_COMMENT] if gaussians.channels == 1 else []
     if scalar is not None:
         columns += [scalar.values.reshape(count, 1), scalar.log_lengths.reshape(count, 1)]
-        names += [SCAN_VALUE, LOG_OPTICAL_LENGTH]
+        columns += [scalar.attenuation.reshape(count, 1)]
+        names += [SCAN_VALUE, LOG_OPTICAL_LENGTH, FILTER_ATTENUATION]
         comments += [
             DRAWN_UNDER + json.dumps(asdict(scalar.drawn_under)),
             TRAINED_UNDER + json.dumps([asdict(t) for t in scalar.trained_under]),
@@ -148,7 +155,7 @@ def read_scalar_properties(path: Path) -> ScalarProperties | None:
     names = {p.name for p in vertex.properties}
     drawn = [c[len(DRAWN_UNDER) :] for c in data.comments if c.startswith(DRAWN_UNDER)]
     trained = [c[len(TRAINED_UNDER) :] for c in data.comments if c.startswith(TRAINED_UNDER)]
-    if not {SCAN_VALUE, LOG_OPTICAL_LENGTH} <= names or not drawn:
+    if not {SCAN_VALUE, LOG_OPTICAL_LENGTH, FILTER_ATTENUATION} <= names or not drawn:
         return None
     try:
         drawn_under = TransferFunction(**json.loads(drawn[0]))
@@ -159,6 +166,27 @@ def read_scalar_properties(path: Path) -> ScalarProperties | None:
         raise CubecloudError(f"{path} records a transfer function that is not one ({exc}): train it again") from None
     values = np.asarray(vertex[SCAN_VALUE], dtype=np.float32)
     log_lengths = np.asarray(vertex[LOG_OPTICAL_LENGTH], dtype=np.float32)
-    if not (np.isfinite(values).all() and np.isfinite(log_lengths).all()):
-        raise CubecloudError(f"{path} holds NaN or Inf scan values or optical lengths: train it again")
-    return ScalarProperties(values, log_lengths, drawn_under, trained_under)
+    attenuation = np.asarray(vertex[FILTER_ATTENUATION], dtype=np.float32)
+    if not all(np.isfinite(a).all() for a in (values, log_lengths, attenuation)):
+        raise CubecloudError(f"{path} holds NaN or Inf scan values, optical lengths or attenuations: train it again")
+    return ScalarProperties(values, log_lengths, attenuation, drawn_under, trained_under)
+
+
+def read_scalar_gaussians(path: Path) -> ScalarGaussians | None:
+    """A scalar scene as trained (the 3D filter folded in), ready to draw under any transfer
+    function; None for a PLY that is not one."""
+    scalar = read_scalar_properties(path)
+    if scalar is None:
+        return None
+    reference = read_gaussians_ply(path)
+    values = torch.from_numpy(np.clip(scalar.values, VALUE_MARGIN, 1.0 - VALUE_MARGIN))
+    return ScalarGaussians(
+        reference.means,
+        reference.log_scales,
+        reference.quaternions,
+        torch.logit(values),
+        torch.from_numpy(scalar.log_lengths),
+        scalar.drawn_under,
+        scalar.trained_under,
+        opacity_scale=torch.from_numpy(np.clip(scalar.attenuation, 0.0, 1.0)),
+    )

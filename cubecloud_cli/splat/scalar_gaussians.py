@@ -16,7 +16,7 @@ gets no gradient through its opacity; it is pruned as transparent.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -81,6 +81,9 @@ class ScalarGaussians:
     transfer: TransferFunction
     transfers: list[TransferFunction] = field(default_factory=list)
     smoothing: torch.Tensor | None = None
+    # A scene read from its PLY has the 3D filter folded into its scales; this is what the filter
+    # leaves of each opacity (``filter_attenuation``), applied under every transfer function.
+    opacity_scale: torch.Tensor | None = None
 
     TRAINED = SCALAR_PARAMETERS
     OPACITY_PARAMETER = "log_lengths"
@@ -98,7 +101,15 @@ class ScalarGaussians:
 
     def opacities(self) -> torch.Tensor:
         opacity = transfer_opacities(self.values(), self.log_lengths, self.transfer)
+        if self.opacity_scale is not None:
+            opacity = opacity * self.opacity_scale
         return rendered_opacities(opacity, self.log_scales, self.smoothing)
+
+    def filter_attenuation(self) -> torch.Tensor:
+        """(N,) the factor in (0, 1] the 3D filter scales every opacity by (1 without a filter)."""
+        ones = torch.ones_like(self.log_lengths)
+        scale = ones if self.opacity_scale is None else self.opacity_scale
+        return rendered_opacities(scale, self.log_scales, self.smoothing)
 
     def colours(self, camera_centre: torch.Tensor | None = None, degree: int | None = None) -> torch.Tensor:
         """(N, 1) the emission of dvr: the value itself, seen alike from every side."""
@@ -117,16 +128,7 @@ class ScalarGaussians:
 
     def drawn_as(self, transfer: TransferFunction) -> "ScalarGaussians":
         """The same Gaussians drawn under another transfer function (no copy of the tensors)."""
-        return ScalarGaussians(
-            self.means,
-            self.log_scales,
-            self.quaternions,
-            self.value_logits,
-            self.log_lengths,
-            transfer,
-            self.transfers,
-            self.smoothing,
-        )
+        return replace(self, transfer=transfer)
 
     def baked(self) -> Gaussians:
         """The reference layout under ``transfer``, 3D filter folded in: what any splat viewer draws."""
@@ -149,7 +151,10 @@ class ScalarGaussians:
     def to(self, device: torch.device | str) -> "ScalarGaussians":
         moved = {name: tensor.to(device) for name, tensor in self.parameters().items()}
         smoothing = None if self.smoothing is None else self.smoothing.to(device)
-        return ScalarGaussians(**moved, transfer=self.transfer, transfers=self.transfers, smoothing=smoothing)
+        scale = None if self.opacity_scale is None else self.opacity_scale.to(device)
+        return ScalarGaussians(
+            **moved, transfer=self.transfer, transfers=self.transfers, smoothing=smoothing, opacity_scale=scale
+        )
 
     def parameters(self) -> dict[str, torch.Tensor]:
         return {name: getattr(self, name) for name in SCALAR_PARAMETERS}
