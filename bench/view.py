@@ -9,6 +9,7 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py --query fixedDpr=0.5   # the canvas at half the resolution (viser's URL option)
     python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
     python bench/view.py --work work --bytes    # also the bytes that reach the page, per load
+    python bench/view.py --scalar --recolour 20 # a scalar scene: control change to colours sent, 20 times
 
 
 Chromium is driven over the DevTools protocol, and the page's frames are taken from a screencast
@@ -34,8 +35,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.splat.gaussian_ply import write_gaussians_ply
+from cubecloud_cli.splat.gaussian_ply import scalar_properties, write_gaussians_ply
 from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
+from cubecloud_cli.transfer.function import TransferFunction
 from cubecloud_cli.view.browser import SETTLED_GREY_LEVELS, Chromium, background_in, frame_change
 from cubecloud_cli.view.delivery import COARSE_GAUSSIANS
 from cubecloud_cli.view.server import SceneViewer
@@ -45,7 +48,7 @@ SCENE_THRESHOLD = 40  # grey level above the black background
 WHOLE_AFTER_FRAMES = 4  # frames after the full set was sent: it was drawn by the second in every run seen
 
 
-def synthetic_work(directory: Path, count: int, seed: int = 0) -> Path:
+def synthetic_work(directory: Path, count: int, seed: int = 0, scalar: bool = False) -> Path:
     """A work directory holding one finished splat run of ``count`` Gaussians filling a body-like
     ellipsoid, each about as large as its neighbours' spacing (as a trained scene's are)."""
     g = torch.Generator().manual_seed(seed)
@@ -64,9 +67,39 @@ def synthetic_work(directory: Path, count: int, seed: int = 0) -> Path:
     )
     run = directory / "splat"
     run.mkdir(parents=True)
-    write_gaussians_ply(run / "point_cloud.ply", gaussians)
-    (run / "manifest.json").write_text(json.dumps({"stage": "splat", "params": {"init": "synthetic"}}))
+    if scalar:  # values over the whole range, each Gaussian about as opaque under tissue as above
+        model = ScalarGaussians(
+            gaussians.means, gaussians.log_scales, gaussians.quaternions,
+            torch.logit(0.05 + 0.9 * torch.rand(count, generator=g)), torch.log(0.05 + 0.2 * torch.rand(count, generator=g)),
+            TransferFunction(0.3, 0.9, 4.0),
+        )  # fmt: skip
+        write_gaussians_ply(run / "point_cloud.ply", model.baked(), scalar_properties(model))
+    else:
+        write_gaussians_ply(run / "point_cloud.ply", gaussians)
+    params = {"init": "synthetic", "scalar": scalar}
+    (run / "manifest.json").write_text(json.dumps({"stage": "splat", "params": params}))
     return directory
+
+
+RECOLOUR_CHOICES = (
+    {"preset": "bone"},
+    {"preset": "soft"},
+    {"low": 0.4, "high": 0.5},
+    {"opacity": 2.0},
+    {"colour_map": "hot"},
+    {"preset": "tissue", "opacity": 1.0, "colour_map": "grey"},
+)
+
+
+def time_recolours(viewer: SceneViewer, count: int) -> list[float]:
+    """Milliseconds from each control change (set_transfer, as the page's control calls it) to the
+    new colours and opacities handed to every open page's websocket."""
+    times = []
+    for index in range(count):
+        start = time.perf_counter()
+        viewer.set_transfer(**RECOLOUR_CHOICES[index % len(RECOLOUR_CHOICES)])
+        times.append(1000.0 * (time.perf_counter() - start))
+    return times
 
 
 def scene_drawn(image: np.ndarray) -> bool:
@@ -167,6 +200,11 @@ def main() -> None:
                         help="count the bytes that reach the page (DevTools' network events; they also carry "
                              "each scene message to this script, so the times are not comparable then)")  # fmt: skip
     parser.add_argument("--save", type=Path, help="write the last load's first frame here (a PNG), to look at")
+    parser.add_argument(
+        "--scalar", action="store_true", help="the synthetic scene carries scan values (splat --scalar)"
+    )
+    parser.add_argument("--recolour", type=int, default=0,
+                        help="after the loads, time this many transfer-function changes with the page open")  # fmt: skip
     args = parser.parse_args()
     if args.trade:
         detail_trade(args.work or parser.error("--trade needs --work"))
@@ -174,7 +212,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)
-        work = args.work or synthetic_work(scratch / "work", args.gaussians)
+        work = args.work or synthetic_work(scratch / "work", args.gaussians, scalar=args.scalar)
         start = time.perf_counter()
         viewer = SceneViewer(work, port=free_port(), detail=args.detail)
         viewer.delivery.coarse = args.coarse
@@ -193,6 +231,10 @@ def main() -> None:
                         http, websocket = browser.received["http"], browser.received["websocket"]
                         print(f"  reached the page: {websocket / 1e6:.2f} MB over the websocket (the scene), "
                               f"{http / 1e6:.2f} MB over HTTP (the viewer's page and script)")  # fmt: skip
+                if args.recolour:
+                    times = time_recolours(viewer, args.recolour)
+                    print(f"recolour, {len(viewer.splats)} Gaussians, one page open: median {np.median(times):.0f} ms, "
+                          f"max {max(times):.0f} ms over {len(times)} changes")  # fmt: skip
             if args.save:
                 import imageio.v3 as iio
 

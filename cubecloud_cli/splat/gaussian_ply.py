@@ -150,8 +150,13 @@ def read_gaussians_ply(path: Path) -> Gaussians:
 
 def read_scalar_properties(path: Path) -> ScalarProperties | None:
     """The scalar columns and transfer functions of a scalar scene's PLY; None for any other PLY."""
-    data = PlyData.read(str(path))
-    vertex = data["vertex"]
+    try:
+        data = PlyData.read(str(path))
+        vertex = data["vertex"]
+    except FileNotFoundError:
+        raise CubecloudError(f"{path} does not exist: train it with `cubecloud splat`") from None
+    except Exception as exc:  # plyfile raises many types for a damaged file
+        raise CubecloudError(f"{path} is not a readable PLY ({type(exc).__name__}): train it again") from None
     names = {p.name for p in vertex.properties}
     drawn = [c[len(DRAWN_UNDER) :] for c in data.comments if c.startswith(DRAWN_UNDER)]
     trained = [c[len(TRAINED_UNDER) :] for c in data.comments if c.startswith(TRAINED_UNDER)]

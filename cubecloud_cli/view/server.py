@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import logging
 import math
 import socket
@@ -21,7 +22,7 @@ import numpy as np
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs
-from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply
+from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply, read_scalar_gaussians
 from cubecloud_cli.view.context import load_context
 from cubecloud_cli.view.delivery import SplatDelivery
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
@@ -36,6 +37,7 @@ from cubecloud_cli.view.splats import (
     view_scale,
     view_splats,
 )
+from cubecloud_cli.view.transfer_view import CONTROLS, ScalarScene, add_transfer_controls
 
 log = logging.getLogger("cubecloud")
 
@@ -70,6 +72,21 @@ def visible_splats(splats: ViewSplats, clip: Clip) -> ViewSplats:
     if normal is None:
         return splats
     return splats.subset(clip_mask(splats.centers, normal, clip.position, clip.keep))  # type: ignore[arg-type]
+
+
+def _intensity_map(work: Path) -> dict | None:
+    """The preprocess window (HU for CT) the transfer-function presets are resolved through."""
+    try:
+        return json.loads((work / "preprocess" / "manifest.json").read_text()).get("intensity")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _is_scalar_run(ply: Path) -> bool:
+    try:
+        return bool(json.loads((ply.parent / "manifest.json").read_text()).get("params", {}).get("scalar"))
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def load_runs(work: Path) -> dict[str, Path]:
@@ -125,7 +142,8 @@ class SceneViewer:
         if run is not None and run not in self.runs:
             raise CubecloudError(f"{work} has no finished run {run!r}: choose one of {', '.join(self.runs)}")
         self.current = run or next(iter(self.runs))
-        self.splats = by_importance(view_splats(read_gaussians_ply(self.runs[self.current])))
+        self.intensity_map = _intensity_map(Path(work))
+        self._load_run(self.current)
         self.scale = view_scale(self.splats.covariances)
         self.detail = detail_percent(detail)
         self.clip = Clip()
@@ -165,8 +183,20 @@ class SceneViewer:
 
     def select_run(self, name: str) -> None:
         self.current = name
-        self.splats = by_importance(view_splats(read_gaussians_ply(self.runs[name])))
+        self._load_run(name)
         self._draw()
+        self._sync_transfer_controls()
+
+    def set_transfer(self, **choice) -> None:
+        """Recolour a scalar scene: ``preset``, the window ``low``..``high`` (preprocessed
+        intensities), ``opacity`` (× the extinction) or ``colour_map``; only colours and
+        opacities are computed again and sent (transfer_view.py)."""
+        if self.scalar_scene is None:
+            raise CubecloudError(f"{self.current} is not a scalar scene: train one with `cubecloud splat --scalar`")
+        if self.scalar_scene.choose(**choice):
+            self.splats = self.scalar_scene.splats()
+            self._draw()
+        self._sync_transfer_controls()
 
     def set_detail(self, percent: float) -> None:
         """Draw the ``percent`` of the Gaussians that shape the picture most (see by_importance)."""
@@ -259,6 +289,16 @@ class SceneViewer:
             self.server.stop()
 
     # ------------------------------------------------------------------------------- the scene
+
+    def _load_run(self, name: str) -> None:
+        """The run's Gaussians in importance order; a scalar run's kept with its values too, to
+        recolour under the page's transfer function."""
+        scalar = read_scalar_gaussians(self.runs[name])
+        self.scalar_scene = None if scalar is None else ScalarScene(scalar, self.intensity_map)
+        if self.scalar_scene is None:
+            self.splats = by_importance(view_splats(read_gaussians_ply(self.runs[name])))
+        else:
+            self.splats = self.scalar_scene.splats()
 
     def _set_initial_camera(self) -> None:
         camera, home = self.server.initial_camera, self.home
@@ -356,6 +396,11 @@ class SceneViewer:
         reset = gui.add_button("Reset view", hint="Back to the export's first view")
         reset.on_click(lambda event: self.reset_view(event.client))
         self._add_clip_controls()
+        if any(_is_scalar_run(path) for path in self.runs.values()):
+            # A baked run leaves the folder disabled; a control's late echo then changes nothing.
+            from_page = lambda **choice: self.scalar_scene is not None and self.set_transfer(**choice)  # noqa: E731
+            self._controls.update(add_transfer_controls(self.server.gui, from_page))
+            self._sync_transfer_controls()
         if self.context.volume is not None:
             self._add_slice_controls()
         if self.context.points is not None or self.context.cameras is not None:
@@ -380,6 +425,14 @@ class SceneViewer:
         axis.on_update(lambda _: self.set_clip(axis.value))
         position.on_update(lambda _: self.set_clip(self.clip.axis, position.value))
         flip.on_update(lambda _: self.set_clip(self.clip.axis, keep="above" if flip.value else "below"))
+
+    def _sync_transfer_controls(self) -> None:
+        """The transfer-function controls show the current run's choice; a baked run disables them."""
+        for name in CONTROLS:
+            if name in self._controls:
+                self._controls[name].disabled = self.scalar_scene is None
+        if self.scalar_scene is not None:
+            self._sync_controls(**self.scalar_scene.control_values())
 
     def _add_slice_controls(self) -> None:
         gui, last = self.server.gui, self.slices.size - 1
