@@ -94,7 +94,7 @@ class ScalarScene:
     def splats(self) -> ViewSplats:
         """The Gaussians under the current choice, in importance order (it changes with opacity)."""
         splats = recoloured(self.geometry, self.scalar, self.chosen)
-        return splats.subset(importance_order(splats, self.variances))
+        return splats.subset(importance_order(splats, self.variances, stable=False))
 
     def choose(
         self,
