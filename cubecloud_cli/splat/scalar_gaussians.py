@@ -23,6 +23,7 @@ import torch
 
 from cubecloud_cli.splat.gaussians import (
     LOG_SCALE_LIMIT,
+    RESET_OPACITY,
     Gaussians,
     neighbour_log_scales,
     rendered_opacities,
@@ -38,7 +39,6 @@ VALUE_MARGIN = 1e-4
 # below 2.3e10, finite in float32, and so does its gradient.
 LOG_LENGTH_LIMIT = 10.0
 INITIAL_OPACITY = 0.1  # under the most opaque transfer function trained on, as the reference starts
-RESET_OPACITY = 0.01  # the reference's periodic reset, here of that same most opaque opacity
 
 
 def transfer_opacities(values: torch.Tensor, log_lengths: torch.Tensor, transfer: TransferFunction) -> torch.Tensor:
