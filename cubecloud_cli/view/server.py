@@ -399,7 +399,10 @@ class SceneViewer:
         if any(_is_scalar_run(path) for path in self.runs.values()):
             # A baked run leaves the folder disabled; a control's late echo then changes nothing.
             from_page = lambda **choice: self.scalar_scene is not None and self.set_transfer(**choice)  # noqa: E731
-            self._controls.update(add_transfer_controls(self.server.gui, from_page))
+            # Open when the first run shown is scalar; a baked one leaves it closed (and disabled).
+            self._controls.update(
+                add_transfer_controls(self.server.gui, from_page, expand=self.scalar_scene is not None)
+            )
             self._sync_transfer_controls()
         if self.context.volume is not None:
             self._add_slice_controls()

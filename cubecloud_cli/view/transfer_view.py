@@ -133,10 +133,10 @@ class ScalarScene:
         )
 
 
-def add_transfer_controls(gui, set_transfer: Callable[..., None]) -> dict:
-    """The page's "Transfer function" folder, each control calling ``set_transfer``; returns the
-    controls by the names of :data:`CONTROLS`."""
-    with gui.add_folder("Transfer function"):
+def add_transfer_controls(gui, set_transfer: Callable[..., None], expand: bool = True) -> dict:
+    """The page's "Transfer function" folder (``expand``: open at first), each control calling
+    ``set_transfer``; returns the controls by the names of :data:`CONTROLS`."""
+    with gui.add_folder("Transfer function", expand_by_default=expand):
         preset = gui.add_dropdown("Preset", (TRAINED_PRESET, *TRANSFER_PRESETS, CUSTOM), initial_value=TRAINED_PRESET,
                                   hint="What tissue the scalar scene shows, without retraining")  # fmt: skip
         low = gui.add_slider("Window low", min=0.0, max=1.0, step=0.005, initial_value=0.0)
