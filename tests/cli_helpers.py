@@ -25,9 +25,10 @@ def assert_one_line_error(result, pattern: str) -> str:
 
 
 def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, novel_directions: int,
-              splat: list[str], baseline: bool = False):  # fmt: skip
-    """A finished 32³ work directory made through the CLI: preprocess, cunerf, export, splat (and
-    the random-init baseline), each asserted to succeed."""
+              splat: list[str] | None, baseline: bool = False, export: tuple[str, ...] = ()):  # fmt: skip
+    """A finished 32³ work directory made through the CLI: preprocess, cunerf, export (with the
+    options ``export`` adds), splat unless ``splat`` is None (and the random-init baseline), each
+    asserted to succeed."""
     commands = [
         ["preprocess", "-o", work, "--size", "32"],
         ["cunerf", work, "--iterations", cunerf_iterations, "--batch-size", "1024", "--holdout", "2"],
@@ -46,10 +47,12 @@ def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, nove
             max_points,
             "--novel-directions",
             novel_directions,
+            *export,
         ],  # fmt: skip
-        ["splat", work, *splat],
     ]
-    if baseline:
+    if splat is not None:
+        commands.append(["splat", work, *splat])
+    if baseline and splat is not None:
         commands.append(["splat", work, *splat, "--init", "random", "--random-points", "500", "--name", "random"])
     for args in commands:
         result = invoke(*args, "-q")

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, invoke
+from cli_helpers import assert_one_line_error, invoke, tiny_work
 
 from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
 from cubecloud_cli.transfer.function import TransferFunction
@@ -50,32 +50,8 @@ def test_random_ramps_are_valid_transfer_functions_over_the_value_range():
 
 @pytest.fixture(scope="module")
 def exported_under_three(tmp_path_factory):
-    work = tmp_path_factory.mktemp("transfer_set") / "work"
-    for args in (
-        ["preprocess", "-o", work, "--size", "32"],
-        ["cunerf", work, "--iterations", "60", "--batch-size", "1024", "--holdout", "2"],
-        [
-            "export",
-            work,
-            "--resolution",
-            "32",
-            "--views",
-            "12",
-            "--cube",
-            "8",
-            "--points-per-cube",
-            "64",
-            "--max-points",
-            "1500",
-            "--novel-directions",
-            "2",
-            "--transfer-set",
-            "3",
-        ],  # fmt: skip
-    ):
-        result = invoke(*args, "-q")
-        assert result.exit_code == 0, result.output
-    return work
+    return tiny_work(tmp_path_factory.mktemp("transfer_set") / "work", cunerf_iterations=60, views=12,
+                     max_points=1500, novel_directions=2, splat=None, export=("--transfer-set", "3"))  # fmt: skip
 
 
 def test_export_renders_the_training_views_under_each_transfer_function(exported_under_three):
