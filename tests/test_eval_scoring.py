@@ -127,6 +127,13 @@ def _texts(svg: str) -> list[str]:
     return [e.text for e in ElementTree.fromstring(svg).iter() if e.tag.endswith("text")]
 
 
+def test_log_tick_labels_of_values_beyond_a_float_say_the_power():
+    from cubecloud_cli.eval.figures import _tick_label
+
+    assert _tick_label(309.0, True) == "1e+309" and _tick_label(-320.0, True) == "1e-320"
+    assert _tick_label(3.0, True) == "1,000" and _tick_label(0.5, False) == "0.5"
+
+
 def test_log_axes_label_ticks_in_the_data_units_and_place_points_by_ratio():
     sizes, seconds = [128.0, 256.0, 512.0], [2.0, 20.0, 2000.0]
     svg = line_plot_svg([("t", sizes, seconds)], "t", "x", "y", log_axes=(True, True), x_ticks=tuple(sizes))

@@ -126,7 +126,11 @@ def _log_ticks(low: float, high: float) -> list[float]:
 def _tick_label(value: float, log: bool) -> str:
     """A tick's label in data units; three significant digits with thousands separators (1,000
     rather than 1e+03) on a log axis."""
-    return f"{float(f'{10.0**value:.3g}'):,g}" if log else f"{value:g}"
+    if not log:
+        return f"{value:g}"
+    if abs(value) > 300:  # 10**value would overflow a float (or lose every digit): say the power
+        return f"1e{round(value):+d}"
+    return f"{float(f'{10.0**value:.3g}'):,g}"
 
 
 def _to_axis(values: list[float], log: bool) -> list[float]:
