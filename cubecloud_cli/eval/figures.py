@@ -24,12 +24,19 @@ SERIES_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564
 
 def colour_map(values: np.ndarray, vmax: float) -> np.ndarray:
     """(…, 3) uint8 colours of ``values`` scaled to [0, vmax] (clipped; NaN shows as black)."""
-    scaled = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float64) / max(vmax, 1e-12)), 0.0, 1.0)
-    position = scaled * (len(ERROR_COLOURS) - 1)
-    low = np.minimum(position.astype(np.int64), len(ERROR_COLOURS) - 2)
+    return np.round(anchor_colours(np.asarray(values, dtype=np.float64) / max(vmax, 1e-12), ERROR_COLOURS)).astype(
+        np.uint8
+    )
+
+
+def anchor_colours(fractions: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """(…, 3) float64 colours interpolated linearly between ``anchors`` spaced evenly over [0, 1],
+    at ``fractions`` (clipped to [0, 1]; NaN as 0)."""
+    anchors = np.asarray(anchors, dtype=np.float64)
+    position = np.clip(np.nan_to_num(np.asarray(fractions, dtype=np.float64)), 0.0, 1.0) * (len(anchors) - 1)
+    low = np.minimum(position.astype(np.int64), len(anchors) - 2)
     weight = (position - low)[..., None]
-    colours = ERROR_COLOURS[low] * (1.0 - weight) + ERROR_COLOURS[low + 1] * weight
-    return np.round(colours).astype(np.uint8)
+    return anchors[low] * (1.0 - weight) + anchors[low + 1] * weight
 
 
 def grey_to_rgb(image: np.ndarray) -> np.ndarray:

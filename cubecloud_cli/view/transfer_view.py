@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.eval.figures import anchor_colours
 from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
 from cubecloud_cli.transfer.function import TransferFunction
 from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, resolve_transfer
@@ -39,11 +40,7 @@ CONTROLS = ("transfer preset", "window low", "window high", "opacity scale", "co
 
 def colour_map(values: np.ndarray, name: str) -> np.ndarray:
     """(N, 3) float32 colours of ``values`` (clipped to [0, 1]; NaN as 0) under the map ``name``."""
-    anchors = np.asarray(COLOUR_MAPS[name], dtype=np.float64)
-    position = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float64)), 0.0, 1.0) * (len(anchors) - 1)
-    low = np.minimum(position.astype(np.int64), len(anchors) - 2)
-    weight = (position - low)[:, None]
-    return (anchors[low] * (1.0 - weight) + anchors[low + 1] * weight).astype(np.float32)
+    return anchor_colours(values, np.asarray(COLOUR_MAPS[name])).astype(np.float32)
 
 
 @dataclass(frozen=True)
