@@ -30,6 +30,7 @@ from cubecloud_cli.transfer.function import TransferFunction
 
 BONE = TransferFunction(0.7, 0.9, 12.0)
 SOFT = TransferFunction(0.3, 0.6, 1.5)
+LUNG_BAND = TransferFunction(0.2, 0.3, 2.0, 0.5, 0.7)
 
 
 def test_opacity_is_the_light_a_slab_stops():
@@ -39,11 +40,13 @@ def test_opacity_is_the_light_a_slab_stops():
     assert transfer_opacities(values, log_lengths, SOFT).tolist() == pytest.approx(expected, rel=1e-12)
 
 
-@pytest.mark.parametrize("transfer", [SOFT, BONE, TransferFunction(0.0, 1.0, 40.0)])
-def test_gradients_match_finite_differences(transfer):
+@pytest.mark.parametrize("transfer, on", [(SOFT, "rise"), (BONE, "rise"), (TransferFunction(0.0, 1.0, 40.0), "rise"),
+                                           (LUNG_BAND, "rise"), (LUNG_BAND, "fall")])  # fmt: skip
+def test_gradients_match_finite_differences(transfer, on):
     generator = torch.Generator().manual_seed(3)
-    # Values inside the ramp, away from its kinks at low and high, where the map is smooth.
-    values = transfer.low + (transfer.high - transfer.low) * (0.1 + 0.8 * torch.rand(12, generator=generator))
+    # Values inside a ramp (rising, or a band's falling one), away from its kinks, where the map is smooth.
+    start, end = (transfer.low, transfer.high) if on == "rise" else (transfer.fall_low, transfer.fall_high)
+    values = start + (end - start) * (0.1 + 0.8 * torch.rand(12, generator=generator))
     values = values.double().requires_grad_(True)
     log_lengths = (torch.rand(12, generator=generator, dtype=torch.float64) * 4 - 3).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda v, l: transfer_opacities(v, l, transfer), (values, log_lengths))
@@ -68,12 +71,17 @@ def test_gradients_reach_the_value_through_a_sigmoid_and_the_map():
     density=st.sampled_from([0.0, 1e-30, 1.0, 1e3, 999_999.0]),
     value=st.floats(-5.0, 5.0),
     log_length=st.floats(-200.0, 200.0),
+    fall=st.sampled_from([None, (0.0, 0.0), (0.0, 1e-9), (0.1, 0.4), (1.0, 1.0)]),
 )
-def test_the_map_stays_finite_at_its_extremes(low, width, density, value, log_length):
+def test_the_map_stays_finite_at_its_extremes(low, width, density, value, log_length, fall):
     """A window of zero width (a step), opacity 0 (no density) and near 1 (huge density, long
-    slabs), values outside the window and outside [0, 1]: opacity in [0, 1], loss and gradients
-    finite."""
-    transfer = TransferFunction(low, min(1.0, low + width), density)
+    slabs), values outside the window and outside [0, 1], bands whose top or fall has no width:
+    opacity in [0, 1], loss and gradients finite."""
+    high = min(1.0, low + width)
+    # A fall (offsets past the top, capped at 1), so that the band stays valid.
+    fall_low, fall_high = (None, None) if fall is None else (min(1.0, high + fall[0]), min(1.0, high + fall[1]))
+    transfer = TransferFunction(low, high, density, fall_low, fall_high)
+    transfer.validate()
     values = torch.tensor([value], requires_grad=True)
     log_lengths = torch.tensor([log_length], requires_grad=True)
     opacity = transfer_opacities(values, log_lengths, transfer)
@@ -89,6 +97,12 @@ def test_a_value_outside_the_window_is_clear_and_inside_it_is_seen():
     values = torch.tensor([0.0, 0.69, 0.71, 1.0])
     opacity = transfer_opacities(values, torch.zeros(4), BONE)
     assert opacity[0] == 0 and opacity[1] == 0 and 0 < opacity[2] < opacity[3] < 1
+
+
+def test_a_band_is_clear_below_its_rise_and_above_its_fall_and_level_between():
+    values = torch.tensor([0.1, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.9], dtype=torch.float64)
+    ramp = LUNG_BAND.ramp(values)
+    assert ramp.tolist() == pytest.approx([0.0, 0.5, 1.0, 1.0, 1.0, 0.5, 0.0, 0.0], abs=1e-12)
 
 
 def test_the_start_is_ten_percent_opaque_under_the_most_opaque_transfer_function():

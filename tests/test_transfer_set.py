@@ -31,8 +31,8 @@ def test_the_set_starts_with_the_exports_own_and_never_holds_out_what_eval_tests
     names = [t.name for t in chosen]
     assert len(set(names)) == 8 and not set(names) & set(HELD_OUT_PRESETS)
     assert names[1:3] == ["soft", "glow"] and all(n.startswith("ramp-") for n in names[3:])
-    held = held_out_transfers(CT_WINDOW, seed=0)
-    assert {t.function for t in held}.isdisjoint({t.function for t in chosen})
+    held = held_out_transfers(CT_WINDOW, seed=0, trained=chosen)
+    assert {t.function for t in held.transfers}.isdisjoint({t.function for t in chosen})
     assert training_transfers(primary, 1, CT_WINDOW, seed=0) == [primary]
     assert training_transfers(primary, 8, CT_WINDOW, seed=0) == chosen  # seeded: the same set again
     with pytest.raises(ValueError):
@@ -74,7 +74,7 @@ def test_a_scalar_run_trains_under_the_whole_set(exported_under_three):
     assert result.exit_code == 0, result.output
     properties = read_scalar_properties(work / "splat" / "point_cloud.ply")
     listed = json.loads((work / "export" / "manifest.json").read_text())["transfers"]
-    assert properties.trained_under == [TransferFunction(t["low"], t["high"], t["density"]) for t in listed]
+    assert properties.trained_under == [TransferFunction.from_dict(t) for t in listed]
     assert properties.drawn_under == properties.trained_under[0]
     manifest = json.loads((work / "splat" / "manifest.json").read_text())
     assert "export/transfer_images.npy" in manifest["inputs"] and manifest["metrics"]["test_psnr"] > 15
@@ -82,8 +82,12 @@ def test_a_scalar_run_trains_under_the_whole_set(exported_under_three):
 
 def test_export_renders_the_novel_views_under_the_held_out_transfer_functions(exported_under_three):
     novel = exported_under_three / "export" / "novel"
-    held = json.loads((novel / "transfers.json").read_text())["held_out"]
-    assert [t["name"] for t in held] == ["bone", "held-out-ramp-0"]
+    listed = json.loads((novel / "transfers.json").read_text())
+    held = listed["held_out"]
+    # The abdomen window (-160..240 HU) keeps nothing of the lung band (-950..-300 HU).
+    assert [t["name"] for t in held] == ["bone", "vessels", "held-out-ramp-0"]
+    assert list(listed["not_scored"]) == ["lung"] and "--window" in listed["not_scored"]["lung"]
+    assert held[1]["fall_low"] == 1.0 and held[1]["fall_high"] == 1.0  # the band's fall lies above the window
     trained = json.loads((exported_under_three / "export" / "manifest.json").read_text())["transfers"]
     assert {(t["low"], t["high"], t["density"]) for t in held}.isdisjoint(
         {(t["low"], t["high"], t["density"]) for t in trained}
@@ -109,12 +113,13 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     assert result.exit_code == 0, result.output
     results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
     held = results["splat"]["held_out_transfers"]
-    assert list(held) == ["bone", "held-out-ramp-0"]
+    assert list(held) == ["bone", "vessels", "held-out-ramp-0"]
     for summary in held.values():
         assert summary["views"] == 2 * 3 and 5 < summary["psnr"] < 100  # 2 directions × 0.75, 1, 1.33
     assert "held_out_transfers" not in results["splat-baked"]
     report = (work / "eval" / "report.md").read_text()
     assert "## Transfer functions held out of training" in report and "| splat | bone |" in report
+    assert "Not scored: lung shows -950..-300 HU, which the window -160..240 HU clips away" in report
     rows = (work / "eval" / "per_view.csv").read_text()
     assert "held-out transfer function bone" in rows
 
@@ -124,6 +129,7 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     [
         (["--transfer-set", "0"], r"--transfer-set 0 must be within 1\.\.64"),
         (["--transfer-set", "2", "--view", "mip"], r"only --view dvr has"),
+        (["--transfer", "lung"], r"--transfer lung shows -950\.\.-300 HU, which the window .* clips away"),
     ],
 )
 def test_bad_transfer_sets_are_refused(exported_under_three, tmp_path, args, pattern):

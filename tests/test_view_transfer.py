@@ -64,3 +64,16 @@ def test_a_preset_recolours_only_the_opacities_and_colours_and_the_window_stays_
         scene.choose(preset="lungs")
     with pytest.raises(CubecloudError, match="colour map"):
         scene.choose(colour_map="rainbow")
+
+
+def test_the_page_offers_only_presets_the_window_keeps_and_a_band_s_top_moves_up_with_its_rise():
+    scene = scalar_scene()  # the abdomen window: no lung
+    assert "lung" not in scene.presets and {"bone", "vessels"} <= set(scene.presets)
+    wide = ScalarScene(scene.scalar, {"modality": "ct", "low": -1350.0, "high": 150.0})
+    assert "lung" in wide.presets and "bone" not in wide.presets
+    wide.choose(preset="lung")
+    band = wide.chosen.function
+    assert wide.choose(high=0.95)
+    lifted = wide.chosen.function
+    assert (lifted.high, lifted.fall_low) == (0.95, 0.95) and lifted.fall_high == max(band.fall_high, 0.95)
+    lifted.validate()

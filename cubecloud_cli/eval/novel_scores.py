@@ -47,6 +47,7 @@ class NovelTest:
     views: NovelViewSet
     reference: np.ndarray  # (V, H, W) float32, in views.entries() order
     held_out: list[HeldOutTransfer] = field(default_factory=list)
+    not_scored: dict[str, str] = field(default_factory=dict)  # held-out presets the volume cannot show → why
 
 
 def load_novel_test(scene_dir: Path, fix: str) -> NovelTest | None:
@@ -66,16 +67,18 @@ def load_novel_test(scene_dir: Path, fix: str) -> NovelTest | None:
     reference = np.asarray(reference, dtype=np.float32)
     if not np.isfinite(reference).all():
         raise CubecloudError(f"{folder / REFERENCE_FILE} holds NaN or Inf: run `{fix}`")
-    return NovelTest(views, reference, _held_out(folder, expected, fix))
+    return NovelTest(views, reference, *_held_out(folder, expected, fix))
 
 
-def _held_out(folder: Path, expected: tuple[int, int, int], fix: str) -> list[HeldOutTransfer]:
+def _held_out(folder: Path, expected: tuple[int, int, int], fix: str) -> tuple[list[HeldOutTransfer], dict[str, str]]:
     if not (folder / TRANSFERS_FILE).is_file():
-        return []
+        return [], {}
     held = []
     try:
-        for entry in json.loads((folder / TRANSFERS_FILE).read_text())["held_out"]:
-            function = TransferFunction(float(entry["low"]), float(entry["high"]), float(entry["density"]))
+        listed = json.loads((folder / TRANSFERS_FILE).read_text())
+        not_scored = {str(name): str(why) for name, why in listed.get("not_scored", {}).items()}
+        for entry in listed["held_out"]:
+            function = TransferFunction.from_dict(entry)
             function.validate()
             reference = np.asarray(np.load(folder / Path(entry["file"]).name, mmap_mode="r"), dtype=np.float32)
             if reference.shape != expected or not np.isfinite(reference).all():
@@ -85,7 +88,7 @@ def _held_out(folder: Path, expected: tuple[int, int, int], fix: str) -> list[He
         raise CubecloudError(
             f"{folder / TRANSFERS_FILE} or a reference it names is unreadable ({exc}): run `{fix}`"
         ) from None
-    return held
+    return held, not_scored
 
 
 def angle_bin(angle: float) -> str:

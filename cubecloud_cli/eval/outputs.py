@@ -167,7 +167,10 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
         row: result["held_out_transfers"] for row, result in results.items() if result.get("held_out_transfers")
     }
     if transferred:
-        lines += held_out_transfer_table(transferred)
+        not_scored = {
+            name: why for result in results.values() for name, why in result.get("held_out_not_scored", {}).items()
+        }
+        lines += held_out_transfer_table(transferred, not_scored)
     if pictures.get("novel"):
         lines += ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["novel"]]
@@ -198,15 +201,16 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
     return "\n".join(lines)
 
 
-def held_out_transfer_table(transferred: dict[str, dict[str, dict]]) -> list[str]:
-    """The scalar scenes' novel-view scores under transfer functions they never trained under."""
+def held_out_transfer_table(transferred: dict[str, dict[str, dict]], not_scored: dict[str, str]) -> list[str]:
+    """The scalar scenes' novel-view scores under transfer functions they never trained under,
+    and the held-out presets the volume could not show."""
     lines = [
         "",
         "## Transfer functions held out of training",
         "",
         "Scalar scenes (`splat --scalar`) drawn under transfer functions none of them trained under, at the "
         "headline novel views (0.75–1.33×), against the volume rendered under each. The window is the ramp "
-        "in preprocessed intensities [0, 1] and its extinction per world unit.",
+        "in preprocessed intensities [0, 1] (a band's fall after ↘) and its extinction per world unit.",
         "",
         "| run | transfer function | window | PSNR (dB) | fg PSNR (dB) | SSIM | views |",
         "|---|---|---|---|---|---|---|",
@@ -214,9 +218,14 @@ def held_out_transfer_table(transferred: dict[str, dict[str, dict]]) -> list[str
     for row, by_name in transferred.items():
         for name, summary in by_name.items():
             window = summary.get("transfer", {})
+            fall = (
+                f" ↘ {window['fall_low']:.3f}–{window['fall_high']:.3f}" if window.get("fall_low") is not None else ""
+            )
             lines.append(
-                f"| {row} | {name} | {window.get('low', math.nan):.3f}–{window.get('high', math.nan):.3f}, "
+                f"| {row} | {name} | {window.get('low', math.nan):.3f}–{window.get('high', math.nan):.3f}{fall}, "
                 f"{window.get('density', math.nan):.3g} | {_number(summary.get('psnr'))} | "
                 f"{_number(summary.get('psnr_foreground'))} | {_number(summary.get('ssim'), 4)} | {summary.get('views')} |"
             )
+    if not_scored:
+        lines += [""] + [f"Not scored: {why}." for why in not_scored.values()]
     return lines

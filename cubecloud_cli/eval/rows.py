@@ -223,7 +223,9 @@ def score_held_out_transfers(
             for row in rows
         ]
         summaries[held.name] = {
-            "transfer": {"low": held.function.low, "high": held.function.high, "density": held.function.density},
+            "transfer": held.function.as_dict(),
             **summarize(rows),
         }
     result["held_out_transfers"] = summaries
+    if test.not_scored:
+        result["held_out_not_scored"] = dict(test.not_scored)

@@ -17,7 +17,6 @@ WORK/export/novel/ holds
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
@@ -91,11 +90,14 @@ def held_out_reference_file(name: str) -> str:
     return f"reference-{name}.npy"
 
 
-def write_held_out(directory: Path, held_out: list[tuple[NamedTransfer, np.ndarray]]) -> None:
-    """The references under each held-out transfer function, and the list that names them."""
+def write_held_out(
+    directory: Path, held_out: list[tuple[NamedTransfer, np.ndarray]], not_scored: dict[str, str]
+) -> None:
+    """The references under each held-out transfer function, the list that names them, and why
+    the held-out presets left out were left out."""
     folder = directory / NOVEL_DIR
     listed = []
     for named, reference in held_out:
         np.save(folder / held_out_reference_file(named.name), reference)
-        listed.append({"name": named.name, **asdict(named.function), "file": held_out_reference_file(named.name)})
-    write_json(folder / TRANSFERS_FILE, {"held_out": listed})
+        listed.append({"name": named.name, **named.function.as_dict(), "file": held_out_reference_file(named.name)})
+    write_json(folder / TRANSFERS_FILE, {"held_out": listed, "not_scored": not_scored})

@@ -21,7 +21,7 @@ from cubecloud_cli.export.novel_references import render_novel_references
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
-from cubecloud_cli.transfer.training_set import NamedTransfer
+from cubecloud_cli.transfer.training_set import HeldOutSet, NamedTransfer
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class ExportJob:
     device: torch.device
     cunerf_name: str | None
     transfers: tuple[NamedTransfer, ...]  # the training views' transfer functions; the first is image_model's
-    held_out: tuple[NamedTransfer, ...] = ()  # those the novel views are also rendered under, for eval
+    held_out: HeldOutSet | None = None  # those the novel views are also rendered under, for eval
 
     @property
     def cunerf_dir(self) -> Path:
@@ -47,7 +47,8 @@ class ExportJob:
 
     @property
     def total_views(self) -> int:
-        return (1 + len(self.transfers)) * len(self.cameras) + (1 + len(self.held_out)) * len(self.novel)
+        held_out = len(self.held_out.transfers) if self.held_out else 0
+        return (1 + len(self.transfers)) * len(self.cameras) + (1 + held_out) * len(self.novel)
 
 
 @dataclass
@@ -118,9 +119,9 @@ def render_export(
             count_views("novel", rendered + len(cameras)),
         )
     held_out = []
-    if job.held_out:
+    if job.held_out and job.held_out.transfers:
         with writer.phase("render_held_out"):
-            for index, named in enumerate(job.held_out):
+            for index, named in enumerate(job.held_out.transfers):
                 counter = count_views("held-out", rendered + len(cameras) + (1 + index) * len(job.novel))
                 model = replace(job.image_model, transfer=named.function, slice_offsets=())
                 references = render_novel_references(

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +46,7 @@ from cubecloud_cli.export.scene_files import held_out_views, write_scene
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.numerics.metrics import image_metrics
 from cubecloud_cli.render import ImageModel
-from cubecloud_cli.transfer.tissue_presets import resolve_transfer
+from cubecloud_cli.transfer.tissue_presets import clipped_away, resolve_transfer
 from cubecloud_cli.transfer.training_set import NamedTransfer, held_out_transfers, training_transfers
 
 log = logging.getLogger("cubecloud")
@@ -167,6 +167,9 @@ def _plan_export(
     transfer = resolve_transfer(
         settings.transfer, preprocess.get("intensity"), settings.tf_low, settings.tf_high, settings.tf_density
     )
+    clipped = clipped_away(settings.transfer, preprocess.get("intensity"))
+    if settings.view == "dvr" and clipped and settings.tf_low is None and settings.tf_high is None:
+        raise CubecloudError(f"--transfer {clipped}, or set --tf-low/--tf-high")
     image_model = ImageModel(
         settings.view, transfer, step=settings.step * 2.0 / size, slice_offsets=settings.slice_offsets()
     )
@@ -189,9 +192,9 @@ def _plan_export(
         device,
         cunerf_name,
         tuple(transfers),
-        tuple(held_out_transfers(preprocess.get("intensity"), settings.seed))
+        held_out_transfers(preprocess.get("intensity"), settings.seed, transfers)
         if settings.transfer_set > 1 and settings.novel_directions > 0
-        else (),
+        else None,
     )
     return job, cunerf
 
@@ -211,8 +214,8 @@ def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_pr
                 np.save(writer.directory / TRANSFER_IMAGES, renders.transfer_images)
             if len(job.novel):
                 write_novel(writer.directory, job.novel, renders.novel_reference)
-            if renders.held_out_references:
-                write_held_out(writer.directory, renders.held_out_references)
+            if job.held_out is not None and len(job.novel):
+                write_held_out(writer.directory, renders.held_out_references, job.held_out.not_scored)
         _record(writer, job, names, renders)
         if len(job.novel):
             _record_novel(writer, job.cameras, names, job.novel)
@@ -271,7 +274,7 @@ def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: Expo
                 "centres": cameras.centres().round(9).tolist(),
             },
             "image_model": {**job.image_model.as_dict(), "step_voxels": settings.step},
-            "transfers": [{"name": t.name, **asdict(t.function)} for t in job.transfers],
+            "transfers": [{"name": t.name, **t.function.as_dict()} for t in job.transfers],
             "render_source": {
                 "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
                 "bake_size": settings.bake_resolution(job.size) if settings.render_from == "grid" else None,

@@ -93,19 +93,35 @@ def clear_cells(volume, low, shift):
 
 @njit(parallel=PRANGE_ONLY, cache=True)
 def dvr_march(
-    volume, clear, shift, origin, directions, entry, first, last, step, low, ramp_width, density, termination, block
+    volume,
+    clear,
+    shift,
+    origin,
+    directions,
+    entry,
+    first,
+    last,
+    step,
+    low,
+    ramp_width,
+    fall_low,
+    fall_width,
+    density,
+    termination,
+    block,
 ):
     """(R,) dvr colours of rays ``origin + t · directions[r]`` through the (S, S, S) grid laid
     over [−1, 1]³ (indexed x, y, z), sampled at k in [first[r], last[r]).
 
-    ``ramp_width`` is the transfer function's high − low, at least MIN_RAMP_WIDTH (the caller's
-    guard); opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for small σΔ. A sample in a
+    ``low`` … ``density`` are ``TransferFunction.march_parameters()``: the widths at least
+    MIN_RAMP_WIDTH (the caller's guard), ``fall_low`` +∞ for a function without a fall; opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for small σΔ. A sample in a
     cell of ``clear`` (:func:`clear_cells`) adds and absorbs nothing, so the march reads no voxel
     for it and steps over the cell's other samples: the same colours, fewer reads."""
     count = directions.shape[0]
     size = volume.shape[0]
     half = 0.5 * size
     inverse_width = 1.0 / ramp_width
+    inverse_fall_width = 1.0 / fall_width
     cell = 1 << shift
     colours = np.zeros(count, dtype=np.float32)
     for r in prange(count):
@@ -132,6 +148,8 @@ def dvr_march(
                 value = _trilinear(volume, x, y, z)
                 if value > low:  # at or below low the sample is clear: nothing added, nothing absorbed
                     ramp = min((value - low) * inverse_width, 1.0)
+                    if value > fall_low:
+                        ramp *= max(1.0 - (value - fall_low) * inverse_fall_width, 0.0)
                     alpha = -math.expm1(-density * ramp * step)
                     colour += transmittance * alpha * value
                     transmittance *= 1.0 - alpha
@@ -191,6 +209,8 @@ def dvr_view(
     step,
     low,
     ramp_width,
+    fall_low,
+    fall_width,
     density,
     termination,
     block,
@@ -225,6 +245,8 @@ def dvr_view(
         step,
         low,
         ramp_width,
+        fall_low,
+        fall_width,
         density,
         termination,
         block,

@@ -24,7 +24,6 @@ from cubecloud_cli.render.grid_march import CELL_SHIFT, dvr_view
 from cubecloud_cli.render.image_models import ACCUMULATORS, ImageModel
 from cubecloud_cli.render.rays import camera_rays, ray_box, tiled_order
 from cubecloud_cli.render.samplers import GridField, ScalarField, Support
-from cubecloud_cli.transfer.function import MIN_RAMP_WIDTH
 
 RAYS_PER_CHUNK = 1 << 14
 STEPS_PER_BLOCK = 32
@@ -141,9 +140,7 @@ def march_grid_view(field: GridField, model: ImageModel, origin, directions, sup
         low.numpy().astype(np.float32),
         high.numpy().astype(np.float32),
         float(model.step),
-        float(transfer.low),
-        max(transfer.high - transfer.low, MIN_RAMP_WIDTH),
-        float(transfer.density),
+        *transfer.march_parameters(),
         float(model.termination),
         STEPS_PER_BLOCK,
     )

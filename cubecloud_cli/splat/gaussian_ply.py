@@ -15,7 +15,7 @@ opacity); comments record the transfer functions, as JSON.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -86,8 +86,8 @@ def write_gaussians_ply(path: Path, gaussians: Gaussians, scalar: ScalarProperti
         columns += [scalar.attenuation.reshape(count, 1)]
         names += [SCAN_VALUE, LOG_OPTICAL_LENGTH, FILTER_ATTENUATION]
         comments += [
-            DRAWN_UNDER + json.dumps(asdict(scalar.drawn_under)),
-            TRAINED_UNDER + json.dumps([asdict(t) for t in scalar.trained_under]),
+            DRAWN_UNDER + json.dumps(scalar.drawn_under.as_dict()),
+            TRAINED_UNDER + json.dumps([t.as_dict() for t in scalar.trained_under]),
         ]
     values = np.concatenate(columns, axis=1).astype(np.float32)
     vertices = np.empty(count, dtype=[(name, "f4") for name in names])
@@ -163,8 +163,8 @@ def read_scalar_properties(path: Path) -> ScalarProperties | None:
     if not {SCAN_VALUE, LOG_OPTICAL_LENGTH, FILTER_ATTENUATION} <= names or not drawn:
         return None
     try:
-        drawn_under = TransferFunction(**json.loads(drawn[0]))
-        trained_under = [TransferFunction(**t) for t in json.loads(trained[0])] if trained else [drawn_under]
+        drawn_under = TransferFunction.from_dict(json.loads(drawn[0]))
+        trained_under = [TransferFunction.from_dict(t) for t in json.loads(trained[0])] if trained else [drawn_under]
         for function in (drawn_under, *trained_under):
             function.validate()
     except (ValueError, TypeError) as exc:

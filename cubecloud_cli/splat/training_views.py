@@ -134,7 +134,7 @@ def _transfers(directory: Path) -> list[TransferFunction]:
         return []
     listed = manifest.get("transfers") or [model.get("transfer")]
     try:
-        functions = [TransferFunction(float(t["low"]), float(t["high"]), float(t["density"])) for t in listed]
+        functions = [TransferFunction.from_dict(t) for t in listed]
         for function in functions:
             function.validate()
     except (KeyError, TypeError, ValueError):

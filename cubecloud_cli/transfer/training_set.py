@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from cubecloud_cli.transfer.function import TransferFunction
-from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, resolve_transfer
+from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, clipped_away, resolve_transfer
 
 # Shown to no training run, so that eval's scores on them measure transfer functions never seen.
-HELD_OUT_PRESETS = ("bone",)
+HELD_OUT_PRESETS = ("bone", "lung", "vessels")
 RANDOM_RAMP = "ramp"
 # Ramps start in [0.02, 0.9] of the value range, are 0.02 to 0.6 wide and 1 to 30 per world unit
 # dense (log-uniform: as many narrow as wide, as many faint as opaque).
@@ -49,21 +49,39 @@ def training_transfers(
     primary: NamedTransfer, count: int, intensity_map: dict | None, seed: int
 ) -> list[NamedTransfer]:
     """``count`` transfer functions: ``primary``, then the presets not held out (in their order),
-    then seeded random ramps."""
+    then seeded random ramps. Presets the volume's window clips away are left out."""
     if count < 1:
         raise ValueError(f"a training set needs at least one transfer function, got {count}")
     chosen = [primary]
     for name in TRANSFER_PRESETS:
         if len(chosen) == count:
             break
-        if name != primary.name and name not in HELD_OUT_PRESETS:
+        if name != primary.name and name not in HELD_OUT_PRESETS and clipped_away(name, intensity_map) is None:
             chosen.append(NamedTransfer(name, resolve_transfer(name, intensity_map)))
     chosen += random_ramps(count - len(chosen), seed)
     return chosen
 
 
-def held_out_transfers(intensity_map: dict | None, seed: int, ramps: int = 1) -> list[NamedTransfer]:
-    """The transfer functions eval scores a scalar scene under, none of them in a training set."""
-    held = [NamedTransfer(name, resolve_transfer(name, intensity_map)) for name in HELD_OUT_PRESETS]
+@dataclass(frozen=True)
+class HeldOutSet:
+    transfers: list[NamedTransfer]
+    not_scored: dict[str, str]  # a held-out preset the volume cannot show → why
+
+
+def held_out_transfers(
+    intensity_map: dict | None, seed: int, trained: list[NamedTransfer], ramps: int = 1
+) -> HeldOutSet:
+    """The transfer functions eval scores a scalar scene under, none of them in ``trained``:
+    the held-out presets the volume's window keeps, and seeded ramps of another stream."""
+    held, not_scored = [], {}
+    trained_names = {t.name for t in trained}
+    for name in HELD_OUT_PRESETS:
+        why = clipped_away(name, intensity_map)
+        if why is not None:
+            not_scored[name] = why
+        elif name not in trained_names:
+            held.append(NamedTransfer(name, resolve_transfer(name, intensity_map)))
+        else:
+            not_scored[name] = f"{name} is the transfer function the scene was exported under"
     held += [NamedTransfer(f"held-out-{r.name}", r.function) for r in random_ramps(ramps, seed + HELD_OUT_SEED_OFFSET)]
-    return held
+    return HeldOutSet(held, not_scored)

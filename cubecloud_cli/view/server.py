@@ -37,7 +37,7 @@ from cubecloud_cli.view.splats import (
     view_scale,
     view_splats,
 )
-from cubecloud_cli.view.transfer_view import CONTROLS, ScalarScene, add_transfer_controls
+from cubecloud_cli.view.transfer_view import CONTROLS, ScalarScene, add_transfer_controls, shown_presets
 
 log = logging.getLogger("cubecloud")
 
@@ -401,7 +401,9 @@ class SceneViewer:
             from_page = lambda **choice: self.scalar_scene is not None and self.set_transfer(**choice)  # noqa: E731
             # Open when the first run shown is scalar; a baked one leaves it closed (and disabled).
             self._controls.update(
-                add_transfer_controls(self.server.gui, from_page, expand=self.scalar_scene is not None)
+                add_transfer_controls(
+                    self.server.gui, from_page, shown_presets(self.intensity_map), expand=self.scalar_scene is not None
+                )
             )
             self._sync_transfer_controls()
         if self.context.volume is not None:

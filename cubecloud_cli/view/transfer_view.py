@@ -19,7 +19,7 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.figures import anchor_colours
 from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
 from cubecloud_cli.transfer.function import TransferFunction
-from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, resolve_transfer
+from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, clipped_away, resolve_transfer
 from cubecloud_cli.view.splats import ViewSplats, importance_order, mean_variances, view_splats
 
 # Anchor colours, evenly spaced over [0, 1], interpolated linearly in RGB.
@@ -56,11 +56,16 @@ class ViewTransfer:
         return replace(self.function, density=min(self.function.density * scale, 999_999.0))
 
 
+def shown_presets(intensity_map: dict | None) -> tuple[str, ...]:
+    """The named presets this volume can show: not those its window clipped away."""
+    return tuple(name for name in TRANSFER_PRESETS if clipped_away(name, intensity_map) is None)
+
+
 def transfer_presets(scalar: ScalarGaussians, intensity_map: dict | None) -> dict[str, TransferFunction]:
     """The transfer functions the page offers: the one the PLY's reference columns were drawn
     under, then the named presets resolved for this volume's window."""
     presets = {TRAINED_PRESET: scalar.transfer}
-    presets.update({name: resolve_transfer(name, intensity_map) for name in TRANSFER_PRESETS})
+    presets.update({name: resolve_transfer(name, intensity_map) for name in shown_presets(intensity_map)})
     return presets
 
 
@@ -112,6 +117,8 @@ class ScalarScene:
             new_low = float(np.clip(np.nan_to_num(function.low if low is None else low), 0.0, 1.0))
             new_high = float(np.clip(np.nan_to_num(function.high if high is None else high), new_low, 1.0))
             function = replace(function, low=new_low, high=new_high)
+            if function.fall_low is not None and function.fall_low < new_high:  # a band's top moves up with it
+                function = replace(function, fall_low=new_high, fall_high=max(function.fall_high, new_high))
         scale = (
             self.chosen.opacity_scale
             if opacity is None
@@ -130,11 +137,13 @@ class ScalarScene:
         )
 
 
-def add_transfer_controls(gui, set_transfer: Callable[..., None], expand: bool = True) -> dict:
-    """The page's "Transfer function" folder (``expand``: open at first), each control calling
-    ``set_transfer``; returns the controls by the names of :data:`CONTROLS`."""
+def add_transfer_controls(
+    gui, set_transfer: Callable[..., None], presets: tuple[str, ...], expand: bool = True
+) -> dict:
+    """The page's "Transfer function" folder (``expand``: open at first) offering ``presets``, each
+    control calling ``set_transfer``; returns the controls by the names of :data:`CONTROLS`."""
     with gui.add_folder("Transfer function", expand_by_default=expand):
-        preset = gui.add_dropdown("Preset", (TRAINED_PRESET, *TRANSFER_PRESETS, CUSTOM), initial_value=TRAINED_PRESET,
+        preset = gui.add_dropdown("Preset", (TRAINED_PRESET, *presets, CUSTOM), initial_value=TRAINED_PRESET,
                                   hint="What tissue the scalar scene shows, without retraining")  # fmt: skip
         low = gui.add_slider("Window low", min=0.0, max=1.0, step=0.005, initial_value=0.0)
         high = gui.add_slider("Window high", min=0.0, max=1.0, step=0.005, initial_value=1.0)
