@@ -7,13 +7,13 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.splat.scalar_gaussians import scalar_gaussians_from_points, transfer_opacities
 from cubecloud_cli.transfer.function import TransferFunction
-from cubecloud_cli.view.transfer_view import COLOUR_MAPS, CUSTOM, TRAINED_PRESET, ScalarScene, colour_map
+from cubecloud_cli.view.transfer_view import COLOUR_MAPS, CUSTOM, TRAINED_PRESET, DrawnValues, ScalarScene, colour_map
 
 CT_WINDOW = {"modality": "ct", "low": -160.0, "high": 240.0}
 
@@ -77,3 +77,28 @@ def test_the_page_offers_only_presets_the_window_keeps_and_a_band_s_top_moves_up
     lifted = wide.chosen.function
     assert (lifted.high, lifted.fall_low) == (0.95, 0.95) and lifted.fall_high == max(band.fall_high, 0.95)
     lifted.validate()
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    ends=st.lists(st.floats(0.0, 1.0), min_size=4, max_size=4),
+    density=st.sampled_from([0.0, 1e-30, 4.0, 999_999.0]),
+    band=st.booleans(),
+)
+def test_the_viewer_s_float32_recolour_gives_the_model_s_opacities(ends, density, band):
+    """With a 3D filter and a PLY's opacity scale, any window (bands and steps included): the
+    numpy recolour the viewer uses against ScalarGaussians.opacities."""
+    import torch
+
+    scalar = scalar_scene().scalar
+    generator = torch.Generator().manual_seed(2)
+    scalar.log_lengths = torch.rand(len(scalar), generator=generator) * 30 - 15  # clear to opaque
+    scalar.smoothing = torch.rand(len(scalar), generator=generator) * 1e-3
+    scalar.opacity_scale = 0.5 + 0.5 * torch.rand(len(scalar), generator=generator)
+    low, high, fall_low, fall_high = sorted(ends)
+    transfer = TransferFunction(low, high, density, *((fall_low, fall_high) if band else (None, None)))
+    with torch.no_grad():
+        expected = scalar.drawn_as(transfer).opacities().numpy()
+    got = DrawnValues.of(scalar).opacities(transfer)
+    assert got.dtype == np.float32 and np.isfinite(got).all()
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)

@@ -17,7 +17,7 @@ import torch
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.figures import anchor_colours
-from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
+from cubecloud_cli.splat.scalar_gaussians import LOG_LENGTH_LIMIT, ScalarGaussians
 from cubecloud_cli.transfer.function import TransferFunction
 from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, clipped_away, resolve_transfer
 from cubecloud_cli.view.splats import ViewSplats, importance_order, mean_variances, view_splats
@@ -69,17 +69,40 @@ def transfer_presets(scalar: ScalarGaussians, intensity_map: dict | None) -> dic
     return presets
 
 
-def recoloured(geometry: ViewSplats, scalar: ScalarGaussians, chosen: ViewTransfer) -> ViewSplats:
+@dataclass(frozen=True)
+class DrawnValues:
+    """What of a scalar scene no transfer function changes, computed once: each Gaussian's value,
+    optical length (world units) and the factor its 3D filter scales every opacity by. A recolour
+    is then a few float32 passes over them (2 ms for 100k, where the torch map took 25 ms on a
+    machine busy drawing the page)."""
+
+    values: np.ndarray  # (N,) float32 in [0, 1]
+    lengths: np.ndarray  # (N,) float32, exp of the clamped log length
+    attenuation: np.ndarray  # (N,) float32 in (0, 1]
+
+    @classmethod
+    def of(cls, scalar: ScalarGaussians) -> "DrawnValues":
+        with torch.no_grad():
+            values = scalar.values().clamp(0.0, 1.0)
+            lengths = torch.exp(scalar.log_lengths.clamp(-LOG_LENGTH_LIMIT, LOG_LENGTH_LIMIT))
+            attenuation = scalar.filter_attenuation().clamp(0.0, 1.0)
+        return cls(*(t.float().numpy() for t in (values, lengths, attenuation)))
+
+    def opacities(self, transfer: TransferFunction) -> np.ndarray:
+        """(N,) α = (1 − exp(−σ(v) ℓ)) × the filter's factor, as ScalarGaussians.opacities gives it."""
+        depth = np.asarray(transfer.extinction(self.values), dtype=np.float32) * self.lengths
+        return np.clip(-np.expm1(-depth) * self.attenuation, 0.0, 1.0)
+
+
+def recoloured(geometry: ViewSplats, drawn: DrawnValues, chosen: ViewTransfer) -> ViewSplats:
     """``geometry`` (the scene's centres and covariances, in the PLY's order, from
     :func:`view_splats`) with the colours and opacities the rasterizer gives it under ``chosen``:
     only these change with a transfer function, so a change of control redoes nothing else."""
-    with torch.no_grad():
-        opacities = scalar.drawn_as(chosen.effective()).opacities().double().clamp(0.0, 1.0).numpy()
-        values = scalar.values().double().clamp(0.0, 1.0).numpy()
+    opacities = drawn.opacities(chosen.effective())
     # Grey is the value itself: no interpolation (a sixth of a recolouring's time for 100k).
     grey = chosen.colour_map == "grey"
-    rgbs = np.repeat(values.astype(np.float32)[:, None], 3, axis=1) if grey else colour_map(values, chosen.colour_map)
-    return ViewSplats(geometry.centers, geometry.covariances, rgbs, opacities.astype(np.float32)[:, None])
+    rgbs = np.repeat(drawn.values[:, None], 3, axis=1) if grey else colour_map(drawn.values, chosen.colour_map)
+    return ViewSplats(geometry.centers, geometry.covariances, rgbs, opacities[:, None])
 
 
 class ScalarScene:
@@ -88,6 +111,7 @@ class ScalarScene:
 
     def __init__(self, scalar: ScalarGaussians, intensity_map: dict | None):
         self.scalar = scalar
+        self.drawn = DrawnValues.of(scalar)
         self.geometry = view_splats(scalar)
         self.variances = mean_variances(self.geometry.covariances)  # the importance order's other factor
         self.presets = transfer_presets(scalar, intensity_map)
@@ -95,7 +119,7 @@ class ScalarScene:
 
     def splats(self) -> ViewSplats:
         """The Gaussians under the current choice, in importance order (it changes with opacity)."""
-        splats = recoloured(self.geometry, self.scalar, self.chosen)
+        splats = recoloured(self.geometry, self.drawn, self.chosen)
         return splats.subset(importance_order(splats, self.variances, stable=False))
 
     def choose(
