@@ -18,6 +18,7 @@ from cubecloud_cli.transfer.training_set import (
     NamedTransfer,
     held_out_transfers,
     random_ramps,
+    random_windows,
     training_transfers,
 )
 
@@ -30,13 +31,24 @@ def test_the_set_starts_with_the_exports_own_and_never_holds_out_what_eval_tests
     assert len(chosen) == 8 and chosen[0] == primary
     names = [t.name for t in chosen]
     assert len(set(names)) == 8 and not set(names) & set(HELD_OUT_PRESETS)
-    assert names[1:3] == ["soft", "glow"] and all(n.startswith("ramp-") for n in names[3:])
+    assert names[1:3] == ["soft", "glow"] and names[3:5] == ["band-0", "ramp-1"]
+    assert all(n.startswith(("band-", "ramp-")) for n in names[3:])
     held = held_out_transfers(CT_WINDOW, seed=0, trained=chosen)
     assert {t.function for t in held.transfers}.isdisjoint({t.function for t in chosen})
     assert training_transfers(primary, 1, CT_WINDOW, seed=0) == [primary]
     assert training_transfers(primary, 8, CT_WINDOW, seed=0) == chosen  # seeded: the same set again
     with pytest.raises(ValueError):
         training_transfers(primary, 0, CT_WINDOW, seed=0)
+
+
+def test_random_windows_are_valid_bands_and_ramps_by_turns():
+    windows = random_windows(200, seed=5)
+    for index, window in enumerate(windows):
+        window.function.validate()
+        assert window.function.is_band == (index % 2 == 0)
+        assert RAMP_DENSITY[0] <= window.function.density <= RAMP_DENSITY[1]
+    tops = np.array([w.function.fall_low - w.function.high for w in windows[::2]])
+    assert tops.min() < 0.05 and tops.max() > 0.2  # narrow and wide alike
 
 
 def test_random_ramps_are_valid_transfer_functions_over_the_value_range():

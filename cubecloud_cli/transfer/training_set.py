@@ -2,8 +2,10 @@
 
 A scalar scene must render tissue it was never shown, so it is trained under a set: the
 export's own transfer function first, then the presets eval does not hold out, then seeded
-random ramps over the value range, their start, width and density drawn so that the set covers
-faint and opaque, narrow and wide. eval holds out other presets and ramps of another seed.
+random bands and ramps over the value range, by turns, their ends and density drawn so that the
+set covers faint and opaque, narrow and wide. A band shows the values inside it with nothing in
+front from outside it, so every value range is seen unhidden under some member of the set. eval
+holds out other presets and ramps of another seed.
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ RANDOM_RAMP = "ramp"
 RAMP_START = (0.02, 0.9)
 RAMP_WIDTH = (0.02, 0.6)
 RAMP_DENSITY = (1.0, 30.0)
+# A band's top is 0.02 to 0.3 wide, and it rises and falls over 0.005 to 0.1.
+BAND_TOP = (0.02, 0.3)
+BAND_SIDE = (0.005, 0.1)
+RANDOM_BAND = "band"
 HELD_OUT_SEED_OFFSET = 1_000_003  # eval's ramps come from a stream no training seed reaches
 
 
@@ -45,11 +51,34 @@ def random_ramps(count: int, seed: int) -> list[NamedTransfer]:
     return ramps
 
 
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1])))
+
+
+def random_windows(count: int, seed: int) -> list[NamedTransfer]:
+    """``count`` seeded random transfer functions over the value range: bands and ramps by turns."""
+    rng = np.random.default_rng(seed)
+    windows = []
+    for index in range(count):
+        low = float(rng.uniform(*RAMP_START))
+        density = _log_uniform(rng, RAMP_DENSITY)
+        if index % 2 == 0:
+            high = min(1.0, low + _log_uniform(rng, BAND_SIDE))
+            fall_low = min(1.0, high + _log_uniform(rng, BAND_TOP))
+            fall_high = min(1.0, fall_low + _log_uniform(rng, BAND_SIDE))
+            function = TransferFunction(low, high, density, fall_low, fall_high)
+            windows.append(NamedTransfer(f"{RANDOM_BAND}-{index}", function))
+        else:
+            high = min(1.0, low + _log_uniform(rng, RAMP_WIDTH))
+            windows.append(NamedTransfer(f"{RANDOM_RAMP}-{index}", TransferFunction(low, high, density)))
+    return windows
+
+
 def training_transfers(
     primary: NamedTransfer, count: int, intensity_map: dict | None, seed: int
 ) -> list[NamedTransfer]:
     """``count`` transfer functions: ``primary``, then the presets not held out (in their order),
-    then seeded random ramps. Presets the volume's window clips away are left out."""
+    then seeded random bands and ramps. Presets the volume's window clips away are left out."""
     if count < 1:
         raise ValueError(f"a training set needs at least one transfer function, got {count}")
     chosen = [primary]
@@ -58,7 +87,7 @@ def training_transfers(
             break
         if name != primary.name and name not in HELD_OUT_PRESETS and clipped_away(name, intensity_map) is None:
             chosen.append(NamedTransfer(name, resolve_transfer(name, intensity_map)))
-    chosen += random_ramps(count - len(chosen), seed)
+    chosen += random_windows(count - len(chosen), seed)
     return chosen
 
 
