@@ -130,7 +130,7 @@ def march_with(field, cameras, index, model, clear) -> np.ndarray:
     return grid_march.dvr_view(
         field.volume.numpy(), clear, grid_march.CELL_SHIFT, origin.double().numpy(), directions.numpy(),
         low.numpy().astype(np.float32), high.numpy().astype(np.float32), float(model.step),
-        *transfer.march_parameters(), float(model.termination), renderer.STEPS_PER_BLOCK,
+        transfer.march_parameters(), float(model.termination), renderer.STEPS_PER_BLOCK,
     )  # fmt: skip
 
 

@@ -92,34 +92,20 @@ def clear_cells(volume, low, shift):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_march(
-    volume,
-    clear,
-    shift,
-    origin,
-    directions,
-    entry,
-    first,
-    last,
-    step,
-    low,
-    ramp_width,
-    fall_low,
-    fall_width,
-    density,
-    termination,
-    block,
-):
+def dvr_march(volume, clear, shift, origin, directions, entry, first, last, step, transfer, termination, block):
     """(R,) dvr colours of rays ``origin + t · directions[r]`` through the (S, S, S) grid laid
     over [−1, 1]³ (indexed x, y, z), sampled at k in [first[r], last[r]).
 
-    ``low`` … ``density`` are ``TransferFunction.march_parameters()``: the widths at least
-    MIN_RAMP_WIDTH (the caller's guard), ``fall_low`` +∞ for a function without a fall; opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for small σΔ. A sample in a
-    cell of ``clear`` (:func:`clear_cells`) adds and absorbs nothing, so the march reads no voxel
-    for it and steps over the cell's other samples: the same colours, fewer reads."""
+    ``transfer`` is ``TransferFunction.march_parameters()``: (low, rise width, fall start, fall
+    width, density), the widths at least MIN_RAMP_WIDTH (the caller's guard), the fall's start +∞
+    for a function without a fall; opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for
+    small σΔ. A sample in a cell of ``clear`` (:func:`clear_cells`) adds and absorbs nothing, so
+    the march reads no voxel for it and steps over the cell's other samples: the same colours,
+    fewer reads."""
     count = directions.shape[0]
     size = volume.shape[0]
     half = 0.5 * size
+    low, ramp_width, fall_low, fall_width, density = transfer
     inverse_width = 1.0 / ramp_width
     inverse_fall_width = 1.0 / fall_width
     cell = 1 << shift
@@ -198,23 +184,7 @@ def _slab_interval(origin32, direction, low, high):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_view(
-    volume,
-    clear,
-    shift,
-    origin,
-    directions,
-    support_low,
-    support_high,
-    step,
-    low,
-    ramp_width,
-    fall_low,
-    fall_width,
-    density,
-    termination,
-    block,
-):
+def dvr_view(volume, clear, shift, origin, directions, support_low, support_high, step, transfer, termination, block):
     """(R,) dvr colours of one view's rays from ``origin``: each ray's entry into the cube, its
     span through the support's box and its march, all in one pass (:func:`dvr_march` after the
     torch ray set-up of ``renderer._ray_chunks``, without the tensors between them)."""
@@ -234,20 +204,5 @@ def dvr_view(
         last = math.ceil((stop - entry) / step32 - np.float32(0.5))
         entries[r], firsts[r], lasts[r] = entry, first, max(first, last)
     return dvr_march(
-        volume,
-        clear,
-        shift,
-        origin,
-        directions,
-        entries,
-        firsts,
-        lasts,
-        step,
-        low,
-        ramp_width,
-        fall_low,
-        fall_width,
-        density,
-        termination,
-        block,
+        volume, clear, shift, origin, directions, entries, firsts, lasts, step, transfer, termination, block
     )

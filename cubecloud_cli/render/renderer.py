@@ -140,7 +140,7 @@ def march_grid_view(field: GridField, model: ImageModel, origin, directions, sup
         low.numpy().astype(np.float32),
         high.numpy().astype(np.float32),
         float(model.step),
-        *transfer.march_parameters(),
+        transfer.march_parameters(),
         float(model.termination),
         STEPS_PER_BLOCK,
     )
