@@ -8,7 +8,8 @@ the transfer functions the scalar scene never trained under, and the total time 
 Runs, in the `fast` preset (the bundled CT unless a scan is given; arguments after `--` go to
 preprocess, such as a window wide enough for every held-out tissue):
 
-1. preprocess and cunerf once (no transfer function enters them, so both ways share them);
+1. a tiny run of both ways, untimed, which compiles numba's kernels; then preprocess and cunerf
+   once (no transfer function enters them, so both ways share them);
 2. the scalar way: `export --transfer-set K`, `splat --scalar --iterations N` (the set and length
    docs/results.md chose: 5 and 3000), `eval`; eval scores the scalar run under each held-out
    transfer function;
@@ -90,11 +91,25 @@ def main() -> None:
         report(options, base)
 
 
+def warm_up(scan: str, base: Path) -> None:
+    """A tiny run of both ways, untimed, so that numba's kernels are compiled (and cached) before
+    either way is timed: otherwise the first export pays the compilation (14 s) and the rest not."""
+    work = base / "warm-up"
+    cubecloud("preprocess", scan, "-o", str(work), "--size", "32")
+    cubecloud("cunerf", str(work), "--iterations", "20")
+    small = ["--views", "6", "--resolution", "32", "--novel-directions", "2"]
+    cubecloud("export", str(work), *small, "--transfer-set", "2")
+    cubecloud("splat", str(work), "--scalar", "--iterations", "20")
+    cubecloud("splat", str(work), "--iterations", "20", "--name", "baked")
+    shutil.rmtree(work)
+
+
 def run_both_ways(options, base: Path) -> None:
     """Every run, its seconds written to ``base``/seconds.json for the report."""
     work = base / "scalar"
     scan = options.scan or str(sample_ct_path())
     extra = options.preprocess
+    warm_up(scan, base)
     seconds = {"preprocess": cubecloud("preprocess", scan, "-o", str(work), *extra)}
     seconds["cunerf"] = cubecloud("cunerf", str(work))
     seconds["scalar export"] = cubecloud("export", str(work), "--transfer-set", str(options.set))
