@@ -96,15 +96,25 @@ def write_gaussians_ply(path: Path, gaussians: Gaussians, scalar: ScalarProperti
     PlyData([PlyElement.describe(vertices, "vertex")], comments=comments).write(str(path))
 
 
-def read_gaussians_ply(path: Path) -> Gaussians:
-    """Read a reference-layout PLY (ours or another trainer's), by property name as 3DGS does."""
+def _read_ply(path: Path) -> PlyData:
+    """The PLY at ``path`` with a vertex element, or a one-line error that says what to do."""
     try:
         data = PlyData.read(str(path))
-        vertex = data["vertex"]
+        data["vertex"]
     except FileNotFoundError:
         raise CubecloudError(f"{path} does not exist: train it with `cubecloud splat`") from None
-    except Exception as exc:
+    except Exception as exc:  # plyfile raises many types for a damaged file
         raise CubecloudError(f"{path} is not a readable PLY ({type(exc).__name__}): train it again") from None
+    return data
+
+
+def read_gaussians_ply(path: Path) -> Gaussians:
+    """Read a reference-layout PLY (ours or another trainer's), by property name as 3DGS does."""
+    return _gaussians(_read_ply(path), path)
+
+
+def _gaussians(data: PlyData, path: Path) -> Gaussians:
+    vertex = data["vertex"]
     names = [p.name for p in vertex.properties]
     rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n.split("_")[-1]))
     coefficients = len(rest) // 3 + 1
@@ -150,13 +160,11 @@ def read_gaussians_ply(path: Path) -> Gaussians:
 
 def read_scalar_properties(path: Path) -> ScalarProperties | None:
     """The scalar columns and transfer functions of a scalar scene's PLY; None for any other PLY."""
-    try:
-        data = PlyData.read(str(path))
-        vertex = data["vertex"]
-    except FileNotFoundError:
-        raise CubecloudError(f"{path} does not exist: train it with `cubecloud splat`") from None
-    except Exception as exc:  # plyfile raises many types for a damaged file
-        raise CubecloudError(f"{path} is not a readable PLY ({type(exc).__name__}): train it again") from None
+    return _scalar_properties(_read_ply(path), path)
+
+
+def _scalar_properties(data: PlyData, path: Path) -> ScalarProperties | None:
+    vertex = data["vertex"]
     names = {p.name for p in vertex.properties}
     drawn = [c[len(DRAWN_UNDER) :] for c in data.comments if c.startswith(DRAWN_UNDER)]
     trained = [c[len(TRAINED_UNDER) :] for c in data.comments if c.startswith(TRAINED_UNDER)]
@@ -180,10 +188,18 @@ def read_scalar_properties(path: Path) -> ScalarProperties | None:
 def read_scalar_gaussians(path: Path) -> ScalarGaussians | None:
     """A scalar scene as trained (the 3D filter folded in), ready to draw under any transfer
     function; None for a PLY that is not one."""
-    scalar = read_scalar_properties(path)
+    model = read_splat_ply(path)
+    return model if isinstance(model, ScalarGaussians) else None
+
+
+def read_splat_ply(path: Path) -> Gaussians | ScalarGaussians:
+    """A trained scene from one read of its PLY: a scalar scene's model when it has the scalar
+    columns, else the reference layout's Gaussians."""
+    data = _read_ply(path)
+    reference = _gaussians(data, path)
+    scalar = _scalar_properties(data, path)
     if scalar is None:
-        return None
-    reference = read_gaussians_ply(path)
+        return reference
     values = torch.from_numpy(np.clip(scalar.values, VALUE_MARGIN, 1.0 - VALUE_MARGIN))
     return ScalarGaussians(
         reference.means,

@@ -7,7 +7,7 @@ methods work on tensors and arrays alike.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -60,6 +60,13 @@ class TransferFunction:
 
     def extinction(self, values: torch.Tensor) -> torch.Tensor:
         return self.density * self.ramp(values)
+
+    def with_window(self, low: float, high: float) -> TransferFunction:
+        """The rise moved to ``low``..``high``; a band's fall is lifted to start no lower than
+        ``high``, so that the band keeps its order (its top may shrink to nothing)."""
+        if self.fall_low is None or self.fall_low >= high:
+            return replace(self, low=low, high=high)
+        return replace(self, low=low, high=high, fall_low=high, fall_high=max(self.fall_high, high))
 
     def march_parameters(self) -> tuple[float, float, float, float, float]:
         """(low, rise width, fall start, fall width, density) as the numba march takes them: widths

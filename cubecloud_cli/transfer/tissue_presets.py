@@ -90,17 +90,10 @@ def resolve_transfer(
     window = _ct_window(intensity_map)
     if chosen.hu is not None and window is not None:
         ends = tuple(hu_to_intensity(h, window) for h in chosen.hu)
-    new_low, new_high = ends[0] if low is None else low, ends[1] if high is None else high
     fall = ends[2:] if len(ends) == 4 else (None, None)
-    if fall[0] is not None and fall[0] < new_high:  # a --tf-high above the band's top lifts the fall with it
-        fall = (new_high, max(fall[1], new_high))
-    function = TransferFunction(
-        low=new_low,
-        high=new_high,
-        density=chosen.density if density is None else density,
-        fall_low=fall[0],
-        fall_high=fall[1],
-    )
+    function = TransferFunction(ends[0], ends[1], chosen.density if density is None else density, *fall)
+    # A --tf-high above the band's top lifts the fall with it.
+    function = function.with_window(function.low if low is None else low, function.high if high is None else high)
     try:
         function.validate()
     except ValueError as exc:

@@ -39,20 +39,19 @@ class NamedTransfer:
     function: TransferFunction
 
 
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1])))
+
+
 def random_ramps(count: int, seed: int) -> list[NamedTransfer]:
     """``count`` seeded random ramps over the value range."""
     rng = np.random.default_rng(seed)
     ramps = []
     for index in range(count):
         low = float(rng.uniform(*RAMP_START))
-        width = math.exp(rng.uniform(math.log(RAMP_WIDTH[0]), math.log(RAMP_WIDTH[1])))
-        density = math.exp(rng.uniform(math.log(RAMP_DENSITY[0]), math.log(RAMP_DENSITY[1])))
+        width, density = _log_uniform(rng, RAMP_WIDTH), _log_uniform(rng, RAMP_DENSITY)
         ramps.append(NamedTransfer(f"{RANDOM_RAMP}-{index}", TransferFunction(low, min(1.0, low + width), density)))
     return ramps
-
-
-def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
-    return math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1])))
 
 
 def random_windows(count: int, seed: int) -> list[NamedTransfer]:

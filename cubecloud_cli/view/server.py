@@ -22,7 +22,8 @@ import numpy as np
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs
-from cubecloud_cli.splat.gaussian_ply import read_gaussians_ply, read_scalar_gaussians
+from cubecloud_cli.splat.gaussian_ply import read_splat_ply
+from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
 from cubecloud_cli.view.context import load_context
 from cubecloud_cli.view.delivery import SplatDelivery
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
@@ -293,10 +294,10 @@ class SceneViewer:
     def _load_run(self, name: str) -> None:
         """The run's Gaussians in importance order; a scalar run's kept with its values too, to
         recolour under the page's transfer function."""
-        scalar = read_scalar_gaussians(self.runs[name])
-        self.scalar_scene = None if scalar is None else ScalarScene(scalar, self.intensity_map)
+        model = read_splat_ply(self.runs[name])
+        self.scalar_scene = ScalarScene(model, self.intensity_map) if isinstance(model, ScalarGaussians) else None
         if self.scalar_scene is None:
-            self.splats = by_importance(view_splats(read_gaussians_ply(self.runs[name])))
+            self.splats = by_importance(view_splats(model))
         else:
             self.splats = self.scalar_scene.splats()
 

@@ -140,9 +140,7 @@ class ScalarScene:
         if low is not None or high is not None:
             new_low = float(np.clip(np.nan_to_num(function.low if low is None else low), 0.0, 1.0))
             new_high = float(np.clip(np.nan_to_num(function.high if high is None else high), new_low, 1.0))
-            function = replace(function, low=new_low, high=new_high)
-            if function.fall_low is not None and function.fall_low < new_high:  # a band's top moves up with it
-                function = replace(function, fall_low=new_high, fall_high=max(function.fall_high, new_high))
+            function = function.with_window(new_low, new_high)
         scale = (
             self.chosen.opacity_scale
             if opacity is None
