@@ -13,6 +13,7 @@ from cubecloud_cli.cli.eval import eval_command
 from cubecloud_cli.cli.export import export_command
 from cubecloud_cli.cli.preprocess import preprocess_command
 from cubecloud_cli.cli.run import run_command
+from cubecloud_cli.cli.share import share_command
 from cubecloud_cli.cli.splat import splat_command
 from cubecloud_cli.cli.view import view_command
 
@@ -54,6 +55,7 @@ app.command("splat")(splat_command)
 app.command("eval")(eval_command)
 app.command("run")(run_command)
 app.command("view")(view_command)
+app.command("share")(share_command)
 app.command("cohort")(cohort_command)
 
 

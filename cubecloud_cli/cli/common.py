@@ -103,7 +103,10 @@ PresetOption = Annotated[
         "paper's settings (meant for a GPU).",
     ),
 ]
-ForceOption = Annotated[bool, typer.Option("--force", help="Replace the stage if it is already complete.")]
+ForceOption = Annotated[
+    bool,
+    typer.Option("--force", help="Replace what the command writes (a stage, a shared page) if it is already complete."),
+]
 ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last checkpoint.")]
 WorkOption = Annotated[
     Path, typer.Option("--output", "-o", help="Work directory; each stage writes a folder inside it.")

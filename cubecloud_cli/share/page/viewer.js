@@ -1,0 +1,272 @@
+// cubecloud share: one trained scene drawn by Spark on three.js, with anatomical cuts, a ruler in
+// millimetres and the patient's axes. Everything the page needs is in the page: the scene as SPZ
+// (base64) and what cubecloud knew of it (scene-info), so it opens from file:// with no network.
+(async function () {
+  "use strict";
+  const state = { ready: false, error: null, frames: 0, distanceMm: null, picks: [] };
+  window.cubecloud = state; // what tests and a curious person at the console read
+  const status = document.getElementById("status");
+  try {
+    await main(state, status);
+  } catch (error) {
+    state.error = String(error && error.stack ? error.stack : error);
+    status.textContent = "This page could not draw the scene: " + error;
+  }
+})();
+
+async function main(state, status) {
+  const { THREE, OrbitControls, SparkRenderer, SplatMesh } = window.CubecloudVendor;
+  const info = JSON.parse(document.getElementById("scene-info").textContent);
+  const canvas = document.getElementById("scene");
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+  renderer.setClearColor(0x000000, 1);
+  const scene = new THREE.Scene();
+  // A scene trained with Mip-Splatting's 2D filter is drawn with it (opacity-compensated blur);
+  // a plain 3DGS scene with the reference's 0.3 px² dilation.
+  scene.add(new SparkRenderer({ renderer, preBlurAmount: info.blur.dilation, blurAmount: info.blur.mip }));
+
+  const camera = new THREE.PerspectiveCamera(info.camera.fovY, 1, 0.001, 100);
+  camera.up.fromArray(info.camera.up); // before the controls, which orbit about it
+  const controls = new OrbitControls(camera, canvas);
+  const resetView = () => {
+    camera.position.fromArray(info.camera.position);
+    controls.target.fromArray(info.camera.target);
+    camera.lookAt(controls.target);
+    controls.update();
+  };
+  resetView();
+
+  const bytes = base64Bytes(document.getElementById("scene-spz").textContent);
+  const mesh = new SplatMesh({ fileBytes: bytes, fileType: "spz", splatEncoding: info.encoding });
+  await mesh.initialized;
+  scene.add(mesh);
+  const splats = readSplats(mesh.packedSplats);
+
+  const cut = setUpCut(info, splats, mesh);
+  const ruler = setUpRuler(THREE, scene, camera, canvas, info, splats, cut, state);
+  const labels = setUpAxisLabels(THREE, info);
+  document.getElementById("reset").addEventListener("click", resetView);
+  document.getElementById("summary").textContent =
+    `${splats.count.toLocaleString("en")} Gaussians · ${info.antialiased ? "anti-aliased (Mip-Splatting filters)" : "plain 3DGS (0.3 px² dilation)"}` +
+    (info.worldToScanner ? "" : " · no scanner frame: lengths in world units");
+  status.textContent = "drag to turn · scroll to zoom · right-drag to pan";
+
+  const resize = () => {
+    const width = window.innerWidth, height = window.innerHeight;
+    renderer.setSize(width, height, false);
+    camera.aspect = width / Math.max(height, 1);
+    camera.updateProjectionMatrix();
+  };
+  window.addEventListener("resize", resize);
+  resize();
+  Object.assign(state, {
+    setCut: cut.set,
+    pickAt: ruler.pickAt,
+    resetView,
+    project: (point) => projectToPixels(THREE, camera, point),
+  });
+  renderer.setAnimationLoop(() => {
+    controls.update();
+    renderer.render(scene, camera);
+    labels.update(camera);
+    ruler.update();
+    state.frames += 1;
+    state.ready = true;
+  });
+}
+
+function base64Bytes(text) {
+  const binary = atob(text.trim());
+  const bytes = new Uint8Array(binary.length);
+  for (let i = 0; i < binary.length; i++) bytes[i] = binary.charCodeAt(i);
+  return bytes;
+}
+
+// Each Gaussian's centre, opacity and precision matrix (the inverse covariance, 6 terms), as
+// Spark decoded them: the ruler picks in these, the cut hides by the centres.
+function readSplats(packed) {
+  const count = packed.numSplats;
+  const centres = new Float32Array(3 * count), opacity = new Float32Array(count), precision = new Float32Array(6 * count);
+  packed.forEachSplat((i, centre, scales, q, alpha) => {
+    centres.set([centre.x, centre.y, centre.z], 3 * i);
+    opacity[i] = alpha;
+    const { x, y, z, w } = q;
+    const r = [ // the rotation matrix of the unit quaternion, row-major
+      1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+      2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+      2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    ];
+    const inverse = [scales.x, scales.y, scales.z].map((s) => 1 / Math.max(s * s, 1e-12));
+    const term = (a, b) => r[3 * a] * r[3 * b] * inverse[0] + r[3 * a + 1] * r[3 * b + 1] * inverse[1] + r[3 * a + 2] * r[3 * b + 2] * inverse[2];
+    precision.set([term(0, 0), term(0, 1), term(0, 2), term(1, 1), term(1, 2), term(2, 2)], 6 * i);
+  });
+  return { count, centres, opacity, precision };
+}
+
+// The anatomical cut: Gaussians whose centre lies beyond the plane get opacity 0 in Spark's packed
+// splats (the top byte of each splat's first word), the rest their own.
+function setUpCut(info, splats, mesh) {
+  const packed = mesh.packedSplats, words = packed.packedArray;
+  const original = new Uint32Array(splats.count);
+  for (let i = 0; i < splats.count; i++) original[i] = words[4 * i];
+  const select = document.getElementById("cut-axis"), slider = document.getElementById("cut-position");
+  const text = document.getElementById("cut-text");
+  const current = { axis: -1, offset: 0 };
+  const hidden = (i) => current.axis >= 0 && splats.centres[3 * i + current.axis] > current.offset;
+  const apply = () => {
+    for (let i = 0; i < splats.count; i++) words[4 * i] = hidden(i) ? original[i] & 0x00ffffff : original[i];
+    packed.needsUpdate = true; // uploads the words again
+    mesh.needsUpdate = true; // and makes Spark generate the splats from them again
+    const name = select.value;
+    text.textContent = current.axis < 0 ? "no cut" : `${name} plane at ${planeText(info, current.axis, current.offset)}; the ${info.axes[current.axis][1]} side hidden`;
+  };
+  const set = (name, offset) => {
+    select.value = name;
+    current.axis = name === "none" ? -1 : info.cutAxes[name];
+    current.offset = Number.isFinite(offset) ? Math.min(Math.max(offset, -1), 1) : 0;
+    slider.disabled = current.axis < 0;
+    slider.value = String(current.offset);
+    apply();
+  };
+  select.addEventListener("change", () => set(select.value, Number(slider.value)));
+  slider.addEventListener("input", () => set(select.value, Number(slider.value)));
+  return { set, hidden };
+}
+
+function planeText(info, axis, offset) {
+  if (!info.worldToScanner) return `${offset.toFixed(3)} world units`;
+  const point = [0, 0, 0];
+  point[axis] = offset;
+  const mm = toScanner(info, point);
+  const component = info.scannerComponent[axis];
+  return `${"RAS"[component]} ${mm[component].toFixed(1)} mm`;
+}
+
+function toScanner(info, p) {
+  const m = info.worldToScanner;
+  if (!m) return p;
+  return [0, 1, 2].map((r) => m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+}
+
+// Where a ray meets the scene: the first depth at which its transmittance through the Gaussians
+// falls to ½. Each Gaussian stops the ray by its opacity times its peak response along the ray,
+// exp(−½ m²), m the Mahalanobis distance of the ray's closest approach; it acts at that approach.
+function pickAlongRay(splats, origin, direction, hidden) {
+  const hits = [];
+  const { centres, precision, opacity } = splats;
+  for (let i = 0; i < splats.count; i++) {
+    if (opacity[i] < 1 / 255 || hidden(i)) continue;
+    const p = precision.subarray(6 * i, 6 * i + 6);
+    const v = [centres[3 * i] - origin[0], centres[3 * i + 1] - origin[1], centres[3 * i + 2] - origin[2]];
+    const pd = [p[0] * direction[0] + p[1] * direction[1] + p[2] * direction[2],
+                p[1] * direction[0] + p[3] * direction[1] + p[4] * direction[2],
+                p[2] * direction[0] + p[4] * direction[1] + p[5] * direction[2]];
+    const a = pd[0] * direction[0] + pd[1] * direction[1] + pd[2] * direction[2];
+    if (!(a > 0)) continue;
+    const b = pd[0] * v[0] + pd[1] * v[1] + pd[2] * v[2];
+    const vPv = v[0] * (p[0] * v[0] + p[1] * v[1] + p[2] * v[2]) + v[1] * (p[1] * v[0] + p[3] * v[1] + p[4] * v[2]) +
+      v[2] * (p[2] * v[0] + p[4] * v[1] + p[5] * v[2]);
+    const t = b / a, m2 = Math.max(vPv - (b * b) / a, 0);
+    if (t <= 0 || m2 > 18) continue; // beyond 6σ a Gaussian stops under 1e-8 of the ray
+    hits.push([t, opacity[i] * Math.exp(-0.5 * m2)]);
+  }
+  hits.sort((x, y) => x[0] - y[0]);
+  let transmittance = 1;
+  for (const [t, alpha] of hits) {
+    transmittance *= 1 - Math.min(alpha, 0.99);
+    if (transmittance <= 0.5) return [0, 1, 2].map((k) => origin[k] + t * direction[k]);
+  }
+  return null;
+}
+
+function setUpRuler(THREE, scene, camera, canvas, info, splats, cut, state) {
+  const toggle = document.getElementById("measure"), readout = document.getElementById("distance");
+  const label = document.getElementById("distance-label");
+  const material = new THREE.LineBasicMaterial({ color: 0x66ccff, depthTest: false });
+  const line = new THREE.Line(new THREE.BufferGeometry(), material);
+  line.renderOrder = 10;
+  scene.add(line);
+  const markers = [];
+  const pickAt = (x, y) => {
+    const rect = canvas.getBoundingClientRect();
+    const ndc = new THREE.Vector2(((x - rect.left) / rect.width) * 2 - 1, -((y - rect.top) / rect.height) * 2 + 1);
+    const raycaster = new THREE.Raycaster();
+    raycaster.setFromCamera(ndc, camera);
+    const point = pickAlongRay(splats, raycaster.ray.origin.toArray(), raycaster.ray.direction.toArray(), cut.hidden);
+    if (point) add(point);
+    else readout.textContent = "nothing under the pointer: click on the scene";
+    return point;
+  };
+  const add = (point) => {
+    if (state.picks.length === 2) clear();
+    state.picks.push(point);
+    const marker = new THREE.Mesh(new THREE.SphereGeometry(0.008, 12, 8), new THREE.MeshBasicMaterial({ color: 0x66ccff, depthTest: false }));
+    marker.position.fromArray(point);
+    marker.renderOrder = 11;
+    markers.push(marker);
+    scene.add(marker);
+    if (state.picks.length === 2) {
+      const [a, b] = state.picks.map((p) => toScanner(info, p));
+      state.distanceMm = Math.hypot(a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+      line.geometry.setFromPoints(state.picks.map((p) => new THREE.Vector3(...p)));
+      readout.textContent = `${state.distanceMm.toFixed(1)} ${info.worldToScanner ? "mm" : "world units"}`;
+    } else {
+      readout.textContent = "first point set: click the second";
+    }
+  };
+  const clear = () => {
+    state.picks = [];
+    state.distanceMm = null;
+    markers.splice(0).forEach((m) => scene.remove(m));
+    line.geometry.setFromPoints([]);
+    readout.textContent = "\u00a0";
+  };
+  document.getElementById("clear").addEventListener("click", clear);
+  let down = null; // a click is a press and release within 4 px; a drag turns the view
+  canvas.addEventListener("pointerdown", (e) => { down = [e.clientX, e.clientY]; });
+  canvas.addEventListener("pointerup", (e) => {
+    if (toggle.checked && down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 4) pickAt(e.clientX, e.clientY);
+    down = null;
+  });
+  const update = () => {
+    if (state.picks.length !== 2) { label.style.display = "none"; return; }
+    const middle = state.picks[0].map((v, k) => (v + state.picks[1][k]) / 2);
+    const [x, y, visible] = projectToPixels(THREE, camera, middle);
+    label.style.display = visible ? "block" : "none";
+    label.style.left = `${x}px`;
+    label.style.top = `${y}px`;
+    label.textContent = readout.textContent;
+  };
+  return { pickAt, update };
+}
+
+function projectToPixels(THREE, camera, point) {
+  const v = new THREE.Vector3(...point).project(camera);
+  return [(v.x + 1) / 2 * window.innerWidth, (1 - v.y) / 2 * window.innerHeight, v.z > -1 && v.z < 1];
+}
+
+// The patient's directions (R/L, A/P, S/I) at the ends of the cube's axes.
+function setUpAxisLabels(THREE, info) {
+  const labels = [];
+  info.axes.forEach((ends, axis) => {
+    ends.forEach((letter, side) => {
+      const element = document.createElement("div");
+      element.className = "axis";
+      element.textContent = letter;
+      document.body.appendChild(element);
+      const point = [0, 0, 0];
+      point[axis] = side ? 1.15 : -1.15;
+      labels.push([element, point]);
+    });
+  });
+  return {
+    update(camera) {
+      for (const [element, point] of labels) {
+        const [x, y, visible] = projectToPixels(THREE, camera, point);
+        element.style.display = visible ? "block" : "none";
+        element.style.left = `${x}px`;
+        element.style.top = `${y}px`;
+      }
+    },
+  };
+}

@@ -1,0 +1,159 @@
+"""`cubecloud share`: the command's contract, and the page opened from file:// in a real browser (its
+first view against our rasterizer, a sagittal cut, the ruler in millimetres)."""
+
+import hashlib
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+import torch
+from cli_helpers import assert_one_line_error, invoke, tiny_work
+
+from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.eval.runs import load_run, render_views
+from cubecloud_cli.raster.backends import rasterizer_for
+from cubecloud_cli.scene import read_colmap_model
+from cubecloud_cli.share.page import page_camera, page_info, render_page
+from cubecloud_cli.share.spz import encode_spz
+from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.view.browser import Chromium, chromium, frame_change
+
+pytestmark = pytest.mark.slow
+
+QUICK = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "100", "-q"]
+SIDE = 256  # the browser window, square like the export's views
+needs_chromium = pytest.mark.skipif(chromium() is None, reason="needs chromium (apt-get install chromium)")
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    return tiny_work(tmp_path_factory.mktemp("share") / "work", cunerf_iterations=200, views=16, max_points=3000,
+                     novel_directions=0, splat=QUICK)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def shared(work):
+    result = invoke("share", work, "-q")
+    assert result.exit_code == 0, result.output
+    return work / "share"
+
+
+def digest(folder) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())}
+
+
+def test_share_writes_one_page_and_its_spz_and_never_overwrites_unasked(work, shared, tmp_path):
+    assert sorted(p.name for p in shared.iterdir()) == ["index.html", "scene.spz"]
+    assert shared.stat().st_mode & 0o055 == 0o055  # readable by whoever it is shared with
+    page = (shared / "index.html").read_text()
+    assert len(page.encode()) < 3_000_000 and "http://" not in page.split("<script>")[0]
+    before = digest(shared)
+    assert_one_line_error(invoke("share", work, "-o", shared), r"exists: pass --force")
+    assert digest(shared) == before
+    assert_one_line_error(
+        invoke("share", work, "--run", "splat-nope", "-o", tmp_path / "x"), r"choose --run from splat"
+    )
+    assert not (tmp_path / "x").exists()
+    (tmp_path / "empty").mkdir()
+    assert_one_line_error(invoke("share", tmp_path / "empty", "-o", tmp_path / "y"), r"no finished splat run")
+    assert invoke("share", work, "-o", shared, "--force", "-q").exit_code == 0
+    assert digest(shared) == before  # the same scene gives the same bytes
+
+
+def evaluate(browser: Chromium, expression: str):
+    result = browser.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
+    assert "exceptionDetails" not in result, result["exceptionDetails"]
+    return result["result"].get("value")
+
+
+def settle(browser: Chromium, timeout_s: float = 180.0) -> np.ndarray:
+    """The page once it has drawn two more frames and two captures in a row agree."""
+    deadline = time.monotonic() + timeout_s
+    while not evaluate(browser, "!!(window.cubecloud && (window.cubecloud.ready || window.cubecloud.error))"):
+        assert time.monotonic() < deadline, "the page never became ready"
+        time.sleep(0.2)
+    assert evaluate(browser, "window.cubecloud.error") is None
+    start = evaluate(browser, "window.cubecloud.frames")
+    previous = None
+    while time.monotonic() < deadline:
+        time.sleep(0.3)
+        if evaluate(browser, "window.cubecloud.frames") < start + 2:
+            continue
+        image = browser.capture()
+        if image is not None and previous is not None and frame_change(image, previous) < 0.5:
+            return image.astype(np.float64).mean(axis=2) / 255.0
+        previous = image
+    raise AssertionError("the page did not settle")
+
+
+def open_bare(browser: Chromium, page) -> np.ndarray:
+    browser.open(page.resolve().as_uri())
+    settle(browser)
+    evaluate(browser, "document.body.classList.add('bare')")  # the canvas alone, as our renders are
+    return settle(browser)
+
+
+@needs_chromium
+@pytest.mark.usefixtures("every_core")
+def test_the_page_opens_on_the_first_view_as_our_rasterizer_draws_it_and_a_sagittal_cut_hides_one_side(work, shared):
+    with Chromium((SIDE, SIDE)) as browser:
+        whole = open_bare(browser, shared / "index.html")
+        labels = evaluate(browser, "[...document.querySelectorAll('.axis')].map(e => e.textContent).join('')")
+        evaluate(browser, "window.cubecloud.setCut('sagittal', 0)")
+        cut = settle(browser)
+        right = evaluate(browser, "window.cubecloud.project([0.6, 0, 0])")
+    cameras = read_colmap_model(work / "export").cameras
+    first = PinholeCameras(
+        cameras.rotations[:1], cameras.translations[:1], SIDE, SIDE, cameras.focal * SIDE / cameras.height
+    )
+    run = load_run(work, "splat")
+    ours = render_views(run.gaussians(), first, [0], rasterizer_for(torch.device("cpu")), antialias=run.antialias)[0][0]
+    assert labels == "LRPAIS"
+    assert whole.mean() > 0.01 and np.corrcoef(whole.ravel(), ours.ravel())[0, 1] > 0.9
+    # The cut hides world x > 0 (the patient's right): that half of the picture goes dark, the other stays.
+    right_half = slice(SIDE // 2, None) if right[0] > SIDE / 2 else slice(None, SIDE // 2)
+    left_half = slice(None, SIDE // 2) if right[0] > SIDE / 2 else slice(SIDE // 2, None)
+    assert cut[:, right_half].mean() < 0.25 * whole[:, right_half].mean()
+    assert cut[:, left_half].mean() > 0.7 * whole[:, left_half].mean()
+
+
+def two_blob_page(tmp_path, world_to_scanner: np.ndarray):
+    """A page of two small opaque Gaussians at known points, seen square-on from +z."""
+    points = torch.tensor([[-0.4, 0.0, 0.0], [0.5, 0.1, 0.0]])
+    gaussians = Gaussians(
+        points,
+        torch.full((2, 3), math.log(0.02)),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2),
+        torch.full((2,), 5.0),
+        torch.full((2, 1, 1), 1.0),
+        torch.zeros(2, 0, 1),
+    )
+    camera = PinholeCameras(np.diag([1.0, -1.0, -1.0])[None], np.array([[0.0, 0.0, 4.0]]), SIDE, SIDE, SIDE * 1.5)
+    info = page_info(page_camera(camera), world_to_scanner, True, gaussians.log_scales.numpy())
+    path = tmp_path / "index.html"
+    path.write_text(render_page(encode_spz(gaussians, antialiased=True, fractional_bits=14), info))
+    return path, points.numpy()
+
+
+@needs_chromium
+@pytest.mark.usefixtures("every_core")
+def test_the_ruler_reads_the_distance_between_two_clicked_points_in_millimetres(tmp_path):
+    world_to_scanner = np.array([[150.0, 0, 0, -20.0], [0, 120.0, 0, 35.0], [0, 0, 100.0, 250.0], [0, 0, 0, 1]])
+    page, points = two_blob_page(tmp_path, world_to_scanner)
+    with Chromium((SIDE, SIDE)) as browser:
+        open_bare(browser, page)  # the panel would cover the left point in so small a window
+        evaluate(browser, "document.getElementById('measure').click()")
+        for point in points:
+            x, y, visible = evaluate(browser, f"window.cubecloud.project({json.dumps(point.tolist())})")
+            assert visible
+            for kind in ("mousePressed", "mouseReleased"):
+                browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+        settle(browser)
+        shown = evaluate(browser, "document.getElementById('distance').textContent")
+        distance = evaluate(browser, "window.cubecloud.distanceMm")
+    expected = float(np.linalg.norm(world_to_scanner[:3, :3] @ (points[1] - points[0])))
+    voxel_mm = 150.0 * 2 / 128  # one voxel of a 128³ cube along the coarsest axis
+    assert abs(distance - expected) < voxel_mm, (distance, expected)
+    assert shown == f"{distance:.1f} mm"
