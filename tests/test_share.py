@@ -18,7 +18,9 @@ from cubecloud_cli.scene import read_colmap_model
 from cubecloud_cli.share.page import page_camera, page_info, render_page
 from cubecloud_cli.share.spz import encode_spz
 from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.transfer.tissue_presets import resolve_transfer
 from cubecloud_cli.view.browser import Chromium, chromium, frame_change
+from cubecloud_cli.view.transfer_view import ViewTransfer, read_intensity_map
 
 pytestmark = pytest.mark.slow
 
@@ -29,8 +31,10 @@ needs_chromium = pytest.mark.skipif(chromium() is None, reason="needs chromium (
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    return tiny_work(tmp_path_factory.mktemp("share") / "work", cunerf_iterations=200, views=16, max_points=3000,
+    work = tiny_work(tmp_path_factory.mktemp("share") / "work", cunerf_iterations=200, views=16, max_points=3000,
                      novel_directions=0, splat=QUICK)  # fmt: skip
+    assert invoke("splat", work, *QUICK, "--scalar", "--name", "scalar").exit_code == 0
+    return work
 
 
 @pytest.fixture(scope="module")
@@ -117,6 +121,41 @@ def test_the_page_opens_on_the_first_view_as_our_rasterizer_draws_it_and_a_sagit
     left_half = slice(None, SIDE // 2) if right[0] > SIDE / 2 else slice(SIDE // 2, None)
     assert cut[:, right_half].mean() < 0.25 * whole[:, right_half].mean()
     assert cut[:, left_half].mean() > 0.7 * whole[:, left_half].mean()
+
+
+def first_view(work, side: int = SIDE) -> PinholeCameras:
+    cameras = read_colmap_model(work / "export").cameras
+    return PinholeCameras(
+        cameras.rotations[:1], cameras.translations[:1], side, side, cameras.focal * side / cameras.height
+    )
+
+
+@needs_chromium
+@pytest.mark.usefixtures("every_core")
+def test_a_scalar_scenes_page_recolours_it_as_our_rasterizer_draws_it_under_each_transfer_function(work, tmp_path):
+    """The page's transfer-function map against ScalarGaussians drawn by our rasterizer, under the
+    tissue preset and under a narrow dense window (0.30–0.45, opacity × 7.5)."""
+    assert invoke("share", work, "--run", "splat-scalar", "-o", tmp_path / "page", "-q").exit_code == 0
+    run = load_run(work, "splat-scalar")
+    scalar = run.scalar_gaussians()
+    choices = {"tissue": {"preset": "tissue"}, "window": {"low": 0.3, "high": 0.45, "opacity": 7.5}}
+    shots, ours = {}, {}
+    with Chromium((SIDE, SIDE)) as browser:
+        open_bare(browser, tmp_path / "page" / "index.html")
+        presets = evaluate(browser, "[...document.getElementById('tf-preset').options].map(o => o.value)")
+        for name, choice in choices.items():
+            evaluate(browser, f"window.cubecloud.setTransfer({json.dumps(choice)})")
+            shots[name] = settle(browser)
+    assert presets[0] == "as trained" and "tissue" in presets and presets[-1] == "custom"
+    tissue = resolve_transfer("tissue", read_intensity_map(work))
+    presets_of = {"tissue": tissue, "window": ViewTransfer(tissue.with_window(0.3, 0.45), 7.5).effective()}
+    rasterizer = rasterizer_for(torch.device("cpu"))
+    for name, function in presets_of.items():
+        drawn = scalar.drawn_as(function)
+        ours[name] = render_views(drawn, first_view(work), [0], rasterizer, antialias=run.antialias)[0][0]
+    correlation = {(a, b): np.corrcoef(shots[a].ravel(), ours[b].ravel())[0, 1] for a in shots for b in ours}
+    assert correlation["tissue", "tissue"] > 0.9 and correlation["window", "window"] > 0.9, correlation
+    assert correlation["window", "window"] > correlation["window", "tissue"], correlation
 
 
 def two_blob_page(tmp_path, world_to_scanner: np.ndarray):

@@ -17,10 +17,19 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.orbit import OrbitSpec
 from cubecloud_cli.cameras.sphere import sphere_cameras
 from cubecloud_cli.core.errors import CubecloudError
-from cubecloud_cli.share.page import page_camera, page_info, patient_axes, render_page
+from cubecloud_cli.share.page import (
+    page_camera,
+    page_info,
+    patient_axes,
+    read_scalar_block,
+    render_page,
+    scalar_block,
+)
 from cubecloud_cli.share.shared_scene import position_bits
 from cubecloud_cli.share.spz import FRACTIONAL_BITS, decode_spz, encode_spz, smallest_three
 from cubecloud_cli.splat.gaussians import Gaussians
+from cubecloud_cli.transfer.function import TransferFunction
+from cubecloud_cli.view.transfer_view import DrawnValues
 
 
 def random_gaussians(count: int, seed: int = 0, channels: int = 1) -> Gaussians:
@@ -165,10 +174,30 @@ def test_the_page_holds_the_scene_and_nothing_ends_its_scripts_early():
     info = page_info(page_camera(cameras), np.diag([2.0, 2.0, 2.0, 1.0]), True, gaussians.log_scales.numpy())
     info["note"] = "</script><script>alert(1)</script>"
     page = render_page(spz, info)
-    assert page.lower().count("</script") == 4  # the four of the template, none from the data
+    assert page.lower().count("</script") == 5  # the five of the template, none from the data
     embedded = re.search(r'id="scene-spz">([^<]*)<', page).group(1)
     assert base64.b64decode(embedded) == spz
     shown = json.loads(re.search(r'id="scene-info">(.*?)</script>', page, re.S).group(1))
     assert shown["note"] == info["note"] and shown["blur"] == {"mip": 0.1, "dilation": 0.0}
     assert shown["cutAxes"] == {"sagittal": 0, "coronal": 1, "axial": 2}
     assert "/*VENDOR*/" not in page and "CubecloudVendor" in page and "MIT License" in page
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=1, max_size=20),
+    st.lists(st.floats(-30, 30), min_size=1, max_size=20),
+)
+def test_a_scalar_scenes_values_come_back_for_the_page_within_their_steps(values, log_lengths):
+    count = min(len(values), len(log_lengths))
+    values = np.asarray(values[:count], dtype=np.float32)
+    lengths = np.exp(np.asarray(log_lengths[:count])).astype(np.float32)
+    attenuation = np.linspace(0.0, 1.0, count, dtype=np.float32)
+    back = read_scalar_block(scalar_block(DrawnValues(values, lengths, attenuation)))
+    expected_values = np.clip(np.nan_to_num(values), 0.0, 1.0)
+    assert np.abs(back.values - expected_values).max() <= 0.5 / 65535 + 1e-7
+    clamped = np.clip(np.asarray(log_lengths[:count]), -10.0, 10.0)
+    assert np.abs(np.log(back.lengths) - clamped).max() <= 0.5 / 2048 + 1e-5
+    assert np.abs(back.attenuation - attenuation).max() <= 0.5 / 65535 + 1e-7
+    tissue = TransferFunction(0.3, 0.6, 40.0)
+    assert np.isfinite(back.opacities(tissue)).all()

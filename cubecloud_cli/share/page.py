@@ -13,6 +13,7 @@ into the page: not its file name, not a DICOM field.
 from __future__ import annotations
 
 import base64
+import gzip
 import json
 import math
 import re
@@ -23,6 +24,8 @@ import numpy as np
 
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.raster.constants import DILATION, MIP_FILTER_VARIANCE
+from cubecloud_cli.transfer.function import TransferFunction
+from cubecloud_cli.view.transfer_view import COLOUR_MAPS, MAX_OPACITY_SCALE, DrawnValues
 
 # RAS scanner axes: the letter at the negative and the positive end of each.
 PATIENT_DIRECTIONS = (("L", "R"), ("P", "A"), ("I", "S"))
@@ -93,6 +96,39 @@ def page_info(
     }
 
 
+LOG_LENGTH_STEP = 1.0 / 2048  # int16 steps of log ℓ: ℓ to 0.05 %, over ±16 (ℓ is clamped to ±10)
+
+
+def scalar_block(drawn: DrawnValues) -> bytes:
+    """A scalar scene's per-Gaussian values for the page to recolour under any transfer function,
+    gzip-compressed: the value (uint16 over [0, 1]), log ℓ (int16 in 1/2048 steps) and the 3D
+    filter's factor (uint16 over [0, 1]), each array whole, little-endian, in the SPZ's order."""
+    values = np.rint(np.clip(np.nan_to_num(drawn.values), 0.0, 1.0) * 65535).astype("<u2")
+    log_lengths = np.log(np.clip(np.nan_to_num(drawn.lengths, nan=1.0), np.exp(-10.0), np.exp(10.0)))
+    steps = np.rint(log_lengths / LOG_LENGTH_STEP).astype("<i2")
+    attenuation = np.rint(np.clip(np.nan_to_num(drawn.attenuation), 0.0, 1.0) * 65535).astype("<u2")
+    return gzip.compress(values.tobytes() + steps.tobytes() + attenuation.tobytes(), compresslevel=9, mtime=0)
+
+
+def read_scalar_block(data: bytes) -> DrawnValues:
+    """What :func:`scalar_block` wrote, as the page reads it."""
+    raw = gzip.decompress(data)
+    count = len(raw) // 6
+    values = np.frombuffer(raw, "<u2", count, 0).astype(np.float32) / 65535
+    lengths = np.exp(np.frombuffer(raw, "<i2", count, 2 * count).astype(np.float64) * LOG_LENGTH_STEP)
+    attenuation = np.frombuffer(raw, "<u2", count, 4 * count).astype(np.float32) / 65535
+    return DrawnValues(values, lengths.astype(np.float32), attenuation)
+
+
+def scalar_info(presets: dict[str, TransferFunction]) -> dict:
+    """The transfer-function presets (the first as trained) and colour maps the page offers."""
+    return {
+        "presets": {name: function.as_dict() for name, function in presets.items()},
+        "colourMaps": {name: [list(c) for c in anchors] for name, anchors in COLOUR_MAPS.items()},
+        "maxOpacityScale": MAX_OPACITY_SCALE,
+    }
+
+
 def _asset(name: str) -> str:
     return resources.files("cubecloud_cli.share").joinpath("page", name).read_text(encoding="utf-8")
 
@@ -113,14 +149,17 @@ def _safe_in_script(text: str, what: str) -> str:
     return text
 
 
-def render_page(spz: bytes, info: dict) -> str:
-    """The whole index.html."""
+def render_page(spz: bytes, info: dict, scalar: bytes | None = None) -> str:
+    """The whole index.html; ``scalar``, a :func:`scalar_block`, makes it a scalar scene's page."""
     info_json = json.dumps(info, separators=(",", ":")).replace("</", "<\\/")
     parts = {
         "/*SCENE_INFO*/": info_json,
         "/*SCENE_SPZ*/": base64.b64encode(spz).decode("ascii"),
+        "/*SCENE_SCALAR*/": base64.b64encode(scalar or b"").decode("ascii"),
         "/*VENDOR*/": _safe_in_script(vendor_script(), "vendored viewer"),
         "/*VIEWER*/": _safe_in_script(_asset("viewer.js"), "page script"),
     }
     # One pass over the template: text put in is never searched for placeholders again.
-    return re.sub(r"/\*(SCENE_INFO|SCENE_SPZ|VENDOR|VIEWER)\*/", lambda m: parts[m.group(0)], _asset("viewer.html"))
+    return re.sub(
+        r"/\*(SCENE_INFO|SCENE_SPZ|SCENE_SCALAR|VENDOR|VIEWER)\*/", lambda m: parts[m.group(0)], _asset("viewer.html")
+    )

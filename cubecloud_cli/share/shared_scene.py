@@ -24,8 +24,9 @@ from cubecloud_cli.core.artifacts import read_manifest
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs, load_run, resolve_scene
 from cubecloud_cli.scene import read_colmap_model
-from cubecloud_cli.share.page import page_camera, page_info, render_page
+from cubecloud_cli.share.page import page_camera, page_info, render_page, scalar_block, scalar_info
 from cubecloud_cli.share.spz import encode_spz
+from cubecloud_cli.view.transfer_view import DrawnValues, read_intensity_map, transfer_presets
 
 PAGE_FILE = "index.html"
 SPZ_FILE = "scene.spz"
@@ -92,7 +93,12 @@ def share_scene(work: Path, run_name: str | None, out: Path, force: bool = False
     cameras = read_colmap_model(scene_dir).cameras
     spz = encode_spz(gaussians, run.antialias, position_bits(_cube_side(work)))
     info = page_info(page_camera(cameras, 0), _world_to_scanner(scene_dir), run.antialias, gaussians.log_scales.numpy())
-    page = render_page(spz, info).encode("utf-8")
+    scalar = run.scalar_gaussians()
+    block = None
+    if scalar is not None:  # the page recolours it under any transfer function, as `cubecloud view` does
+        block = scalar_block(DrawnValues.of(scalar))
+        info["scalar"] = scalar_info(transfer_presets(scalar, read_intensity_map(work)))
+    page = render_page(spz, info, block).encode("utf-8")
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
     staging.chmod(0o777 & ~_umask())  # mkdtemp's 0700 would keep the folder from whoever it is shared with

@@ -38,7 +38,13 @@ from cubecloud_cli.view.splats import (
     view_scale,
     view_splats,
 )
-from cubecloud_cli.view.transfer_view import CONTROLS, ScalarScene, add_transfer_controls, shown_presets
+from cubecloud_cli.view.transfer_view import (
+    CONTROLS,
+    ScalarScene,
+    add_transfer_controls,
+    read_intensity_map,
+    shown_presets,
+)
 
 log = logging.getLogger("cubecloud")
 
@@ -73,14 +79,6 @@ def visible_splats(splats: ViewSplats, clip: Clip) -> ViewSplats:
     if normal is None:
         return splats
     return splats.subset(clip_mask(splats.centers, normal, clip.position, clip.keep))  # type: ignore[arg-type]
-
-
-def _intensity_map(work: Path) -> dict | None:
-    """The preprocess window (HU for CT) the transfer-function presets are resolved through."""
-    try:
-        return json.loads((work / "preprocess" / "manifest.json").read_text()).get("intensity")
-    except (OSError, ValueError, AttributeError):
-        return None
 
 
 def _is_scalar_run(ply: Path) -> bool:
@@ -143,7 +141,7 @@ class SceneViewer:
         if run is not None and run not in self.runs:
             raise CubecloudError(f"{work} has no finished run {run!r}: choose one of {', '.join(self.runs)}")
         self.current = run or next(iter(self.runs))
-        self.intensity_map = _intensity_map(Path(work))
+        self.intensity_map = read_intensity_map(Path(work))
         self._load_run(self.current)
         self.scale = view_scale(self.splats.covariances)
         self.detail = detail_percent(detail)

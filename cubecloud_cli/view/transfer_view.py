@@ -9,7 +9,9 @@ as the export resolved them for this volume.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -54,6 +56,14 @@ class ViewTransfer:
     def effective(self) -> TransferFunction:
         scale = float(np.clip(np.nan_to_num(self.opacity_scale, nan=1.0), 0.0, MAX_OPACITY_SCALE))
         return replace(self.function, density=min(self.function.density * scale, 999_999.0))
+
+
+def read_intensity_map(work: Path) -> dict | None:
+    """The preprocess window (HU for CT) the transfer-function presets are resolved through."""
+    try:
+        return json.loads((Path(work) / "preprocess" / "manifest.json").read_text()).get("intensity")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def shown_presets(intensity_map: dict | None) -> tuple[str, ...]:

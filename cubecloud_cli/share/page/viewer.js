@@ -43,6 +43,10 @@ async function main(state, status) {
   const splats = readSplats(mesh.packedSplats);
 
   const cut = setUpCut(info, splats, mesh);
+  if (info.scalar) {
+    const drawn = await readScalar(document.getElementById("scene-scalar").textContent, splats.count);
+    Object.assign(state, { setTransfer: setUpTransfer(info.scalar, drawn, splats, cut) });
+  }
   const ruler = setUpRuler(THREE, scene, camera, canvas, info, splats, cut, state);
   const labels = setUpAxisLabels(THREE, info);
   document.getElementById("reset").addEventListener("click", resetView);
@@ -130,7 +134,100 @@ function setUpCut(info, splats, mesh) {
   };
   select.addEventListener("change", () => set(select.value, Number(slider.value)));
   slider.addEventListener("input", () => set(select.value, Number(slider.value)));
-  return { set, hidden };
+  // New colours and opacities for every Gaussian (a transfer function's), the cut kept on top.
+  const recolour = (rgba) => {
+    original.set(rgba);
+    apply();
+  };
+  return { set, hidden, recolour };
+}
+
+// A scalar scene's per-Gaussian value, optical length and 3D-filter factor (share/page.py's
+// scalar_block: three little-endian arrays, gzip-compressed).
+async function readScalar(text, count) {
+  const stream = new Blob([base64Bytes(text)]).stream().pipeThrough(new DecompressionStream("gzip"));
+  const raw = new DataView(await new Response(stream).arrayBuffer());
+  if (raw.byteLength !== 6 * count) throw new Error(`the scalar values hold ${raw.byteLength} bytes for ${count} Gaussians`);
+  const values = new Float32Array(count), lengths = new Float32Array(count), attenuation = new Float32Array(count);
+  for (let i = 0; i < count; i++) {
+    values[i] = raw.getUint16(2 * i, true) / 65535;
+    lengths[i] = Math.exp(raw.getInt16(2 * count + 2 * i, true) / 2048);
+    attenuation[i] = raw.getUint16(4 * count + 2 * i, true) / 65535;
+  }
+  return { values, lengths, attenuation };
+}
+
+// σ(v) of cubecloud's TransferFunction: a linear rise from low to high, for a band a fall from
+// fall_low to fall_high, times the density (ramp widths at least 1e-6, as MIN_RAMP_WIDTH).
+function extinction(tf, v) {
+  const clamp = (x) => Math.min(Math.max(x, 0), 1);
+  let ramp = clamp((v - tf.low) / Math.max(tf.high - tf.low, 1e-6));
+  if (tf.fall_low !== null && tf.fall_low !== undefined) ramp *= 1 - clamp((v - tf.fall_low) / Math.max(tf.fall_high - tf.fall_low, 1e-6));
+  return tf.density * ramp;
+}
+
+function withWindow(tf, low, high) {
+  if (tf.fall_low === null || tf.fall_low === undefined || tf.fall_low >= high) return { ...tf, low, high };
+  return { ...tf, low, high, fall_low: high, fall_high: Math.max(tf.fall_high, high) };
+}
+
+function mapColour(anchors, v) {
+  const x = Math.min(Math.max(Number.isFinite(v) ? v : 0, 0), 1) * (anchors.length - 1);
+  const i = Math.min(Math.floor(x), anchors.length - 2), f = x - i;
+  return [0, 1, 2].map((k) => anchors[i][k] * (1 - f) + anchors[i + 1][k] * f);
+}
+
+// The page's transfer-function controls: each Gaussian's opacity is α = (1 − exp(−σ(v) ℓ)) times
+// its 3D filter's factor and its colour the value (or the colour map's), as `cubecloud view`
+// recolours a scalar scene.
+function setUpTransfer(scalar, drawn, splats, cut) {
+  document.getElementById("transfer").hidden = false;
+  const preset = document.getElementById("tf-preset"), colours = document.getElementById("tf-colours");
+  const low = document.getElementById("tf-low"), high = document.getElementById("tf-high");
+  const opacity = document.getElementById("tf-opacity");
+  opacity.max = String(scalar.maxOpacityScale);
+  for (const name of [...Object.keys(scalar.presets), "custom"]) preset.add(new Option(name, name));
+  for (const name of Object.keys(scalar.colourMaps)) colours.add(new Option(name, name));
+  const chosen = { tf: Object.values(scalar.presets)[0], scale: 1, map: "grey" };
+  const rgba = new Uint32Array(splats.count);
+  const byte = (x) => Math.min(Math.max(Math.round(x * 255), 0), 255);
+  const draw = () => {
+    const tf = { ...chosen.tf, density: Math.min(chosen.tf.density * chosen.scale, 999999) };
+    const anchors = scalar.colourMaps[chosen.map];
+    for (let i = 0; i < splats.count; i++) {
+      const v = drawn.values[i];
+      const alpha = Math.min(Math.max(-Math.expm1(-extinction(tf, v) * drawn.lengths[i]) * drawn.attenuation[i], 0), 1);
+      const [r, g, b] = chosen.map === "grey" ? [v, v, v] : mapColour(anchors, v);
+      rgba[i] = (byte(r) | (byte(g) << 8) | (byte(b) << 16) | (byte(alpha) << 24)) >>> 0;
+      splats.opacity[i] = alpha; // the ruler picks in what is shown
+    }
+    cut.recolour(rgba);
+    low.value = String(chosen.tf.low);
+    high.value = String(chosen.tf.high);
+  };
+  const set = ({ preset: name, low: lo, high: hi, opacity: scale, colourMap } = {}) => {
+    if (name !== undefined && name !== "custom") {
+      if (!(name in scalar.presets)) throw new Error(`no transfer preset ${name}`);
+      chosen.tf = scalar.presets[name];
+      preset.value = name;
+    }
+    if (lo !== undefined || hi !== undefined) {
+      const newLow = Math.min(Math.max(Number(lo ?? chosen.tf.low) || 0, 0), 1);
+      const newHigh = Math.min(Math.max(Number(hi ?? chosen.tf.high) || 0, newLow), 1);
+      chosen.tf = withWindow(chosen.tf, newLow, newHigh);
+      preset.value = "custom";
+    }
+    if (scale !== undefined) chosen.scale = Math.min(Math.max(Number(scale) || 0, 0), scalar.maxOpacityScale);
+    if (colourMap !== undefined && colourMap in scalar.colourMaps) chosen.map = colourMap;
+    draw();
+  };
+  preset.addEventListener("change", () => preset.value !== "custom" && set({ preset: preset.value }));
+  low.addEventListener("input", () => set({ low: Number(low.value) }));
+  high.addEventListener("input", () => set({ high: Number(high.value) }));
+  opacity.addEventListener("input", () => set({ opacity: Number(opacity.value) }));
+  colours.addEventListener("change", () => set({ colourMap: colours.value }));
+  set({ preset: Object.keys(scalar.presets)[0] });
+  return set;
 }
 
 function planeText(info, axis, offset) {
