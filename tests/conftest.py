@@ -139,3 +139,19 @@ def body_phantom(shape=(24, 20, 16), seed=0) -> np.ndarray:
 def phantom_nifti(tmp_path) -> Path:
     affine = np.diag([1.5, 1.5, 3.0, 1.0])
     return write_nifti(tmp_path / "phantom.nii.gz", body_phantom(), affine)
+
+
+VIEWABLE_SPLAT = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "100", "-q"]
+
+
+@pytest.fixture(scope="session")
+def viewable_work(tmp_path_factory):
+    """A finished 32³ work directory with a baked run (`splat`) and a scalar one (`splat-scalar`),
+    for the tests of `cubecloud view` and `cubecloud share`: made once per pytest worker. Tests
+    that damage it work on a copy."""
+    from cli_helpers import invoke, tiny_work
+
+    work = tiny_work(tmp_path_factory.mktemp("viewable") / "work", cunerf_iterations=200, views=16, max_points=3000,
+                     novel_directions=0, splat=VIEWABLE_SPLAT)  # fmt: skip
+    assert invoke("splat", work, *VIEWABLE_SPLAT, "--scalar", "--name", "scalar").exit_code == 0
+    return work

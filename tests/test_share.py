@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from cli_helpers import assert_one_line_error, invoke, tiny_work
+from cli_helpers import assert_one_line_error, invoke
 
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.eval.runs import load_run, render_views
@@ -24,24 +24,20 @@ from cubecloud_cli.view.transfer_view import ViewTransfer, read_intensity_map
 
 pytestmark = pytest.mark.slow
 
-QUICK = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "100", "-q"]
 SIDE = 256  # the browser window, square like the export's views
 needs_chromium = pytest.mark.skipif(chromium() is None, reason="needs chromium (apt-get install chromium)")
 
 
 @pytest.fixture(scope="module")
-def work(tmp_path_factory):
-    work = tiny_work(tmp_path_factory.mktemp("share") / "work", cunerf_iterations=200, views=16, max_points=3000,
-                     novel_directions=0, splat=QUICK)  # fmt: skip
-    assert invoke("splat", work, *QUICK, "--scalar", "--name", "scalar").exit_code == 0
-    return work
+def work(viewable_work):
+    return viewable_work
 
 
 @pytest.fixture(scope="module")
 def shared(work):
-    result = invoke("share", work, "-q")
+    result = invoke("share", work, "-o", work.parent / "share", "-q")
     assert result.exit_code == 0, result.output
-    return work / "share"
+    return work.parent / "share"
 
 
 def digest(folder) -> dict[str, str]:
@@ -64,6 +60,7 @@ def test_share_writes_one_page_and_its_spz_and_never_overwrites_unasked(work, sh
     assert_one_line_error(invoke("share", tmp_path / "empty", "-o", tmp_path / "y"), r"no finished splat run")
     assert invoke("share", work, "-o", shared, "--force", "-q").exit_code == 0
     assert digest(shared) == before  # the same scene gives the same bytes
+    assert invoke("share", work, "-q").exit_code == 0 and digest(work / "share") == before  # the default folder
 
 
 def evaluate(browser: Chromium, expression: str):
@@ -82,7 +79,7 @@ def settle(browser: Chromium, timeout_s: float = 180.0) -> np.ndarray:
     start = evaluate(browser, "window.cubecloud.frames")
     previous = None
     while time.monotonic() < deadline:
-        time.sleep(0.3)
+        time.sleep(0.2)
         if evaluate(browser, "window.cubecloud.frames") < start + 2:
             continue
         image = browser.capture()
@@ -93,9 +90,7 @@ def settle(browser: Chromium, timeout_s: float = 180.0) -> np.ndarray:
 
 
 def open_bare(browser: Chromium, page) -> np.ndarray:
-    browser.open(page.resolve().as_uri())
-    settle(browser)
-    evaluate(browser, "document.body.classList.add('bare')")  # the canvas alone, as our renders are
+    browser.open(page.resolve().as_uri() + "?bare")  # the canvas alone, as our renders are
     return settle(browser)
 
 

@@ -8,7 +8,7 @@ import socket
 import numpy as np
 import pytest
 import torch
-from cli_helpers import assert_one_line_error, invoke, tiny_work
+from cli_helpers import assert_one_line_error, invoke
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -18,15 +18,10 @@ from cubecloud_cli.view.transfer_view import TRAINED_PRESET
 
 pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
 
-QUICK = ["--iterations", "200", "--eval-every", "100", "--checkpoint-every", "100", "-q"]
-
 
 @pytest.fixture(scope="module")
-def work(tmp_path_factory):
-    work = tiny_work(tmp_path_factory.mktemp("view") / "work", cunerf_iterations=200, views=16, max_points=3000,
-                     novel_directions=0, splat=QUICK)  # fmt: skip
-    assert invoke("splat", work, *QUICK, "--scalar", "--name", "scalar").exit_code == 0  # the transfer-function tests'
-    return work
+def work(viewable_work):
+    return viewable_work
 
 
 def free_port() -> int:

@@ -17,6 +17,7 @@
 async function main(state, status) {
   const { THREE, OrbitControls, SparkRenderer, SplatMesh } = window.CubecloudVendor;
   const info = JSON.parse(document.getElementById("scene-info").textContent);
+  if (new URLSearchParams(location.search).has("bare")) document.body.classList.add("bare"); // index.html?bare: the picture alone
   const canvas = document.getElementById("scene");
   const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
   renderer.setClearColor(0x000000, 1);
