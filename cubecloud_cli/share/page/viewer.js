@@ -357,11 +357,15 @@ function setUpAxisLabels(THREE, info) {
       labels.push([element, point]);
     });
   });
+  const forward = new THREE.Vector3();
   return {
     update(camera) {
+      camera.getWorldDirection(forward);
       for (const [element, point] of labels) {
         const [x, y, visible] = projectToPixels(THREE, camera, point);
-        element.style.display = visible ? "block" : "none";
+        // An axis seen end-on puts both its letters on the middle of the scene: they say nothing there.
+        const endOn = Math.abs(forward.dot(new THREE.Vector3(...point).normalize())) > 0.95;
+        element.style.display = visible && !endOn ? "block" : "none";
         element.style.left = `${x}px`;
         element.style.top = `${y}px`;
       }
