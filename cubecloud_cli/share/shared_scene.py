@@ -26,6 +26,7 @@ from cubecloud_cli.eval.runs import find_splat_runs, load_run, resolve_scene
 from cubecloud_cli.scene import read_colmap_model
 from cubecloud_cli.share.page import page_camera, page_info, render_page, scalar_block, scalar_info
 from cubecloud_cli.share.spz import encode_spz
+from cubecloud_cli.transfer.tissue_presets import ct_window
 from cubecloud_cli.view.transfer_view import DrawnValues, read_intensity_map, transfer_presets
 
 PAGE_FILE = "index.html"
@@ -97,7 +98,8 @@ def share_scene(work: Path, run_name: str | None, out: Path, force: bool = False
     block = None
     if scalar is not None:  # the page recolours it under any transfer function, as `cubecloud view` does
         block = scalar_block(DrawnValues.of(scalar))
-        info["scalar"] = scalar_info(transfer_presets(scalar, read_intensity_map(work)))
+        intensity_map = read_intensity_map(work)
+        info["scalar"] = scalar_info(transfer_presets(scalar, intensity_map), ct_window(intensity_map))
     page = render_page(spz, info, block).encode("utf-8")
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))

@@ -52,7 +52,8 @@ def hu_to_intensity(hu: float, window: tuple[float, float]) -> float:
     return min(1.0, max(0.0, (hu - low) / width))
 
 
-def _ct_window(intensity_map: dict | None) -> tuple[float, float] | None:
+def ct_window(intensity_map: dict | None) -> tuple[float, float] | None:
+    """The HU mapped to intensity 0 and 1 by a CT's preprocess window; None for another scan."""
     if intensity_map and intensity_map.get("modality") == "ct" and "low" in intensity_map and "high" in intensity_map:
         return float(intensity_map["low"]), float(intensity_map["high"])
     return None
@@ -62,7 +63,7 @@ def clipped_away(preset: str, intensity_map: dict | None) -> str | None:
     """Why the volume cannot show ``preset`` (its HU range lies wholly outside the window that
     preprocess clipped to, so it would show nothing, or everything), or None when it can."""
     chosen = TRANSFER_PRESETS[preset]
-    window = _ct_window(intensity_map)
+    window = ct_window(intensity_map)
     if chosen.hu is None or window is None:
         return None
     top = chosen.hu[-1] if len(chosen.hu) == 4 else float("inf")
@@ -87,7 +88,7 @@ def resolve_transfer(
         raise CubecloudError(f"--transfer {preset!r} is not a preset: choose one of {', '.join(TRANSFER_PRESETS)}")
     chosen = TRANSFER_PRESETS[preset]
     ends = chosen.fraction
-    window = _ct_window(intensity_map)
+    window = ct_window(intensity_map)
     if chosen.hu is not None and window is not None:
         ends = tuple(hu_to_intensity(h, window) for h in chosen.hu)
     fall = ends[2:] if len(ends) == 4 else (None, None)

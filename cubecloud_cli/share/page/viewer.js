@@ -205,6 +205,10 @@ function setUpTransfer(scalar, drawn, splats, cut) {
     cut.recolour(rgba);
     low.value = String(chosen.tf.low);
     high.value = String(chosen.tf.high);
+    const reading = (v) => (scalar.huWindow ? `${Math.round(scalar.huWindow[0] + v * (scalar.huWindow[1] - scalar.huWindow[0]))} HU` : v.toFixed(3));
+    document.getElementById("tf-low-text").textContent = reading(chosen.tf.low);
+    document.getElementById("tf-high-text").textContent = reading(chosen.tf.high);
+    document.getElementById("tf-opacity-text").textContent = `× ${chosen.scale.toFixed(1)}`;
   };
   const set = ({ preset: name, low: lo, high: hi, opacity: scale, colourMap } = {}) => {
     if (name !== undefined && name !== "custom") {
