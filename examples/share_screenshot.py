@@ -14,40 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import imageio.v3 as iio
 
-from cubecloud_cli.view.browser import Chromium, frame_change
-
-
-def evaluate(browser: Chromium, expression: str):
-    result = browser.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
-    if "exceptionDetails" in result:
-        raise RuntimeError(result["exceptionDetails"])
-    return result["result"].get("value")
-
-
-def settled(browser: Chromium, timeout_s: float = 300.0):
-    """The page once it has drawn two more frames and two captures in a row agree."""
-    deadline = time.monotonic() + timeout_s
-    while not evaluate(browser, "!!(window.cubecloud && (window.cubecloud.ready || window.cubecloud.error))"):
-        if time.monotonic() > deadline:
-            raise TimeoutError("the page never became ready")
-        time.sleep(0.2)
-    if evaluate(browser, "window.cubecloud.error"):
-        raise RuntimeError(evaluate(browser, "window.cubecloud.error"))
-    start, previous = evaluate(browser, "window.cubecloud.frames"), None
-    while time.monotonic() < deadline:
-        time.sleep(0.5)
-        if evaluate(browser, "window.cubecloud.frames") < start + 2:
-            continue
-        image = browser.capture()
-        if image is not None and previous is not None and frame_change(image, previous) < 0.5:
-            return image
-        previous = image
-    raise TimeoutError("the page did not settle")
+from cubecloud_cli.share.page_browser import evaluate, settled_page
+from cubecloud_cli.view.browser import Chromium
 
 
 def main() -> None:
@@ -63,7 +35,7 @@ def main() -> None:
     width, height = (int(v) for v in args.size.split("x"))
     with Chromium((width, height)) as browser:
         browser.open(args.page.resolve().as_uri())
-        settled(browser)
+        settled_page(browser)
         if args.transfer:
             evaluate(browser, f"window.cubecloud.setTransfer({json.dumps({'preset': args.transfer})})")
         evaluate(browser, f"window.cubecloud.setCut({json.dumps(args.cut)}, {args.position})")
@@ -73,7 +45,7 @@ def main() -> None:
                 x, y, _ = evaluate(browser, f"window.cubecloud.project([{point}])")
                 for kind in ("mousePressed", "mouseReleased"):
                     browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
-        image = settled(browser)
+        image = settled_page(browser)
         print("ruler:", evaluate(browser, "document.getElementById('distance').textContent").strip() or "-")
     iio.imwrite(args.output, image)
     print(f"wrote {args.output}")

@@ -4,7 +4,7 @@ first view against our rasterizer, a sagittal cut, the ruler in millimetres)."""
 import hashlib
 import json
 import math
-import time
+import shutil
 
 import numpy as np
 import pytest
@@ -16,10 +16,11 @@ from cubecloud_cli.eval.runs import load_run, render_views
 from cubecloud_cli.raster.backends import rasterizer_for
 from cubecloud_cli.scene import read_colmap_model
 from cubecloud_cli.share.page import page_camera, page_info, render_page
+from cubecloud_cli.share.page_browser import evaluate, settled_page
 from cubecloud_cli.share.spz import encode_spz
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.transfer.tissue_presets import resolve_transfer
-from cubecloud_cli.view.browser import Chromium, chromium, frame_change
+from cubecloud_cli.view.browser import Chromium, chromium
 from cubecloud_cli.view.transfer_view import ViewTransfer, read_intensity_map
 
 pytestmark = pytest.mark.slow
@@ -61,32 +62,15 @@ def test_share_writes_one_page_and_its_spz_and_never_overwrites_unasked(work, sh
     assert invoke("share", work, "-o", shared, "--force", "-q").exit_code == 0
     assert digest(shared) == before  # the same scene gives the same bytes
     assert invoke("share", work, "-q").exit_code == 0 and digest(work / "share") == before  # the default folder
+    broken = tmp_path / "broken"
+    shutil.copytree(work, broken)
+    (broken / "splat" / "point_cloud.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\ngarbage")
+    assert_one_line_error(invoke("share", broken, "-o", tmp_path / "z"), r"point_cloud.ply")
+    assert not (tmp_path / "z").exists()
 
 
-def evaluate(browser: Chromium, expression: str):
-    result = browser.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
-    assert "exceptionDetails" not in result, result["exceptionDetails"]
-    return result["result"].get("value")
-
-
-def settle(browser: Chromium, timeout_s: float = 180.0) -> np.ndarray:
-    """The page once it has drawn two more frames and two captures in a row agree."""
-    deadline = time.monotonic() + timeout_s
-    while not evaluate(browser, "!!(window.cubecloud && (window.cubecloud.ready || window.cubecloud.error))"):
-        assert time.monotonic() < deadline, "the page never became ready"
-        time.sleep(0.2)
-    assert evaluate(browser, "window.cubecloud.error") is None
-    start = evaluate(browser, "window.cubecloud.frames")
-    previous = None
-    while time.monotonic() < deadline:
-        time.sleep(0.2)
-        if evaluate(browser, "window.cubecloud.frames") < start + 2:
-            continue
-        image = browser.capture()
-        if image is not None and previous is not None and frame_change(image, previous) < 0.5:
-            return image.astype(np.float64).mean(axis=2) / 255.0
-        previous = image
-    raise AssertionError("the page did not settle")
+def settle(browser: Chromium) -> np.ndarray:
+    return settled_page(browser, timeout_s=180.0).astype(np.float64).mean(axis=2) / 255.0
 
 
 def open_bare(browser: Chromium, page) -> np.ndarray:
