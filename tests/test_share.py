@@ -5,6 +5,7 @@ import hashlib
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -50,6 +51,8 @@ def test_share_writes_one_page_and_its_spz_and_never_overwrites_unasked(work, sh
     assert shared.stat().st_mode & 0o055 == 0o055  # readable by whoever it is shared with
     page = (shared / "index.html").read_text()
     assert len(page.encode()) < 3_000_000 and "http://" not in page.split("<script>")[0]
+    scan = Path(next(iter(json.loads((work / "preprocess" / "manifest.json").read_text())["inputs"])))
+    assert scan.name not in page and str(work) not in page  # nothing of where the scan came from
     before = digest(shared)
     assert_one_line_error(invoke("share", work, "-o", shared), r"exists: pass --force")
     assert digest(shared) == before
@@ -87,6 +90,13 @@ def test_the_page_opens_on_the_first_view_as_our_rasterizer_draws_it_and_a_sagit
         evaluate(browser, "window.cubecloud.setCut('sagittal', 0)")
         cut = settle(browser)
         right = evaluate(browser, "window.cubecloud.project([0.6, 0, 0])")
+        summary = evaluate(browser, "document.getElementById('summary').textContent")
+        evaluate(browser, "window.cubecloud.setCut('none', 0)")
+        for kind, x in (("mousePressed", 100), ("mouseMoved", 180), ("mouseReleased", 180)):  # a drag turns the view
+            browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=128, button="left", buttons=1, clickCount=1)
+        turned = settle(browser)
+        evaluate(browser, "document.getElementById('reset').click()")
+        reset = settle(browser)
     cameras = read_colmap_model(work / "export").cameras
     first = PinholeCameras(
         cameras.rotations[:1], cameras.translations[:1], SIDE, SIDE, cameras.focal * SIDE / cameras.height
@@ -94,6 +104,8 @@ def test_the_page_opens_on_the_first_view_as_our_rasterizer_draws_it_and_a_sagit
     run = load_run(work, "splat")
     ours = render_views(run.gaussians(), first, [0], rasterizer_for(torch.device("cpu")), antialias=run.antialias)[0][0]
     assert labels == "LRPAIS"
+    assert ("anti-aliased" in summary) == run.antialias
+    assert np.abs(turned - whole).mean() > 0.01 and np.abs(reset - whole).mean() < 0.01  # "Reset view" returns
     assert whole.mean() > 0.01 and np.corrcoef(whole.ravel(), ours.ravel())[0, 1] > 0.9
     # The cut hides world x > 0 (the patient's right): that half of the picture goes dark, the other stays.
     right_half = slice(SIDE // 2, None) if right[0] > SIDE / 2 else slice(None, SIDE // 2)
