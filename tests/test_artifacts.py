@@ -107,3 +107,12 @@ def test_work_that_is_a_file_is_refused(tmp_path):
     (tmp_path / "work").write_text("x")
     with pytest.raises(CubecloudError, match="is a file"):
         _write_stage(tmp_path / "work")
+
+
+@pytest.mark.parametrize("text, kind", [("[]", "an array"), ("null", "null"), ('"x"', "a string"), ("3", "a number")])
+def test_a_manifest_that_is_json_but_not_an_object_is_damaged_with_the_command_that_remakes_it(tmp_path, text, kind):
+    work = tmp_path / "work"
+    (work / "preprocess").mkdir(parents=True)
+    (work / "preprocess" / "manifest.json").write_text(text)
+    with pytest.raises(CubecloudError, match=rf"damaged \(JSON {kind}, not an object\): run `cubecloud preprocess"):
+        require_stage(work, "preprocess")

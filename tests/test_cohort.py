@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 from cli_helpers import assert_one_line_error, invoke
 
+from cubecloud_cli.cohort.scans import scans_from_csv
 from cubecloud_cli.sample_data import sample_ct_path
 
 pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
@@ -141,6 +142,20 @@ def test_bad_cohort_input_is_one_line(tmp_path):
                           r"two scans have the id 'a'")  # fmt: skip
     assert_one_line_error(invoke("cohort", tmp_path / "x.nii.gz", "-o", tmp_path / "out", "--profile", tmp_path / "no"),
                           r"--profile .* is not a folder")  # fmt: skip
+
+
+def test_a_csv_from_a_spreadsheet_reads_and_a_bad_value_names_its_line_and_column(tmp_path):
+    shutil.copy(sample_ct_path(), tmp_path / "x.nii.gz")
+    (tmp_path / "bom.csv").write_text("id,scan,window\na,x.nii.gz,lung\nb,x.nii.gz,\n", encoding="utf-8-sig")
+    scans = scans_from_csv(tmp_path / "bom.csv")
+    assert [(s.id, s.window) for s in scans] == [("a", "lung"), ("b", None)]
+    (tmp_path / "bad.csv").write_text("id,scan,window,modality\na,x.nii.gz,lung,ct\nb,x.nii.gz,lungs,ct\n")
+    assert_one_line_error(invoke("cohort", "--scans", tmp_path / "bad.csv", "-o", tmp_path / "out"),
+                          r"bad.csv line 3, column window: 'lungs' must be one of abdomen, .*full")  # fmt: skip
+    (tmp_path / "bad.csv").write_text("id,scan,modality\na,x.nii.gz,pet\n")
+    assert_one_line_error(invoke("cohort", "--scans", tmp_path / "bad.csv", "-o", tmp_path / "out"),
+                          r"line 2, column modality: 'pet' must be one of auto, ct, mr")  # fmt: skip
+    assert not (tmp_path / "out").exists()
 
 
 def test_run_stage_runs_one_stage_only_once_the_stages_it_reads_are_current(tmp_path):

@@ -72,6 +72,17 @@ def test_share_writes_one_page_and_its_spz_and_never_overwrites_unasked(work, sh
     assert not (tmp_path / "z").exists()
 
 
+def test_a_damaged_colmap_model_in_our_export_names_the_export_that_remakes_it(work, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(work, broken)
+    images = broken / "export" / "sparse" / "0" / "images.bin"
+    images.write_bytes(b"\xff" * images.stat().st_size)  # the same size: only the content is wrong
+    fix = rf"images.bin is not a readable COLMAP file .*: run `cubecloud export {broken} --force`"
+    assert_one_line_error(invoke("splat", broken, "--name", "again", "--iterations", "2"), fix)
+    assert_one_line_error(invoke("share", broken, "-o", tmp_path / "page"), fix)
+    assert not (broken / "splat-again").exists() and not (tmp_path / "page").exists()
+
+
 def settle(browser: Chromium) -> np.ndarray:
     return settled_page(browser, timeout_s=180.0).astype(np.float64).mean(axis=2) / 255.0
 

@@ -45,6 +45,11 @@ def test_bad_input_is_one_line_with_exit_2(work, tmp_path):
         taken.listen()
         port = taken.getsockname()[1]
         assert_one_line_error(invoke("view", work, "--port", str(port)), rf"cannot listen on 127.0.0.1:{port}.*--port")
+    for port in ("70000", "-1", "0"):
+        assert_one_line_error(invoke("view", work, "--port", port), rf"--port {port} is not a port: .* 1 to 65535")
+    result = invoke("view", work, "--host", "not-a-host.invalid")
+    assert_one_line_error(result, r"--host not-a-host.invalid does not resolve")
+    assert "listening on" not in result.output  # no warning about a server that never starts
 
 
 @given(st.binary(max_size=40), st.text(max_size=40), st.integers(0, 10**9))

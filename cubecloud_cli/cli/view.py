@@ -61,9 +61,10 @@ def view_command(
 
       cubecloud view work --detail 10      # a browser without a GPU stays responsive
     """
-    from cubecloud_cli.view.server import SceneViewer
+    from cubecloud_cli.view.server import SceneViewer, check_address
 
     configure_logging(quiet)
+    check_address(host, port)
     if host not in LOCAL_HOSTS:
         log.warning(f"listening on {host}: anyone who can reach this machine on port {port} can see the scan")
     viewer = SceneViewer(work, host=host, port=port, run=run, detail=detail)

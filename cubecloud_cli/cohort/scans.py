@@ -14,10 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.volume.intensity import MODALITIES, WINDOW_NAMES
 from cubecloud_cli.volume.readers import is_dicom_file
 
 NIFTI_SUFFIXES = (".nii.gz", ".nii")
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+CHOICES = {"window": WINDOW_NAMES, "modality": MODALITIES}  # the optional columns, as preprocess takes them
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,7 @@ def scans_from_arguments(arguments: list[Path]) -> list[CohortScan]:
 def scans_from_csv(path: Path) -> list[CohortScan]:
     path = Path(path)
     try:
-        with open(path, newline="") as file:
+        with open(path, newline="", encoding="utf-8-sig") as file:  # a spreadsheet's byte-order mark is no column
             rows = list(csv.DictReader(file))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise CubecloudError(f"cannot read {path} ({exc}): it must be a CSV file with columns id,scan") from None
@@ -85,10 +87,17 @@ def scans_from_csv(path: Path) -> list[CohortScan]:
             scan = path.parent / scan  # relative to the CSV, wherever the command runs
         if not (row.get("scan") or "").strip() or not scan.exists():
             raise CubecloudError(f"{path} line {number}: scan {str(row.get('scan'))!r} does not exist")
-        scans.append(CohortScan((row.get("id") or "").strip(), scan.resolve(),
-                                (row.get("window") or "").strip() or None,
-                                (row.get("modality") or "").strip() or None))  # fmt: skip
+        window, modality = (_choice(path, number, row, column, allowed) for column, allowed in CHOICES.items())
+        scans.append(CohortScan((row.get("id") or "").strip(), scan.resolve(), window, modality))
     return check_ids(scans, f"make the ids in {path} unique")
+
+
+def _choice(path: Path, line: int, row: dict, column: str, allowed: tuple[str, ...]) -> str | None:
+    """The row's value in an optional column: None when empty, else one of ``allowed``."""
+    value = (row.get(column) or "").strip()
+    if value and value not in allowed:
+        raise CubecloudError(f"{path} line {line}, column {column}: {value!r} must be one of {', '.join(allowed)}")
+    return value or None
 
 
 def check_ids(scans: list[CohortScan], fix: str) -> list[CohortScan]:

@@ -93,14 +93,21 @@ def to_jsonable(value: Any) -> Any:
     return value
 
 
-def read_manifest(stage_dir: Path) -> dict[str, Any]:
+def read_manifest(stage_dir: Path, fix: str = "rerun the stage with --force") -> dict[str, Any]:
+    """A stage's manifest as a dict, or a one-line error ending in ``fix`` (what remakes it)."""
     path = stage_dir / MANIFEST_NAME
     try:
-        return json.loads(path.read_text())
+        manifest = json.loads(path.read_text())
     except FileNotFoundError:
         raise CubecloudError(f"{stage_dir} is incomplete: it has no {MANIFEST_NAME}") from None
     except (OSError, ValueError) as exc:
-        raise CubecloudError(f"{path} is unreadable ({exc}); rerun the stage with --force to rebuild it") from None
+        raise CubecloudError(f"{path} is unreadable ({exc}): {fix} to rebuild it") from None
+    if not isinstance(manifest, dict):
+        kind = {list: "an array", str: "a string", bool: "a boolean", type(None): "null"}.get(
+            type(manifest), "a number"
+        )
+        raise CubecloudError(f"{path} is damaged (JSON {kind}, not an object): {fix} to rebuild it")
+    return manifest
 
 
 def is_complete(stage_dir: Path) -> bool:
@@ -121,7 +128,7 @@ def require_stage(work: Path, stage: str, name: str | None = None) -> dict[str, 
         raise CubecloudError(
             f"{directory} is incomplete (no {MANIFEST_NAME}; an earlier run was interrupted): run `{fix} --force`"
         )
-    manifest = read_manifest(directory)
+    manifest = read_manifest(directory, f"run `{fix} --force`")
     verify_stage_files(directory, manifest, f"{fix} --force")
     return manifest
 

@@ -11,13 +11,14 @@ from typing import ClassVar, Literal, get_args
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.presets import preset_default
+from cubecloud_cli.volume.intensity import MODALITIES
 
 MIN_SIZE, MAX_SIZE = 8, 2048
 # A size the preset leaves to the scan (volume/cube_frame.size_for_scan), decided once it is read.
 SIZE_FROM_SCAN = "scan"
 
 Fit = Literal["pad", "stretch"]
-Modality = Literal["auto", "ct", "mr"]
+Modality = Literal[MODALITIES]  # typing flattens the tuple: Literal["auto", "ct", "mr"]
 Interpolation = Literal["linear", "nearest"]
 
 

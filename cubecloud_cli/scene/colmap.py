@@ -183,17 +183,17 @@ def find_colmap_model(directory: Path) -> Path:
     or ``colmap/sparse/0`` (nerfstudio), whichever first has cameras and images files."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise CubecloudError(
-            f"COLMAP scene {directory} does not exist or is not a folder: pass the scene folder or its sparse/0"
+        raise parse.ColmapError(
+            f"COLMAP scene {directory} does not exist or is not a folder", "pass the scene folder or its sparse/0"
         )
     for sub in MODEL_SUBDIRECTORIES:
         candidate = directory / sub
         for ext in (".bin", ".txt"):
             if (candidate / f"cameras{ext}").is_file() and (candidate / f"images{ext}").is_file():
                 return candidate.resolve()
-    raise CubecloudError(
-        f"no COLMAP model in {directory}: expected cameras.bin + images.bin (or .txt) there or in sparse/0; "
-        "run COLMAP (or `colmap model_converter`) to produce one"
+    raise parse.ColmapError(
+        f"no COLMAP model in {directory} (cameras.bin + images.bin, or .txt, there or in sparse/0)",
+        "run COLMAP (or `colmap model_converter`) to produce one",
     )
 
 
@@ -203,9 +203,10 @@ def _shared_intrinsics(path: Path, cameras: list[parse.CameraRecord]) -> tuple[i
     focals = []
     for camera in cameras:
         if (camera.width, camera.height) != (width, height):
-            raise CubecloudError(
+            raise parse.ColmapError(
                 f"{path}: cameras {cameras[0].camera_id} and {camera.camera_id} have different image sizes "
-                f"({width}x{height}, {camera.width}x{camera.height}); resize all images to one size first"
+                f"({width}x{height}, {camera.width}x{camera.height})",
+                "resize all images to one size first",
             )
         if camera.width < 1 or camera.height < 1:
             raise parse.corrupt(path, f"camera {camera.camera_id} has size {camera.width}x{camera.height}")
@@ -213,9 +214,10 @@ def _shared_intrinsics(path: Path, cameras: list[parse.CameraRecord]) -> tuple[i
         if not all(np.isfinite((fx, fy, cx, cy))) or fx <= 0 or fy <= 0:
             raise parse.corrupt(path, f"camera {camera.camera_id} has parameters {list(camera.params)}")
         if abs(cx - width / 2) > PIXEL_TOLERANCE or abs(cy - height / 2) > PIXEL_TOLERANCE:
-            raise CubecloudError(
+            raise parse.ColmapError(
                 f"{path}: camera {camera.camera_id} has its principal point at ({cx:g}, {cy:g}), not the image "
-                f"centre ({width / 2:g}, {height / 2:g}); {parse.UNDISTORT_HINT} and a centred principal point"
+                f"centre ({width / 2:g}, {height / 2:g})",
+                f"{parse.UNDISTORT_HINT} and a centred principal point",
             )
         focals.append((fx, fy))
     focals = np.asarray(focals)
@@ -223,10 +225,10 @@ def _shared_intrinsics(path: Path, cameras: list[parse.CameraRecord]) -> tuple[i
     # Border displacement from using one focal for both axes of every camera.
     error = np.max(np.abs(focals - focal) / focals * (np.array([width, height]) / 2))
     if error > PIXEL_TOLERANCE:
-        raise CubecloudError(
+        raise parse.ColmapError(
             f"{path}: the cameras' focal lengths differ (fx, fy from {focals.min():g} to {focals.max():g} px, "
-            f"{error:.2f} px apart at the border); cubecloud needs one square-pixel focal length: "
-            "undistort to a shared PINHOLE camera (`colmap image_undistorter`) or resample the images"
+            f"{error:.2f} px apart at the border) where cubecloud needs one square-pixel focal length",
+            "undistort to a shared PINHOLE camera (`colmap image_undistorter`) or resample the images",
         )
     return width, height, focal
 
@@ -249,17 +251,27 @@ def _read_points(model: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
 
 
-def read_colmap_model(directory: Path) -> ColmapModel:
+def read_colmap_model(directory: Path, remake: str | None = None) -> ColmapModel:
     """Read a COLMAP model (binary preferred, as COLMAP does) into cameras sorted by image name.
 
     ``directory`` may be the model folder or a scene root (see ``find_colmap_model``). Only
     PINHOLE / SIMPLE_PINHOLE cameras with a centred principal point and one shared focal length
-    are accepted; anything else, or a damaged file, raises CubecloudError with the fix.
+    are accepted; anything else, or a damaged file, raises CubecloudError with the fix: COLMAP's
+    tools for a foreign model, ``remake`` (the command that writes it again) for one of ours.
     """
+    try:
+        return _read_model(directory)
+    except parse.ColmapError as error:
+        if remake is None:
+            raise
+        raise CubecloudError(f"{error.problem}: run `{remake}`") from None
+
+
+def _read_model(directory: Path) -> ColmapModel:
     model = find_colmap_model(directory)
     cameras, images, camera_path, image_path = _read_records(model)
     if not images:
-        raise CubecloudError(f"{image_path} lists no images: the reconstruction registered none; re-run COLMAP")
+        raise parse.ColmapError(f"{image_path} lists no images (the reconstruction registered none)", "re-run COLMAP")
     by_id = {camera.camera_id: camera for camera in cameras}
     missing = sorted({image.camera_id for image in images} - by_id.keys())
     if missing:

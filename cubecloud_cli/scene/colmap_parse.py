@@ -56,16 +56,23 @@ class ImageRecord:
     name: str
 
 
-def corrupt(path: Path, detail: str) -> CubecloudError:
-    return CubecloudError(
-        f"{path} is not a readable COLMAP file ({detail}): re-export the model with `colmap model_converter`"
+class ColmapError(CubecloudError):
+    """A COLMAP model that cannot be read: what is wrong (``problem``) apart from the fix, which
+    depends on who made the model (COLMAP's tools, or `cubecloud export` for our own)."""
+
+    def __init__(self, problem: str, fix: str):
+        super().__init__(f"{problem}: {fix}")
+        self.problem = problem
+
+
+def corrupt(path: Path, detail: str) -> ColmapError:
+    return ColmapError(
+        f"{path} is not a readable COLMAP file ({detail})", "re-export the model with `colmap model_converter`"
     )
 
 
-def unsupported_model(path: Path, camera_id: int, model: str) -> CubecloudError:
-    return CubecloudError(
-        f"{path}: camera {camera_id} uses the {model} model, which has lens distortion; {UNDISTORT_HINT}"
-    )
+def unsupported_model(path: Path, camera_id: int, model: str) -> ColmapError:
+    return ColmapError(f"{path}: camera {camera_id} uses the {model} model, which has lens distortion", UNDISTORT_HINT)
 
 
 class _Cursor:

@@ -26,6 +26,7 @@ from cubecloud_cli.eval.runs import find_splat_runs, load_run, resolve_scene
 from cubecloud_cli.scene import read_colmap_model
 from cubecloud_cli.share.page import page_camera, page_info, render_page, scalar_block, scalar_info
 from cubecloud_cli.share.spz import encode_spz
+from cubecloud_cli.splat.training_views import export_remake
 from cubecloud_cli.transfer.tissue_presets import ct_window
 from cubecloud_cli.view.transfer_view import DrawnValues, read_intensity_map, transfer_presets
 
@@ -91,7 +92,7 @@ def share_scene(work: Path, run_name: str | None, out: Path, force: bool = False
     run = load_run(work, name)
     gaussians = run.gaussians().baked()
     scene_dir = resolve_scene(work, run)
-    cameras = read_colmap_model(scene_dir).cameras
+    cameras = read_colmap_model(scene_dir, export_remake(scene_dir)).cameras
     spz = encode_spz(gaussians, run.antialias, position_bits(_cube_side(work)))
     info = page_info(page_camera(cameras, 0), _world_to_scanner(scene_dir), run.antialias, gaussians.log_scales.numpy())
     scalar = run.scalar_gaussians()

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.core.artifacts import read_manifest
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
 from cubecloud_cli.transfer.function import TransferFunction
@@ -163,11 +164,25 @@ def _transfer_images(directory: Path, transfers: int, views: int, height: int, w
     return torch.from_numpy(images)
 
 
+def export_remake(directory: Path) -> str | None:
+    """The command that writes ``directory`` again when it is an export of ours, else None (a
+    foreign scene, fixed with COLMAP's tools)."""
+    directory = Path(directory)
+    try:
+        manifest = read_manifest(directory)
+    except CubecloudError:
+        return None
+    if manifest.get("stage") != "export":
+        return None
+    name = manifest.get("name")
+    return f"cubecloud export {directory.parent}{f' --name {name}' if name else ''} --force"
+
+
 def load_scene(directory: Path, channels: int = 1, every_transfer: bool = False) -> TrainingScene:
     """The scene's cameras, images and points; ``every_transfer`` loads its views under every
     transfer function too (a scalar run trains on them)."""
     directory = Path(directory)
-    model = read_colmap_model(directory)
+    model = read_colmap_model(directory, export_remake(directory))
     cameras, names = model.cameras, model.image_names
     height, width = cameras.height, cameras.width
     stack = directory / "images.npy"

@@ -67,7 +67,7 @@ def thumbnails(images: np.ndarray, side: int = THUMBNAIL_SIDE) -> np.ndarray:
 def read_export_cameras(work: Path) -> tuple[PinholeCameras, np.ndarray]:
     require_stage(work, "export")
     export = Path(work) / "export"
-    model = read_colmap_model(export)
+    model = read_colmap_model(export, f"cubecloud export {work} --force")
     path = export / "images.npy"
     try:
         images = np.load(path, mmap_mode="r", allow_pickle=False)

@@ -99,6 +99,16 @@ def load_runs(work: Path) -> dict[str, Path]:
     return runs
 
 
+def check_address(host: str, port: int) -> None:
+    """A one-line error for a port outside 1–65535 or a host name that resolves to no address."""
+    if not 1 <= port <= 65535:
+        raise CubecloudError(f"--port {port} is not a port: choose one from 1 to 65535, e.g. 8080")
+    try:
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise CubecloudError(f"--host {host} does not resolve to an address ({exc}): use 127.0.0.1") from None
+
+
 def check_port_free(host: str, port: int) -> None:
     """A one-line error now, rather than a server that quietly takes another port. A port whose
     last connections are closing (TIME_WAIT, a minute after a viewer stopped) is free: viser's

@@ -22,6 +22,7 @@ CT_WINDOWS: dict[str, tuple[float, float]] = {
     "brain": (80.0, 40.0),
 }
 WINDOW_NAMES = (*CT_WINDOWS, "full")  # full = the scan's own min..max (the paper's min-max)
+MODALITIES = ("auto", "ct", "mr")  # auto: the DICOM header, else CT when values reach -500 HU
 
 # No tissue is below -500 HU except air and lung, and MR magnitude images are non-negative.
 CT_AIR_THRESHOLD_HU = -500.0
