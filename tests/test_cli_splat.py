@@ -30,10 +30,10 @@ CPU = ["--device", "cpu"]
 QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "10", *CPU]
 
 
-def interrupt_splat_at_step(monkeypatch, step: int, ctrl_c: bool = True) -> None:
-    """Interrupt training step ``step`` inside its loss: by a real SIGINT (Ctrl-C), which the stage
-    handles by saving that step, or with ``ctrl_c=False`` by a bare KeyboardInterrupt, which
-    leaves only the last periodic checkpoint."""
+def interrupt_splat_at_step(monkeypatch, step: int, ctrl_c: bool = True, sent: int = signal.SIGINT) -> None:
+    """Interrupt training step ``step`` inside its loss: by a real signal ``sent`` (SIGINT as Ctrl-C
+    sends it, SIGTERM as a scheduler does), which the stage handles by saving that step, or with
+    ``ctrl_c=False`` by a bare KeyboardInterrupt, which leaves only the last periodic checkpoint."""
     import cubecloud_cli.splat.trainer as training
 
     original, calls = training.photometric_loss, []
@@ -43,7 +43,7 @@ def interrupt_splat_at_step(monkeypatch, step: int, ctrl_c: bool = True) -> None
         if len(calls) == step:
             if not ctrl_c:
                 raise KeyboardInterrupt
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), sent)
         return original(*args, **kwargs)
 
     monkeypatch.setattr(training, "photometric_loss", interrupted_loss)
@@ -144,9 +144,10 @@ def test_random_initialisation_beside_it(exported, tmp_path):
     assert manifest["params"]["init"] == "random" and manifest["metrics"]["initial_gaussians"] == 500
 
 
-def test_interrupt_and_resume_match_an_uninterrupted_run(exported, trained, tmp_path, monkeypatch):
+@pytest.mark.parametrize("sent", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_interrupt_and_resume_match_an_uninterrupted_run(exported, trained, tmp_path, monkeypatch, sent):
     work = _copy(exported, tmp_path)
-    interrupt_splat_at_step(monkeypatch, 25)
+    interrupt_splat_at_step(monkeypatch, 25, sent=sent)
     result = invoke("splat", work, *QUICK)
     assert result.exit_code == 130 and "iteration 25 is saved" in result.stderr
     monkeypatch.undo()

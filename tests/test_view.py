@@ -3,7 +3,10 @@
 import base64
 import math
 import shutil
+import signal
 import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -50,6 +53,21 @@ def test_bad_input_is_one_line_with_exit_2(work, tmp_path):
     result = invoke("view", work, "--host", "not-a-host.invalid")
     assert_one_line_error(result, r"--host not-a-host.invalid does not resolve")
     assert "listening on" not in result.output  # no warning about a server that never starts
+
+
+def test_sigterm_stops_the_viewer_as_ctrl_c_does(work):
+    """What a scheduler or `kill` sends: the server stops and says so, with no traceback."""
+    command = [sys.executable, "-m", "cubecloud_cli", "view", str(work), "--port", str(free_port())]
+    server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    for line in server.stdout:
+        lines.append(line)
+        if "Ctrl-C stops" in line:
+            break
+    server.send_signal(signal.SIGTERM)
+    output, _ = server.communicate(timeout=60)
+    assert server.returncode == 0, "".join(lines) + output
+    assert "viewer stopped" in output and "Traceback" not in output
 
 
 @given(st.binary(max_size=40), st.text(max_size=40), st.integers(0, 10**9))

@@ -8,6 +8,7 @@ import typer
 
 from cubecloud_cli import __version__
 from cubecloud_cli.cli.cohort import cohort_command
+from cubecloud_cli.cli.common import stop_on_sigterm
 from cubecloud_cli.cli.cunerf import cunerf_command
 from cubecloud_cli.cli.eval import eval_command
 from cubecloud_cli.cli.export import export_command
@@ -60,4 +61,5 @@ app.command("cohort")(cohort_command)
 
 
 def main() -> None:
+    stop_on_sigterm()
     app()

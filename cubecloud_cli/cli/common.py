@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Annotated, Callable, Literal, Optional, TypeVar
 
@@ -166,3 +168,11 @@ def scan_or_sample(scan: Optional[Path]) -> Path:
 ViewsOption = Annotated[Optional[int], settings_option(ExportSettings, "views")]
 ResolutionOption = Annotated[Optional[int], settings_option(ExportSettings, "resolution")]
 ViewOption = Annotated[Optional[Literal[IMAGE_MODELS]], settings_option(ExportSettings, "view")]  # type: ignore[valid-type]
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (what a scheduler sends) outside a training loop stops the command as Ctrl-C does: a
+    KeyboardInterrupt, so the stage's partial folder is cleaned up and one line says what to run.
+    Inside cunerf's and splat's loops it saves a checkpoint first (core/interrupts.py)."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)

@@ -13,18 +13,18 @@ import torch
 
 from cubecloud_cli.core.errors import CubecloudError
 
+# What a scheduler sends to stop a job (SLURM at its time limit or on pre-emption): handled as Ctrl-C.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
 
 @contextmanager
 def deferred_interrupt() -> Iterator[dict]:
-    """Ctrl-C sets a flag that the loop reads between steps, so the checkpoint it then saves
-    is the state after a whole step. A second Ctrl-C interrupts at once."""
+    """Ctrl-C or SIGTERM sets a flag that the loop reads between steps, so the checkpoint it then
+    saves is the state after a whole step. A second one interrupts at once. A signal that was
+    ignored (nohup, a parent that keeps Ctrl-C to itself) stays ignored."""
     flag = {"requested": False}
     if threading.current_thread() is not threading.main_thread():
         yield flag  # signal handlers can only be set from the main thread
-        return
-    previous = signal.getsignal(signal.SIGINT)
-    if previous in (signal.SIG_IGN, None):  # Ctrl-C ignored (nohup), or a handler set from C
-        yield flag
         return
 
     def handler(signum, frame) -> None:
@@ -32,11 +32,16 @@ def deferred_interrupt() -> Iterator[dict]:
             raise KeyboardInterrupt
         flag["requested"] = True
 
-    signal.signal(signal.SIGINT, handler)
+    previous = {number: signal.getsignal(number) for number in STOP_SIGNALS}
+    for number, before in previous.items():
+        if before not in (signal.SIG_IGN, None):  # None: a handler set from C, left alone
+            signal.signal(number, handler)
     try:
         yield flag
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for number, before in previous.items():
+            if before not in (signal.SIG_IGN, None):
+                signal.signal(number, before)
 
 
 def saved_iteration(checkpoint: Path) -> int | None:
