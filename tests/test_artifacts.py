@@ -1,7 +1,10 @@
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+from cli_helpers import assert_one_line_error, invoke
 
 from cubecloud_cli.core.artifacts import StageWriter, require_stage, sha256_of_file, stage_dir_name
 from cubecloud_cli.core.errors import CubecloudError
@@ -116,3 +119,52 @@ def test_a_manifest_that_is_json_but_not_an_object_is_damaged_with_the_command_t
     (work / "preprocess" / "manifest.json").write_text(text)
     with pytest.raises(CubecloudError, match=rf"damaged \(JSON {kind}, not an object\): run `cubecloud preprocess"):
         require_stage(work, "preprocess")
+
+
+HOLD = """
+import sys
+from pathlib import Path
+from cubecloud_cli.core.artifacts import StageWriter
+writer = StageWriter(Path(sys.argv[1]), "preprocess", {}, force=True)
+writer.__enter__()
+print("held", flush=True)
+sys.stdin.readline()  # then ends without leaving the stage: as if killed, the OS frees the lock
+"""
+
+
+def holding_the_stage(work):
+    """A second process that has started to write WORK/preprocess and holds it until told to end."""
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(work)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)  # fmt: skip
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_one_writer_per_stage_the_second_is_refused_with_the_first_ones_pid(tmp_path):
+    work = tmp_path / "work"
+    holder = holding_the_stage(work)
+    try:
+        with pytest.raises(
+            CubecloudError, match=rf"preprocess is being written by another cubecloud command \(PID {holder.pid}\)"
+        ):
+            with StageWriter(work, "preprocess", {}, force=True):
+                pass
+        assert not (work / "preprocess").exists()  # the refused one wrote nothing
+    finally:
+        holder.communicate("\n", timeout=60)
+    assert (work / ".preprocess.lock").exists()  # left by a holder that never let go, as kill -9 would
+    with StageWriter(work, "preprocess", {}, force=True) as writer:  # the OS freed it: the next one writes
+        (writer.directory / "a.txt").write_text("a")
+    assert (work / "preprocess" / "manifest.json").is_file() and not (work / ".preprocess.lock").exists()
+    with StageWriter(work, "cunerf", {}):  # another stage of the same work directory is not held up
+        pass
+
+
+def test_a_second_command_on_a_stage_being_written_exits_2_at_once(tmp_path):
+    work = tmp_path / "work"
+    holder = holding_the_stage(work)
+    try:
+        result = invoke("preprocess", "-o", work, "--size", "32", "--force")
+        assert_one_line_error(result, rf"being written by another cubecloud command \(PID {holder.pid}\)")
+    finally:
+        holder.communicate("\n", timeout=60)

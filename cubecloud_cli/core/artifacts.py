@@ -29,6 +29,7 @@ import numpy as np
 
 from cubecloud_cli import __version__
 from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.stage_lock import StageLock
 
 MANIFEST_NAME = "manifest.json"
 PARTIAL_SUFFIX = ".partial"
@@ -171,6 +172,7 @@ class StageWriter:
         self.work = Path(self.work)
         self.final_dir = self.work / stage_dir_name(self.stage, self.name)
         self.directory = partial_dir(self.work, self.final_dir.name)
+        self._lock = StageLock(self.work, self.final_dir.name)
         self._started = 0.0
 
     def check_can_start(self) -> None:
@@ -200,27 +202,44 @@ class StageWriter:
                 shutil.rmtree(old, ignore_errors=True)
 
     def __enter__(self) -> "StageWriter":
-        self.check_can_start()
+        if self.work.exists() and not self.work.is_dir():
+            raise CubecloudError(f"{self.work} is a file, not a work directory: pick another -o")
         self._created_work = not self.work.exists()
         try:
             self.work.mkdir(parents=True, exist_ok=True)
+            self._lock.acquire()  # before anything of the stage is looked at or touched
+        except OSError as exc:
+            raise CubecloudError(f"cannot write in {self.work} ({exc.strerror}): pick a writable -o") from None
+        try:
+            self.check_can_start()
             if self.directory.exists() and not self.keep_partial:
                 shutil.rmtree(self.directory)
             self.directory.mkdir(exist_ok=True)
-        except OSError as exc:
-            raise CubecloudError(f"cannot write in {self.work} ({exc.strerror}): pick a writable -o") from None
+        except BaseException as exc:
+            self._let_go()
+            if isinstance(exc, OSError):
+                raise CubecloudError(f"cannot write in {self.work} ({exc.strerror}): pick a writable -o") from None
+            raise
         self._started = time.perf_counter()
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            self._commit()
+            try:
+                self._commit()
+            finally:
+                self._let_go()
             return
         if not self.keep_partial or not any(self.directory.iterdir()):
             # Keep a partial directory only when it holds something to resume from.
             shutil.rmtree(self.directory, ignore_errors=True)
-            if self._created_work and not any(self.work.iterdir()):
-                self.work.rmdir()  # a failed first run leaves no trace
+        self._let_go()
+
+    def _let_go(self) -> None:
+        """Release the stage's lock; a failed first run then leaves no trace of its work directory."""
+        self._lock.release()
+        if self._created_work and self.work.is_dir() and not any(self.work.iterdir()):
+            self.work.rmdir()
 
     def add_input(self, path: Path, label: str | None = None, digest: str | None = None) -> str:
         """Record the sha256 of a file or folder that the stage read (``digest``: already taken)."""
