@@ -15,6 +15,7 @@ import typer
 from cubecloud_cli.cli.options import build_settings, settings_option
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.runtime import DEVICES, Runtime
+from cubecloud_cli.core.writes import describe, fix_for, is_write_failure
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.preprocess.settings import Fit, Interpolation, Modality, PreprocessSettings
 from cubecloud_cli.presets import PRESET_NAMES
@@ -55,10 +56,16 @@ def reports_errors(command: F) -> F:
         except CubecloudError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
+        except OSError as exc:  # a write the stage did not name itself (core/writes.py names most)
+            typer.echo(f"error: {exc.filename or 'a file'}: {describe(exc)}: {fix_for(exc)}", err=True)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
         except MemoryError:
             typer.echo("error: out of memory: choose a smaller --size", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except RuntimeError as exc:
+            if is_write_failure(exc):  # torch's writer, where no stage named the file
+                typer.echo(f"error: a file could not be written ({describe(exc)}): {fix_for(exc)}", err=True)
+                raise typer.Exit(EXIT_BAD_INPUT) from None
             if not is_out_of_memory(exc):
                 raise
             typer.echo("error: out of memory (torch could not allocate): choose a smaller --size", err=True)

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cubecloud_cli.core.writes import save_picture
+
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """[0, 1] (NaN as 0) to 0..255, rounded to the nearest level."""
@@ -64,4 +66,4 @@ def write_preview_rows(rows: list[tuple[str, np.ndarray]], path: Path) -> None:
         if label:
             draw.text((2, top + 2), label, fill=255)
         top += row_height + margin
-    image.save(path)
+    save_picture(image, path)

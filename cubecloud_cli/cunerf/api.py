@@ -22,6 +22,7 @@ import torch
 from cubecloud_cli.core.artifacts import require_stage, stage_dir_name
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.runtime import resolve_device
+from cubecloud_cli.core.writes import write_atomically
 from cubecloud_cli.cunerf import grid_bake
 from cubecloud_cli.cunerf.config import FieldConfig, RenderConfig
 from cubecloud_cli.cunerf.model import CubeModel, render_many
@@ -72,7 +73,7 @@ class CunerfField:
             if self.occupancy is None
             else {"blocks": self.occupancy.blocks.cpu(), "block": self.occupancy.block},
         }
-        torch.save(payload, path)
+        write_atomically(Path(path), lambda temporary: torch.save(payload, temporary))
 
     @classmethod
     def from_file(cls, path: Path, device: str = "auto") -> "CunerfField":

@@ -8,7 +8,6 @@ uninterrupted one would. Validation renders use their own generator and leave tr
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from cubecloud_cli.core.writes import write_atomically
 from cubecloud_cli.cunerf.model import CubeModel, CubeOutput, render_many
 from cubecloud_cli.cunerf.precision import matmul_scope
 from cubecloud_cli.cunerf.settings import CunerfSettings
@@ -151,9 +151,8 @@ class Trainer:
 
     def save(self, path: Path) -> None:
         """Write atomically: a checkpoint is either the old one or the new one, never half."""
-        temporary = path.with_name(path.name + ".tmp")
-        torch.save(self.state(), temporary)
-        os.replace(temporary, path)
+        state = self.state()
+        write_atomically(path, lambda temporary: torch.save(state, temporary))
 
     def restore(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])

@@ -12,6 +12,8 @@ import imageio.v3 as iio
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from cubecloud_cli.core.writes import write_bytes
+
 # A perceptually ordered map from black through purple and orange to pale yellow (the anchor
 # colours of matplotlib's "inferno"), so error magnitude reads as brightness even in grey print.
 ERROR_COLOURS = np.array([(0, 0, 4), (87, 16, 110), (188, 55, 84), (249, 142, 9), (252, 255, 164)], dtype=np.float64)
@@ -101,7 +103,8 @@ def error_grid(reference: np.ndarray, renders: dict[str, np.ndarray], title: str
 def write_turntable(path: Path, frames: np.ndarray, seconds: float = 6.0) -> None:
     """A looping GIF of (N, H, W) grey frames in [0, 1], one full turn in ``seconds``."""
     frames = np.stack([grey_to_rgb(frame) for frame in frames])
-    iio.imwrite(path, frames, extension=".gif", duration=max(20, int(1000 * seconds / max(len(frames), 1))), loop=0)
+    duration = max(20, int(1000 * seconds / max(len(frames), 1)))
+    write_bytes(path, iio.imwrite("<bytes>", frames, extension=".gif", duration=duration, loop=0))
 
 
 def _nice_ticks(low: float, high: float, count: int = 5) -> list[float]:

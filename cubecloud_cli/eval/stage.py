@@ -18,6 +18,7 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
+from cubecloud_cli.core.writes import save_picture
 from cubecloud_cli.eval.figures import error_grid, line_plot_svg, write_turntable
 from cubecloud_cli.eval.novel_scores import pictured_views
 from cubecloud_cli.eval.outputs import PAPER_TABLE_I, report_markdown, write_per_view_csv
@@ -271,18 +272,18 @@ def _draw_pictures(loaded: LoadedRuns, scores: Scores, directory: Path) -> None:
         name = main.scene.names[index]
         if name in scores.renders_by_view:
             relative = f"views/{picture_name(name)}.png"
-            error_grid(main.reference[index], scores.renders_by_view[name], f"held-out view {name}").save(
-                directory / relative
-            )
+            grid = error_grid(main.reference[index], scores.renders_by_view[name], f"held-out view {name}")
+            save_picture(grid, directory / relative)
             pictures["views"].append(relative)
     if main.novel is not None:
         for label, index in pictured_views(main.novel):
             if index in scores.novel_renders:
                 name = main.novel.views.entries()[index][0]
                 relative = f"views/{name}.png"
-                error_grid(
+                grid = error_grid(
                     main.novel.reference[index], scores.novel_renders[index], f"novel view {name}: {label}"
-                ).save(directory / relative)
+                )
+                save_picture(grid, directory / relative)
                 pictures["novel"].append(relative)
     curves = [(run.name, *training_curve(run)) for run in loaded.runs]
     if any(xs for _, xs, _ in curves):

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cubecloud_cli.core.writes import write_atomically
+
 PROGRESS_DIR = "progress"
 FINGERPRINT_FILE = "fingerprint.json"
 
@@ -61,9 +63,10 @@ class ExportProgress:
             return None
 
     def save(self, name: str, array: np.ndarray) -> None:
-        temporary = self.directory / f".{name}.tmp.npy"
-        with open(temporary, "wb") as handle:
-            np.save(handle, array)
-            handle.flush()
-            os.fsync(handle.fileno())  # so a power cut cannot leave an empty file under the final name
-        os.replace(temporary, self._path(name))
+        def write(temporary: Path) -> None:
+            with open(temporary, "wb") as handle:
+                np.save(handle, array)
+                handle.flush()
+                os.fsync(handle.fileno())  # so a power cut cannot leave an empty file under the final name
+
+        write_atomically(self._path(name), write)

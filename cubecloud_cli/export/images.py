@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from cubecloud_cli.core.pictures import to_uint8
+from cubecloud_cli.core.writes import save_picture
 
 THUMBNAIL = 128  # pixels per view on the contact sheet
 
@@ -27,7 +28,7 @@ def write_views(images: np.ndarray, folder: Path, names: list[str]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for image, name in zip(images, names):
         grey = to_uint8(image)
-        Image.fromarray(np.repeat(grey[..., None], 3, axis=2), mode="RGB").save(folder / name)
+        save_picture(Image.fromarray(np.repeat(grey[..., None], 3, axis=2), mode="RGB"), folder / name)
 
 
 def write_contact_sheet(
@@ -53,4 +54,4 @@ def write_contact_sheet(
         sheet.paste(thumb, (x, y))
         label = f"{index}{' test' if index in held_out else ''}"
         draw.text((x + 2, y + 1), label, fill=255)
-    sheet.save(path)
+    save_picture(sheet, path)

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras.novel import SUPERSAMPLING, NovelViewSet
+from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.export.finished_views import ExportProgress
 from cubecloud_cli.export.images import write_contact_sheet
 from cubecloud_cli.render import ImageModel
@@ -75,7 +76,7 @@ def write_novel(directory: Path, novel: NovelViewSet, reference: np.ndarray) -> 
     folder = directory / NOVEL_DIR
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / VIEWS_FILE, novel.as_json())
-    np.save(folder / REFERENCE_FILE, reference)
+    save_array(folder / REFERENCE_FILE, reference)
     write_contact_sheet(
         reference,
         folder / "contact_sheet.png",
@@ -98,6 +99,6 @@ def write_held_out(
     folder = directory / NOVEL_DIR
     listed = []
     for named, reference in held_out:
-        np.save(folder / held_out_reference_file(named.name), reference)
+        save_array(folder / held_out_reference_file(named.name), reference)
         listed.append({"name": named.name, **named.function.as_dict(), "file": held_out_reference_file(named.name)})
     write_json(folder / TRANSFERS_FILE, {"held_out": listed, "not_scored": not_scored})

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.export.images import write_contact_sheet, write_views
 from cubecloud_cli.export.point_cloud import PointCloud
 from cubecloud_cli.scene import transforms_json, write_colmap_model, write_json, write_point_cloud_ply, write_test_list
@@ -34,8 +35,8 @@ def write_scene(
     train_names = [n for i, n in enumerate(names) if i not in held_out]
     write_views(images, directory / "images", names)
     write_views(reference, directory / "reference", names)
-    np.save(directory / "images.npy", images)
-    np.save(directory / "reference.npy", reference)
+    save_array(directory / "images.npy", images)
+    save_array(directory / "reference.npy", reference)
 
     sparse = directory / "sparse" / "0"
     sparse.mkdir(parents=True)

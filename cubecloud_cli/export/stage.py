@@ -36,6 +36,7 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
+from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.cunerf.api import MODEL_FILE, CunerfField
 from cubecloud_cli.export.finished_views import PROGRESS_DIR, ExportProgress
 from cubecloud_cli.export.images import view_names
@@ -211,7 +212,7 @@ def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_pr
             names = view_names(len(job.cameras))
             write_scene(writer.directory, job.cameras, names, renders.images, renders.reference, renders.cloud)
             if renders.transfer_images is not None:
-                np.save(writer.directory / TRANSFER_IMAGES, renders.transfer_images)
+                save_array(writer.directory / TRANSFER_IMAGES, renders.transfer_images)
             if len(job.novel):
                 write_novel(writer.directory, job.novel, renders.novel_reference)
             if job.held_out is not None and len(job.novel):

@@ -23,6 +23,7 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.pictures import write_preview
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.stage import Stage
+from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.preprocess.settings import SIZE_FROM_SCAN, PreprocessSettings
 from cubecloud_cli.volume.cube_frame import SCAN_SIZE_CAP, CubeFrame, plan_cube, size_for_scan
 from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
@@ -238,7 +239,7 @@ def resample_to_cube(scan: Scan, settings: PreprocessSettings, size: int) -> tup
 def _write_volume(
     directory: Path, volume: np.ndarray, frame: CubeFrame, intensity: IntensityMap, on_fraction: Callable[[float], None]
 ) -> None:
-    np.save(directory / VOLUME_NPY, volume)
+    save_array(directory / VOLUME_NPY, volume)
     write_nifti(
         volume,
         frame.voxel_to_scanner(),

@@ -41,6 +41,7 @@ from cubecloud_cli.core.pictures import to_uint8
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
+from cubecloud_cli.core.writes import save_picture
 from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.gaussian_ply import scalar_properties, write_gaussians_ply
 from cubecloud_cli.splat.gaussians import gaussians_from_points, random_points
@@ -384,4 +385,4 @@ def _write_preview(trainer: SplatTrainer, path: Path) -> None:
     renders = [trainer.render(v).image.clamp(0, 1).cpu().numpy() for v in views]
     rows = [np.concatenate(targets, axis=1), np.concatenate(renders, axis=1)]
     grid = to_uint8(np.concatenate(rows, axis=0))
-    Image.fromarray(grid[..., 0] if grid.shape[2] == 1 else grid).save(path)
+    save_picture(Image.fromarray(grid[..., 0] if grid.shape[2] == 1 else grid), path)

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
+from cubecloud_cli.core.writes import write_atomically
 from cubecloud_cli.numerics.adam import adam
 from cubecloud_cli.numerics.metrics import psnr_from_mse
 from cubecloud_cli.numerics.readback import GroupedReads
@@ -251,9 +252,8 @@ class SplatTrainer:
         }
 
     def save(self, path: Path) -> None:
-        temporary = Path(path).with_suffix(".tmp")
-        torch.save(self.state(), temporary)
-        temporary.replace(path)
+        state = self.state()
+        write_atomically(Path(path), lambda temporary: torch.save(state, temporary))
 
     def restore(self, state: dict) -> None:
         for group in self.optimizer.param_groups:
