@@ -122,6 +122,34 @@ def test_constant_volume(tmp_path, window):
     assert np.all(np.isfinite(volume)) and volume.max() <= 1
 
 
+def test_a_thin_slab_is_named_with_the_size_that_keeps_it_and_an_all_air_cube_is_refused_by_cunerf(tmp_path):
+    slab = np.full((600, 600, 5), -1000, np.int16)
+    slab[100:500, 100:500, :] = 40  # soft tissue across the whole slab
+    path = write_nifti(tmp_path / "slab.nii.gz", slab, np.diag([0.7, 0.7, 2.5, 1.0]))
+    result = invoke("preprocess", path, "-o", tmp_path / "w", "--size", 32)
+    assert result.exit_code == 0, result.output
+    assert "12.5 mm) thick along its axis 2: 0.95 voxels of the 32³ cube" in result.stderr
+    assert "--size 80 keeps 2 voxels across it" in result.stderr
+    if not _load(tmp_path / "w").any():  # missed between the voxel centres: said, and refused before training
+        assert "0 everywhere" in result.stderr
+        assert_one_line_error(invoke("cunerf", tmp_path / "w"), r"volume.npy is 0 everywhere .* nothing to train")
+    kept = invoke("preprocess", path, "-o", tmp_path / "k", "--size", 80)
+    assert kept.exit_code == 0 and "thick along" not in kept.stderr and _load(tmp_path / "k").any()
+
+
+def test_a_sheared_affine_is_one_line_that_says_what_is_done_with_the_shear(tmp_path):
+    affine = np.diag([1.0, 1.0, 2.0, 1.0])
+    affine[1, 2] = 2.0 * np.sin(np.radians(15))  # a 15° gantry tilt
+    affine[2, 2] = 2.0 * np.cos(np.radians(15))
+    path = write_nifti(tmp_path / "tilt.nii.gz", body_phantom(), affine)
+    result = invoke("preprocess", path, "-o", tmp_path / "w", "--size", 16)
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.stderr.splitlines() if line.startswith("warning:") and "sheared" in line]
+    assert len(lines) == 1 and "sheared by 15.0°" in lines[0] and "keep the shear" in lines[0]
+    plain = invoke("preprocess", write_nifti(tmp_path / "s.nii.gz", body_phantom()), "-o", tmp_path / "s", "--size", 16)
+    assert "voxel axes are sheared" not in plain.stderr
+
+
 @pytest.mark.parametrize("spacing", ["0,1,1", "-1,1,1", "1,1,1e9", "1,1"])
 def test_bad_spacing_option(tmp_path, phantom_nifti, spacing):
     result = invoke("preprocess", phantom_nifti, "-o", tmp_path / "w", f"--spacing={spacing}")

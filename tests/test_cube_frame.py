@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cubecloud_cli.volume.cube_frame import plan_cube
+from cubecloud_cli.volume.cube_frame import plan_cube, shear_degrees, size_keeping, voxels_across
 
 
 def _affine(spacing, origin=(10.0, -20.0, 30.0)):
@@ -111,3 +111,35 @@ def test_the_scan_size_needs_a_3d_scan_with_positive_spacing(shape, spacing):
         return
     with pytest.raises(ValueError):
         size_for_scan(shape, spacing, "pad")
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.tuples(*[st.integers(1, 700)] * 3),
+    st.tuples(*[st.floats(0.05, 10.0)] * 3),
+)
+def test_the_size_that_keeps_a_thin_scan_gives_every_axis_two_voxels_and_no_smaller_one_does(shape, spacing):
+    keeping = size_keeping(shape, spacing)
+    if keeping is None:  # no cube up to 512 holds it
+        assert voxels_across(shape, spacing, 512, "pad").min() < 2.0
+        return
+    assert voxels_across(shape, spacing, keeping, "pad").min() >= 2.0 - 1e-9
+    if keeping > 16:
+        assert voxels_across(shape, spacing, keeping - 16, "pad").min() < 2.0
+    assert np.allclose(voxels_across(shape, spacing, 32, "stretch"), 32)
+
+
+def test_a_slab_spans_under_a_voxel_of_a_small_cube():
+    across = voxels_across((600, 600, 5), (0.7, 0.7, 2.5), 32, "pad")
+    assert across[2] == pytest.approx(32 * 12.5 / 420) and across[0] == pytest.approx(32)
+    assert size_keeping((600, 600, 5), (0.7, 0.7, 2.5)) == 80
+
+
+@pytest.mark.parametrize("degrees", [0.0, 3.0, 20.0])
+def test_shear_is_the_largest_departure_from_right_angles_and_rotation_is_none(degrees):
+    rotation = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
+    tilt = np.radians(degrees)  # the slice axis leans towards y, as a tilted gantry's does
+    columns = np.array([[0.7, 0.0, 0.0], [0.0, 0.7, 2.5 * np.sin(tilt)], [0.0, 0.0, 2.5 * np.cos(tilt)]])
+    affine = np.eye(4)
+    affine[:3, :3] = rotation @ columns
+    assert shear_degrees(affine) == pytest.approx(degrees, abs=1e-6)

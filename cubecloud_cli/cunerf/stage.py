@@ -268,6 +268,11 @@ def _prepare(
     volume_np = np.load(volume_path)
     if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
         raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")
+    if not volume_np.any():
+        raise CubecloudError(
+            f"{volume_path} is 0 everywhere (all air, or a constant scan): there is nothing to train; check the scan "
+            "and --window, or rerun `cubecloud preprocess --force` with a --size that keeps a thin scan (it named one)"
+        )
     volume = torch.from_numpy(np.asarray(volume_np, dtype=np.float32)).to(device)  # no copy of a float32 volume
     held_out = holdout_slices(volume_np, settings.holdout, settings.train_scale)
     voxels = TrainingVoxels(volume, settings.train_scale, held_out, settings.body_fraction)

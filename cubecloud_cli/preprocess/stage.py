@@ -25,7 +25,17 @@ from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.preprocess.settings import SIZE_FROM_SCAN, PreprocessSettings
-from cubecloud_cli.volume.cube_frame import SCAN_SIZE_CAP, CubeFrame, plan_cube, size_for_scan
+from cubecloud_cli.volume.cube_frame import (
+    MIN_VOXELS_ACROSS,
+    SCAN_SIZE_CAP,
+    CubeFrame,
+    Fit,
+    plan_cube,
+    shear_degrees,
+    size_for_scan,
+    size_keeping,
+    voxels_across,
+)
 from cubecloud_cli.volume.intensity import IntensityMap, detect_modality, replace_nonfinite, resolve_intensity_map
 from cubecloud_cli.volume.nifti import write_nifti
 from cubecloud_cli.volume.orientation import axis_codes, reorient_to_ras
@@ -125,6 +135,7 @@ def preprocess_scan(
         for note in scan.notes:
             log.info(note)
         size = cube_size(scan, settings)
+        warn_about_geometry(scan, size, settings.fit)  # type: ignore[arg-type]
         costs = phase_costs(scan.data.size, size)
         _check_memory(size, scan.data.size)
         check_free_disk(Path(work), 2 * 4 * size**3)
@@ -147,6 +158,10 @@ def preprocess_scan(
                 writer.directory, volume, frame, intensity, lambda fraction: on_phase("write", costs, fraction)
             )
 
+        if not volume.any():
+            log.warning(
+                "the volume is all air (0 everywhere): cunerf will refuse it; check the scan, --window and --size"
+            )
         writer.metrics.update(_volume_statistics(volume))
         writer.extra.update(
             {
@@ -223,6 +238,35 @@ def cube_size(scan: Scan, settings: PreprocessSettings) -> int:
         f"capped at {SCAN_SIZE_CAP}); --size sets another"
     )
     return size
+
+
+SHEAR_NOTED_DEGREES = 0.5
+
+
+def warn_about_geometry(scan: Scan, size: int, fit: Fit) -> None:
+    """One line each for a scan that the cube would make too thin to keep, and for a sheared
+    affine, saying what is done and what to do."""
+    shape, spacing = scan.data.shape, scan.spacing_mm
+    across = voxels_across(shape, spacing, size, fit)
+    thin = int(np.argmin(across))
+    if across[thin] < MIN_VOXELS_ACROSS:
+        keeping = size_keeping(shape, spacing)
+        fix = (
+            f"--size {keeping} keeps {MIN_VOXELS_ACROSS:g} voxels across it"
+            if keeping
+            else f"no --size up to {SCAN_SIZE_CAP} keeps {MIN_VOXELS_ACROSS:g} voxels across it: --fit stretch spreads it"
+        )
+        log.warning(
+            f"the scan is {shape[thin]} voxels of {spacing[thin]:.3g} mm ({shape[thin] * spacing[thin]:.3g} mm) thick "
+            f"along its axis {thin}: {across[thin]:.2f} voxels of the {size}³ cube, which resampling may erase; {fix}"
+        )
+    shear = shear_degrees(scan.affine)
+    if shear > SHEAR_NOTED_DEGREES:
+        log.warning(
+            f"the scan's voxel axes are sheared by {shear:.1f}° (a tilted gantry?): the cube is resampled along the "
+            "scan's own axes, so the 3D scene shows the anatomy unsheared, while volume.nii.gz and every length in mm "
+            "(the viewer's ruler, the world-to-scanner map) keep the shear through the affine"
+        )
 
 
 def resample_to_cube(scan: Scan, settings: PreprocessSettings, size: int) -> tuple[CubeFrame, np.ndarray]:

@@ -103,6 +103,43 @@ def size_for_scan(
     return int(min(multiple, cap))
 
 
+MIN_VOXELS_ACROSS = 2.0  # fewer cube voxels across an axis and resampling at their centres may miss it
+
+
+def voxels_across(shape: tuple[int, ...], spacing_mm, size: int, fit: Fit) -> np.ndarray:
+    """(3,) how many cube voxels each axis of the scan spans: under ``pad`` the cube's side is the
+    longest extent, so a thin axis spans S × its extent / the longest; under ``stretch`` every one
+    spans all S."""
+    extent = np.asarray(shape, dtype=float) * np.asarray(spacing_mm, dtype=float)
+    if fit == "stretch" or not np.all(extent > 0):
+        return np.full(3, float(size))
+    return size * extent / extent.max()
+
+
+def size_keeping(
+    shape: tuple[int, ...], spacing_mm, minimum: float = MIN_VOXELS_ACROSS, cap: int = SCAN_SIZE_CAP
+) -> int | None:
+    """The smallest multiple of 16 that gives every axis at least ``minimum`` voxels under ``pad``,
+    or None when none up to ``cap`` does."""
+    extent = np.asarray(shape, dtype=float) * np.asarray(spacing_mm, dtype=float)
+    if not np.all(extent > 0):
+        return None
+    needed = SIZE_MULTIPLE * math.ceil(minimum * extent.max() / extent.min() / SIZE_MULTIPLE)
+    return int(needed) if needed <= cap else None
+
+
+def shear_degrees(affine: np.ndarray) -> float:
+    """How far the angles between the affine's voxel axes are from 90°, the largest of the three
+    (0 for any rotation and scaling; a gantry-tilted CT read as one volume is sheared)."""
+    columns = np.asarray(affine, dtype=float)[:3, :3].T
+    norms = np.linalg.norm(columns, axis=1)
+    if not np.all(norms > 0):
+        return 0.0
+    unit = columns / norms[:, None]
+    cosines = [abs(float(unit[a] @ unit[b])) for a, b in ((0, 1), (0, 2), (1, 2))]
+    return float(max(math.degrees(math.asin(min(c, 1.0))) for c in cosines))
+
+
 def plan_cube(shape: tuple[int, int, int], source_affine: np.ndarray, size: int, fit: Fit) -> CubeFrame:
     """Place a scan of ``shape`` voxels (already RAS-reoriented) in the S³ cube."""
     if size < 2:
