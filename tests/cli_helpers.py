@@ -58,3 +58,20 @@ def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, nove
         result = invoke(*args, "-q")
         assert result.exit_code == 0, result.output
     return work
+
+
+def record_as_written(stage_dir, relative: str) -> None:
+    """Record a file changed by a test in its stage's manifest, as if the stage had written it so
+    (a test of what a stage does with such a file, past the sha256 check that would refuse it)."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    path = Path(stage_dir) / relative
+    manifest_path = Path(stage_dir) / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["files"][relative] = {
+        "bytes": path.stat().st_size,
+        "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+    }
+    manifest_path.write_text(json.dumps(manifest))

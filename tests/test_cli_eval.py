@@ -7,7 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, invoke, tiny_work
+from cli_helpers import assert_one_line_error, invoke, record_as_written, tiny_work
 
 QUICK = ["--iterations", "40", "--eval-every", "20", "--checkpoint-every", "20", "-q"]
 
@@ -91,6 +91,7 @@ def test_renders_are_scored_against_the_reference_not_the_training_images(work, 
     copy = tmp_path / "work"
     shutil.copytree(work, copy, ignore=shutil.ignore_patterns("eval"))
     np.save(copy / "export" / "reference.npy", np.load(copy / "export" / "images.npy"))
+    record_as_written(copy / "export", "reference.npy")
     result = invoke("eval", copy, "--turntable-frames", "0", "-q")
     assert result.exit_code == 0, result.output
     metrics = json.loads((copy / "eval" / "metrics.json").read_text())
@@ -205,6 +206,8 @@ def test_bad_input(work, tmp_path):
     gaussians = read_gaussians_ply(nan_run / "splat" / "point_cloud.ply")
     gaussians.sh_dc[:] = float("nan")
     write_gaussians_ply(nan_run / "splat" / "point_cloud.ply", gaussians)
+    assert_one_line_error(invoke("eval", nan_run), r"point_cloud.ply changed since its stage wrote it.*--force")
+    record_as_written(nan_run / "splat", "point_cloud.ply")  # as if training had written them
     assert_one_line_error(invoke("eval", nan_run), r"splat renders NaN or Inf.*retrain")
     bad_novel = copy("bad_novel")  # novel references damaged after the export: refused, never scored
     np.save(bad_novel / "export" / "novel" / "reference.npy", np.zeros((3, 32, 32), dtype=np.float32))

@@ -134,6 +134,22 @@ def require_stage(work: Path, stage: str, name: str | None = None) -> dict[str, 
     return manifest
 
 
+def verify_recorded(path: Path, digest: str, fix: str) -> None:
+    """``digest``, just taken of ``path``, against the sha256 that the manifest of the stage folder
+    holding it records: a file changed in place keeps its size, not its hash. A file that no
+    manifest lists (a foreign scene's) passes."""
+    path = Path(path)
+    stage_dir = next((folder for folder in path.parents if (folder / MANIFEST_NAME).is_file()), None)
+    if stage_dir is None:
+        return
+    recorded = read_manifest(stage_dir).get("files", {}).get(str(path.relative_to(stage_dir)), {})
+    if isinstance(recorded, dict) and recorded.get("sha256") not in (None, digest):
+        raise CubecloudError(
+            f"{path} changed since its stage wrote it (its sha256 is not the one in {stage_dir / MANIFEST_NAME}): "
+            f"run `{fix}`"
+        )
+
+
 def verify_stage_files(directory: Path, manifest: dict[str, Any], fix: str) -> None:
     """Every file the manifest lists is still there with its recorded size, or a one-line error
     that names ``fix``."""

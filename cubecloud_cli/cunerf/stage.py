@@ -264,7 +264,12 @@ def _prepare(
     context: dict,
 ) -> tuple[Trainer, TrainingVoxels, np.ndarray, list[int]]:
     """Load the volume, build the model and its trainer, and restore a checkpoint if any."""
-    writer.add_input(volume_path, "preprocess/volume.npy")
+    digest = writer.add_input(volume_path, "preprocess/volume.npy")
+    if digest != context["volume_sha256"]:
+        raise CubecloudError(
+            f"{volume_path} changed since preprocess wrote it (its sha256 is not the manifest's): "
+            f"run `cubecloud preprocess SCAN -o {volume_path.parent.parent} --force`"
+        )
     volume_np = np.load(volume_path)
     if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
         raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")

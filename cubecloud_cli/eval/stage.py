@@ -13,7 +13,7 @@ import torch
 
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS
-from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, to_jsonable
+from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, to_jsonable, verify_recorded
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -45,6 +45,7 @@ from cubecloud_cli.eval.runs import (
 )
 from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.raster.backends import rasterizer_for
+from cubecloud_cli.splat.training_views import export_remake
 
 log = logging.getLogger("cubecloud")
 
@@ -187,7 +188,10 @@ def _load_runs(work: Path, folders: list[str], settings: EvalSettings, writer: S
             channels = int(run.manifest.get("params", {}).get("channels", 1))
             scenes[directory] = load_scored_scene(directory, channels)
         scene_of[run.name] = scenes[directory]
-        writer.add_input(run.directory / "point_cloud.ply", f"{run.name}/point_cloud.ply")
+        ply = run.directory / "point_cloud.ply"
+        verify_recorded(ply, writer.add_input(ply, f"{run.name}/point_cloud.ply"), run.retrain)
+    for directory in scenes:
+        _check_references(directory, writer)
     own_export = (work / "export").resolve()
     main_scene = scenes.get(own_export) or scene_of[runs[0].name]
     turntables = {
@@ -197,6 +201,18 @@ def _load_runs(work: Path, folders: list[str], settings: EvalSettings, writer: S
         for run in runs
     }
     return LoadedRuns(runs, scene_of, main_scene, own_export, turntables)
+
+
+def _check_references(directory: Path, writer: StageWriter) -> None:
+    """The references eval scores against, hashed into its manifest and checked against what their
+    export recorded (a same-size edit of one would change every score)."""
+    remake = export_remake(directory)
+    if remake is None:  # a foreign scene: its own images are the reference
+        return
+    novel = directory / "novel"
+    for path in [directory / "reference.npy", *sorted(novel.glob("reference*.npy"))]:
+        if path.is_file():
+            verify_recorded(path, writer.add_input(path, f"{directory.name}/{path.relative_to(directory)}"), remake)
 
 
 def _score_run(

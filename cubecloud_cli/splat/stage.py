@@ -26,6 +26,7 @@ from cubecloud_cli.core.artifacts import (
     read_manifest,
     require_stage,
     stage_dir_name,
+    verify_recorded,
     write_csv_log,
 )
 from cubecloud_cli.core.errors import CubecloudError
@@ -49,7 +50,7 @@ from cubecloud_cli.splat.on_cpu import SplatKernels, kernels_to_compile_ahead, t
 from cubecloud_cli.splat.scalar_gaussians import GaussianModel, ScalarGaussians, scalar_gaussians_from_points
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.trainer import SplatTrainer
-from cubecloud_cli.splat.training_views import TRANSFER_IMAGES, TrainingScene, load_scene
+from cubecloud_cli.splat.training_views import TRANSFER_IMAGES, TrainingScene, export_remake, load_scene
 
 log = logging.getLogger("cubecloud")
 
@@ -161,7 +162,8 @@ def _check_resume(
         changed = [
             k for k, v in settings.as_dict().items() if k not in REPORTING_OPTIONS and state["settings"].get(k) != v
         ]
-        if state.get("scene") != _scene_identity(scene):
+        recorded = {k: v for k, v in state.get("scene", {}).items() if k != "inputs"}  # inputs: checked once hashed
+        if recorded != _scene_identity(scene):
             changed.append("scene")
         if changed:
             raise CubecloudError(
@@ -212,8 +214,15 @@ def train_splat(
     try:
         with writer:
             with writer.phase("load"):
-                images_digest = _record_inputs(writer, scene_dir)
+                digests = _record_inputs(writer, scene_dir)
+                images_digest = digests.get("images.npy")
+                if state is not None and state.get("scene", {}).get("inputs", digests) != digests:
+                    raise CubecloudError(
+                        f"{scene_dir}'s images or points changed since the interrupted run started from them: "
+                        "it cannot resume; start afresh with --force"
+                    )
                 trainer = _build_trainer(scene, settings, device, state)
+                trainer.identity = {**trainer.identity, "inputs": digests}
             with writer.phase("train"):
                 _train(trainer, checkpoint, on_progress)
             with writer.phase("write"):
@@ -234,15 +243,17 @@ def _bound_kernel_threads(runtime: Runtime, device: torch.device) -> None:
         numba.set_num_threads(min(runtime.threads, numba.config.NUMBA_NUM_THREADS))
 
 
-def _record_inputs(writer: StageWriter, scene_dir: Path) -> str | None:
-    """Hash the scene's images and points into the manifest; returns the images' digest."""
-    images_digest = None
+def _record_inputs(writer: StageWriter, scene_dir: Path) -> dict[str, str]:
+    """Hash the scene's images and points into the manifest, each checked against the sha256 its
+    export recorded; returns the digests by file name."""
+    digests = {}
+    fix = export_remake(scene_dir) or f"re-export the scene {scene_dir}"
     for path in input_files(scene_dir):
         if path.is_file():
             label = str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path)
-            digest = writer.add_input(path, label)
-            images_digest = digest if path.name == "images.npy" else images_digest
-    return images_digest
+            digests[path.name] = writer.add_input(path, label)
+            verify_recorded(path, digests[path.name], fix)
+    return digests
 
 
 def _build_trainer(
