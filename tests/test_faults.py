@@ -154,3 +154,20 @@ def test_a_resumed_splat_refuses_points_that_changed_under_it(viewable_work, tmp
     (work / "export" / "manifest.json").write_text(json.dumps(manifest))
     assert_one_line_error(invoke("splat", work, *options, "--resume"), r"changed since the interrupted run started")
     assert invoke("splat", work, *options, "--force", "-q").exit_code == 0
+
+
+def test_eval_notices_a_splat_run_that_finished_while_it_scored(viewable_work, tmp_path, monkeypatch):
+    import cubecloud_cli.eval.stage as eval_stage
+
+    work = tmp_path / "work"
+    shutil.copytree(viewable_work, work, ignore=shutil.ignore_patterns("eval"))
+    draw = eval_stage._draw_pictures
+
+    def splat_force_meanwhile(*args, **kwargs):
+        draw(*args, **kwargs)
+        same_size_edit(work / "splat" / "point_cloud.ply", move_one_point)  # what `splat --force` commits
+
+    monkeypatch.setattr(eval_stage, "_draw_pictures", splat_force_meanwhile)
+    result = invoke("eval", work, "--turntable-frames", "0")
+    assert_one_line_error(result, r"splat/point_cloud.ply was replaced while eval scored it.*cubecloud eval")
+    assert not (work / "eval").exists()  # no scores of Gaussians that are gone

@@ -13,7 +13,14 @@ import torch
 
 from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS
-from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, to_jsonable, verify_recorded
+from cubecloud_cli.core.artifacts import (
+    StageWriter,
+    is_complete,
+    read_manifest,
+    sha256_of_file,
+    to_jsonable,
+    verify_recorded,
+)
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
@@ -172,6 +179,7 @@ def evaluate_work(
         with writer.phase("pictures"):
             _draw_pictures(loaded, scores, writer.directory)
         _write_report(work, loaded, scores, writer)
+        _check_unchanged(work, loaded, writer)
         writer.metrics.update(peak_memory_mb(device))
         writer.extra["rasterizer"] = rasterizer.description
     return read_manifest(work / "eval")
@@ -201,6 +209,19 @@ def _load_runs(work: Path, folders: list[str], settings: EvalSettings, writer: S
         for run in runs
     }
     return LoadedRuns(runs, scene_of, main_scene, own_export, turntables)
+
+
+def _check_unchanged(work: Path, loaded: LoadedRuns, writer: StageWriter) -> None:
+    """Each run's Gaussians are still the ones scored: a splat run that finished while eval ran
+    (`splat --force` replaces its folder whole) would otherwise leave scores of the old ones."""
+    for run in loaded.runs:
+        ply = run.directory / "point_cloud.ply"
+        scored = writer.inputs.get(f"{run.name}/point_cloud.ply")
+        now = sha256_of_file(ply) if ply.is_file() else None
+        if now != scored:
+            raise CubecloudError(
+                f"{ply} was replaced while eval scored it (a splat run finished meanwhile): run `cubecloud eval {work}` again"
+            )
 
 
 def _check_references(directory: Path, writer: StageWriter) -> None:
