@@ -8,13 +8,16 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 from cli_helpers import assert_one_line_error, invoke
 
-from cubecloud_cli.cohort.scans import scans_from_csv
+from cubecloud_cli.cohort.engine import wait_passing_on_interrupts
+from cubecloud_cli.cohort.scans import CohortScan, scans_from_csv
+from cubecloud_cli.cohort.workflow import interrupted_message
 from cubecloud_cli.sample_data import sample_ct_path
 
 pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end together
@@ -183,3 +186,32 @@ def test_without_snakemake_the_error_names_the_extra(tmp_path, monkeypatch):
     assert_one_line_error(invoke("cohort", tmp_path / "x.nii.gz", "-o", tmp_path / "out"),
                           r"runs on Snakemake, which is not installed: pip install 'cubecloud\[cohort\]'")  # fmt: skip
     assert not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_or_sigterm_is_passed_on_to_snakemake_and_waited_for(tmp_path):
+    marker = tmp_path / "stopped"
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import signal, sys, time\n"
+         f"signal.signal(signal.SIGINT, lambda *_: (open({str(marker)!r}, 'w').write('jobs stopped'), sys.exit(3)))\n"
+         "print('ready', flush=True)\ntime.sleep(120)"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert child.stdout.readline().strip() == "ready"
+    timer = threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT))  # the interrupt reaches this process only
+    timer.start()
+    with pytest.raises(KeyboardInterrupt):
+        wait_passing_on_interrupts(child)
+    timer.join()
+    assert child.returncode == 3 and marker.read_text() == "jobs stopped"
+
+
+def test_an_interrupted_cohort_says_which_stages_it_keeps(tmp_path):
+    for scan_id, stages in (("a", ["preprocess", "cunerf", "export"]), ("b", ["preprocess"]), ("c", [])):
+        for stage in stages:
+            (tmp_path / scan_id / stage).mkdir(parents=True)
+            (tmp_path / scan_id / stage / "manifest.json").write_text("{}")
+    (tmp_path / "b" / ".cunerf.partial").mkdir()  # interrupted: not complete
+    scans = [CohortScan(scan_id, tmp_path / "x.nii.gz") for scan_id in "abc"]
+    message = interrupted_message(tmp_path, scans)
+    assert message.startswith("interrupted: 4 stages are complete and kept (0 of 3 scans finished)")
+    assert "run the same cohort command again" in message

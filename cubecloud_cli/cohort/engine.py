@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import shlex
+import signal
 import socket
 import subprocess
 import sys
@@ -142,7 +143,34 @@ def run_snakemake(out: Path, config: Path, engine: EngineOptions) -> int:
     """Snakemake's exit code; its progress goes to the terminal."""
     command = snakemake_command(out, config, engine)
     (Path(out) / COHORT_DIR / "snakemake_command.txt").write_text(shlex.join(command) + "\n")
-    return subprocess.run(command, check=False).returncode
+    return wait_passing_on_interrupts(subprocess.Popen(command))
+
+
+SNAKEMAKE_STOP_SECONDS = 120  # for it to stop its jobs (each saves its checkpoint) before it is killed
+
+
+def wait_passing_on_interrupts(process: subprocess.Popen) -> int:
+    """``process``'s exit code. Ctrl-C or SIGTERM here (a KeyboardInterrupt: cli/common.py) is
+    passed on to it as SIGINT, on which Snakemake stops its jobs, and waited for: a terminal's
+    Ctrl-C reached it already, a scheduler's SIGTERM reached this process alone."""
+    try:
+        return process.wait()
+    except KeyboardInterrupt:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(timeout=SNAKEMAKE_STOP_SECONDS)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+        raise
+
+
+def completed_stages(out: Path, scan_ids: list[str]) -> dict[str, list[str]]:
+    """The stage folders with a manifest in each scan's work directory (what an interrupted cohort keeps)."""
+    return {
+        scan_id: [p.parent.name for p in sorted((Path(out) / scan_id).glob("*/manifest.json"))] for scan_id in scan_ids
+    }
 
 
 def failure(out: Path, scan_id: str) -> str:

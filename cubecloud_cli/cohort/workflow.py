@@ -11,6 +11,7 @@ from cubecloud_cli.cohort.engine import (
     PLAIN_COMMAND,
     EngineOptions,
     cohort_lock,
+    completed_stages,
     failure,
     require_snakemake,
     run_snakemake,
@@ -42,6 +43,17 @@ def job_launcher(engine: EngineOptions, entry: JobEntry) -> Iterator[list[str]]:
         yield PLAIN_COMMAND
 
 
+def interrupted_message(out: Path, scans: list[CohortScan]) -> str:
+    """What an interrupted cohort keeps: the stages complete in each scan, found on disk."""
+    done = completed_stages(out, [scan.id for scan in scans])
+    count = sum(len(stages) for stages in done.values())
+    finished = [scan_id for scan_id, stages in done.items() if "eval" in stages]
+    return (
+        f"interrupted: {count} stages are complete and kept ({len(finished)} of {len(scans)} scans finished); "
+        "run the same cohort command again to go on from them"
+    )
+
+
 def run_cohort(
     scans: list[CohortScan],
     out: Path,
@@ -64,7 +76,10 @@ def run_cohort(
         with job_launcher(engine, entry) as command:
             config = write_config(out, scans, run_options, command)
             log.info(f"cohort of {len(scans)} scans in {out}: {len(scans) * 6} jobs on Snakemake")
-            code = run_snakemake(out, config, engine)
+            try:
+                code = run_snakemake(out, config, engine)
+            except KeyboardInterrupt:
+                raise KeyboardInterrupt(interrupted_message(out, scans)) from None
         records = []
         for scan in scans:
             finished = (out / scan.id / "eval" / "manifest.json").is_file()
