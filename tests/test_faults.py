@@ -104,6 +104,12 @@ def halve_the_reference(path) -> None:
     np.save(path, np.full_like(np.load(path), 0.5))
 
 
+def flip_the_last_byte(path) -> None:
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
 def move_one_point(path) -> None:
     ply = PlyData.read(io.BytesIO(path.read_bytes()))  # not a memory map of the file it then rewrites
     ply["vertex"]["x"][0] = 1e6
@@ -118,8 +124,9 @@ def move_one_point(path) -> None:
          "cubecloud export {work} --force"),
         ("preprocess/volume.npy", halve_the_reference, ["cunerf", "--force"], "cubecloud preprocess SCAN -o {work} --force"),
         ("splat/point_cloud.ply", move_one_point, ["eval"], "cubecloud splat {work} --force"),
+        ("cunerf/model.pt", flip_the_last_byte, ["eval"], "cubecloud cunerf {work} --force"),
     ],
-    ids=["eval-reference", "splat-points", "cunerf-volume", "eval-gaussians"],
+    ids=["eval-reference", "splat-points", "cunerf-volume", "eval-gaussians", "eval-cunerf-model"],
 )  # fmt: skip
 def test_a_file_changed_in_place_is_refused_by_its_sha256(viewable_work, tmp_path, relative, edit, command, fix):
     work = tmp_path / "work"

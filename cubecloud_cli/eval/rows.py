@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS
-from cubecloud_cli.core.artifacts import is_complete, read_manifest
+from cubecloud_cli.core.artifacts import is_complete, read_manifest, sha256_of_file, verify_recorded
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
 from cubecloud_cli.eval.runs import (
@@ -96,6 +96,9 @@ def cunerf_rows(work: Path, scored: ScoredScene, per_view: list[dict]) -> dict[s
     images = scene.images.numpy().mean(axis=-1)
     cunerf_dir = work / "cunerf"
     cunerf = read_manifest(cunerf_dir) if is_complete(cunerf_dir) else {}
+    model = cunerf_dir / "model.pt"
+    if cunerf and model.is_file():  # its rows quote the stage's manifest: only while the model is the one it wrote
+        verify_recorded(model, sha256_of_file(model), f"cubecloud cunerf {work} --force")
     timings = export.get("timings_s", {})
     resumed = bool(export.get("resumed", {}).get("views"))  # then only the missing views were timed
     extra = {
