@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
+from pathlib import Path
 
 from typer.testing import CliRunner
 
@@ -24,6 +27,12 @@ def assert_one_line_error(result, pattern: str) -> str:
     return errors[0]
 
 
+def tiny_export_options(views: int, max_points: int, novel_directions: int) -> list:
+    """The export options of a 32³ test scene: 32² views, 8-voxel cubes of 64 points."""
+    return ["--resolution", "32", "--views", views, "--cube", "8", "--points-per-cube", "64",
+            "--max-points", max_points, "--novel-directions", novel_directions]  # fmt: skip
+
+
 def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, novel_directions: int,
               splat: list[str] | None, baseline: bool = False, export: tuple[str, ...] = ()):  # fmt: skip
     """A finished 32³ work directory made through the CLI: preprocess, cunerf, export (with the
@@ -32,23 +41,7 @@ def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, nove
     commands = [
         ["preprocess", "-o", work, "--size", "32"],
         ["cunerf", work, "--iterations", cunerf_iterations, "--batch-size", "1024", "--holdout", "2"],
-        [
-            "export",
-            work,
-            "--resolution",
-            "32",
-            "--views",
-            views,
-            "--cube",
-            "8",
-            "--points-per-cube",
-            "64",
-            "--max-points",
-            max_points,
-            "--novel-directions",
-            novel_directions,
-            *export,
-        ],  # fmt: skip
+        ["export", work, *tiny_export_options(views, max_points, novel_directions), *export],
     ]
     if splat is not None:
         commands.append(["splat", work, *splat])
@@ -63,10 +56,6 @@ def tiny_work(work, *, cunerf_iterations: int, views: int, max_points: int, nove
 def record_as_written(stage_dir, relative: str) -> None:
     """Record a file changed by a test in its stage's manifest, as if the stage had written it so
     (a test of what a stage does with such a file, past the sha256 check that would refuse it)."""
-    import hashlib
-    import json
-    from pathlib import Path
-
     path = Path(stage_dir) / relative
     manifest_path = Path(stage_dir) / "manifest.json"
     manifest = json.loads(manifest_path.read_text())

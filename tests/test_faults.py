@@ -14,7 +14,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 import torch
-from cli_helpers import assert_one_line_error, invoke
+from cli_helpers import assert_one_line_error, invoke, tiny_export_options
 from plyfile import PlyData
 
 pytestmark = pytest.mark.slow
@@ -22,24 +22,7 @@ pytestmark = pytest.mark.slow
 STAGES = {
     "preprocess": (["--size", "32", "--force"], "volume.npy"),
     "cunerf": (["--iterations", "200", "--batch-size", "1024", "--holdout", "2", "--force"], "checkpoint.pt"),
-    "export": (
-        [
-            "--resolution",
-            "32",
-            "--views",
-            "16",
-            "--cube",
-            "8",
-            "--points-per-cube",
-            "64",
-            "--max-points",
-            "3000",
-            "--novel-directions",
-            "0",
-            "--force",
-        ],
-        ".npy",
-    ),  # fmt: skip
+    "export": ([*tiny_export_options(16, 3000, 0), "--force"], ".npy"),
     "splat": (["--iterations", "200", "--checkpoint-every", "50", "--force"], "checkpoint.pt"),
     "eval": (["--force"], "turntable_splat.gif"),
 }
