@@ -119,11 +119,13 @@ def test_the_whole_pipeline_on_degenerate_scans_ends_finite(tmp_path, kind):
         assert math.isfinite(results[row]["psnr"]) and -1.0 <= results[row]["ssim"] <= 1.0
 
 
-def test_a_constant_scan_stops_with_a_clear_error_at_splat(tmp_path):
+def test_a_constant_scan_stops_with_a_clear_error_before_training(tmp_path):
     from cli_helpers import assert_one_line_error
 
-    scan, _ = _scan(tmp_path, "constant")
-    assert_one_line_error(invoke("run", scan, "-o", tmp_path / "w", *QUICK), r"point cloud is empty.*constant scan")
+    scan, _ = _scan(tmp_path, "constant")  # 40 everywhere, read as MR: a cube of 0
+    assert_one_line_error(
+        invoke("run", scan, "-o", tmp_path / "w", *QUICK), r"0 everywhere .*constant scan.*nothing to train"
+    )
     work = tmp_path / "w"
-    assert all((work / stage / "manifest.json").is_file() for stage in ("preprocess", "cunerf", "export"))
-    assert not (work / "splat").exists() and not list(work.glob(".splat*"))  # nothing half-written
+    assert (work / "preprocess" / "manifest.json").is_file()
+    assert not (work / "cunerf").exists() and not list(work.glob(".cunerf*"))  # nothing half-written

@@ -68,8 +68,8 @@ def view_command(
     if host not in LOCAL_HOSTS:
         log.warning(f"listening on {host}: anyone who can reach this machine on port {port} can see the scan")
     viewer = SceneViewer(work, host=host, port=port, run=run, detail=detail)
-    log.info(f"viewing {len(viewer.runs)} run(s) of {work} at {viewer.url} (Ctrl-C stops)")
-    try:
+    try:  # from the first line that invites Ctrl-C on, Ctrl-C (or SIGTERM) stops the viewer cleanly
+        log.info(f"viewing {len(viewer.runs)} run(s) of {work} at {viewer.url} (Ctrl-C stops)")
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
