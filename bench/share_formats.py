@@ -90,7 +90,7 @@ def splat_quantized(gaussians: Gaussians) -> Gaussians:
         q8 = (torch.round(q * 128 + 128).clamp(0, 255) - 128) / 128
     return Gaussians(
         drawn.means.float(),
-        torch.log(torch.exp(drawn.log_scales.double()).float().double()).float(),
+        torch.log(torch.exp(drawn.log_scales).float()),  # .splat stores the linear scale as float32
         q8.float(),
         (torch.log(alpha) - torch.log1p(-alpha)).float(),
         ((colour8 - 0.5) / 0.28209479177387814)[:, None, :].float(),

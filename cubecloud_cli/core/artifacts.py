@@ -224,18 +224,16 @@ class StageWriter:
         try:
             self.work.mkdir(parents=True, exist_ok=True)
             self._lock.acquire()  # before anything of the stage is looked at or touched
+            try:
+                self.check_can_start()
+                if self.directory.exists() and not self.keep_partial:
+                    shutil.rmtree(self.directory)
+                self.directory.mkdir(exist_ok=True)
+            except BaseException:
+                self._let_go()
+                raise
         except OSError as exc:
             raise CubecloudError(f"cannot write in {self.work} ({exc.strerror}): pick a writable -o") from None
-        try:
-            self.check_can_start()
-            if self.directory.exists() and not self.keep_partial:
-                shutil.rmtree(self.directory)
-            self.directory.mkdir(exist_ok=True)
-        except BaseException as exc:
-            self._let_go()
-            if isinstance(exc, OSError):
-                raise CubecloudError(f"cannot write in {self.work} ({exc.strerror}): pick a writable -o") from None
-            raise
         self._started = time.perf_counter()
         return self
 

@@ -23,7 +23,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cubecloud_cli.core.artifacts import StageWriter, partial_dir, read_manifest, require_stage, write_csv_log
+from cubecloud_cli.core.artifacts import (
+    StageWriter,
+    partial_dir,
+    read_manifest,
+    require_stage,
+    verify_recorded,
+    write_csv_log,
+)
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.interrupts import (
     CubecloudInterrupted,
@@ -265,11 +272,7 @@ def _prepare(
 ) -> tuple[Trainer, TrainingVoxels, np.ndarray, list[int]]:
     """Load the volume, build the model and its trainer, and restore a checkpoint if any."""
     digest = writer.add_input(volume_path, "preprocess/volume.npy")
-    if digest != context["volume_sha256"]:
-        raise CubecloudError(
-            f"{volume_path} changed since preprocess wrote it (its sha256 is not the manifest's): "
-            f"run `cubecloud preprocess SCAN -o {volume_path.parent.parent} --force`"
-        )
+    verify_recorded(volume_path, digest, f"cubecloud preprocess SCAN -o {volume_path.parent.parent} --force")
     volume_np = np.load(volume_path)
     if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
         raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")
