@@ -124,7 +124,8 @@ def size_keeping(
     extent = np.asarray(shape, dtype=float) * np.asarray(spacing_mm, dtype=float)
     if not np.all(extent > 0):
         return None
-    needed = SIZE_MULTIPLE * math.ceil(minimum * extent.max() / extent.min() / SIZE_MULTIPLE)
+    # The slack keeps a ratio one rounding above a whole multiple (232 × 0.05 mm / 0.05 mm) on it.
+    needed = SIZE_MULTIPLE * math.ceil(minimum * extent.max() / extent.min() / SIZE_MULTIPLE - 1e-9)
     return int(needed) if needed <= cap else None
 
 
