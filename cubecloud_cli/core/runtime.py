@@ -25,19 +25,29 @@ class Runtime:
     device: str = "auto"
     """auto (CUDA when available), cpu or cuda."""
     threads: int | None = None
-    """CPU threads for torch and for splat's numba kernels (default: all cores, and `run` trains
-    its two splat runs side by side, on half of them each)."""
+    """CPU threads for torch, the BLAS libraries and splat's numba kernels (default: all cores,
+    and `run` trains its two splat runs side by side, on half of them each)."""
 
     def apply(self) -> torch.device:
-        """Set torch's thread count and return the device to run on."""
-        import torch
-
-        if self.threads is not None:
-            if self.threads < 1:
-                raise CubecloudError(f"--threads {self.threads} must be at least 1")
-            torch.set_num_threads(self.threads)
+        """Bound the CPU threads and return the device to run on."""
+        self.bound_cpu_threads()
         keep_freed_memory()
         return resolve_device(self.device)
+
+    def bound_cpu_threads(self) -> None:
+        """Hold torch's pool and every BLAS library's (numpy's and torch's OpenBLAS, MKL) to
+        ``threads``. A BLAS product splits its sums by thread, so its last bits follow the thread
+        count: the same ``threads`` gives the same bits on any machine, and a 1-thread cluster job
+        does not run a BLAS thread per core of its node."""
+        if self.threads is None:
+            return
+        if self.threads < 1:
+            raise CubecloudError(f"--threads {self.threads} must be at least 1")
+        import torch
+        from threadpoolctl import threadpool_limits
+
+        torch.set_num_threads(self.threads)
+        threadpool_limits(limits=self.threads)  # process-wide, until the next bound
 
 
 # glibc's mallopt parameters: the size from which an allocation gets pages of its own, and how

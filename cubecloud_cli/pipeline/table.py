@@ -41,7 +41,7 @@ def stage_table(
     unless ``baseline`` is False)."""
     work = Path(work)
     stages: list[Stage] = [
-        PreprocessStage(Path(scan), work, preprocess),
+        PreprocessStage(Path(scan), work, preprocess, runtime),
         CunerfStage(work, cunerf, runtime),
         ExportStage(work, export, runtime),
         SplatStage(work, splat, runtime),

@@ -22,6 +22,7 @@ from cubecloud_cli.core.artifacts import StageWriter, check_free_disk, read_mani
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.pictures import write_preview
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
+from cubecloud_cli.core.runtime import Runtime
 from cubecloud_cli.core.stage import Stage
 from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.preprocess.settings import SIZE_FROM_SCAN, PreprocessSettings
@@ -62,6 +63,7 @@ class PreprocessStage(Stage):
     scan: Path
     work: Path
     settings: PreprocessSettings
+    runtime: Runtime = Runtime()  # its threads bound the resampling's BLAS products
     folder = "preprocess"
     upstream = ()
 
@@ -72,6 +74,7 @@ class PreprocessStage(Stage):
         return recorded_params(self.settings)
 
     def run(self, force: bool, resume: bool, on_progress: ProgressCallback) -> dict:
+        self.runtime.bound_cpu_threads()
         return preprocess_scan(self.scan, self.work, self.settings, force=force, on_progress=on_progress)
 
 
