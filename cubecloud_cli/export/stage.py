@@ -91,7 +91,7 @@ class ExportStage(Stage):
         return export_scene(self.work, self.settings, force=force, runtime=self.runtime, on_progress=on_progress)
 
     def resumed(self, manifest: dict) -> bool:
-        return resumed_views(manifest) > 0
+        return resumed_views(manifest) > 0 or bool(manifest.get("resumed", {}).get("bake"))
 
 
 def export_scene(
@@ -126,9 +126,13 @@ def export_scene(
     progress = ExportProgress(writer.directory, fingerprint)
     saved = progress.prepare()
     total_views = job.total_views
-    if saved:
-        log.info(f"continuing the interrupted export: {saved} of {total_views} views are already rendered")
-    writer.extra["resumed"] = {"views": saved, "bake": progress.load("bake") is not None}
+    baked = progress.load("bake") is not None
+    if saved or baked:
+        log.info(
+            f"continuing the interrupted export: {saved} of {total_views} views are already rendered"
+            + (", and the field is baked" if baked else "")
+        )
+    writer.extra["resumed"] = {"views": saved, "bake": baked}
     reset_peak_memory(device)
     try:
         return _export(job, writer, progress, on_progress)
