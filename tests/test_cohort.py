@@ -1,9 +1,11 @@
-"""`cubecloud cohort` on Snakemake: tiny scans locally, through the generic cluster executor, with a
-corrupt scan among them, and resumed after being killed mid-way."""
+"""`cubecloud cohort` on Snakemake: tiny scans locally, then on a real one-node SLURM cluster
+(tests/slurm_cluster.py) or, where SLURM cannot be installed, through the generic cluster
+executor; a corrupt scan among them, and a job stopped mid-way resumed by the next run."""
 
 import csv
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -14,6 +16,7 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import assert_one_line_error, invoke
+from slurm_cluster import INIT_SECONDS_BEFORE_STATUS_CHECKS, local_cluster, unavailable_because
 
 from cubecloud_cli.cohort.engine import wait_passing_on_interrupts
 from cubecloud_cli.cohort.scans import CohortScan, scans_from_csv
@@ -94,6 +97,9 @@ def cluster_profile(folder: Path) -> Path:
     return folder
 
 
+@pytest.mark.skipif(
+    not unavailable_because(), reason="the SLURM test below runs a cohort on a cluster, stopped and resumed"
+)
 def test_a_cohort_on_the_cluster_executor_killed_mid_way_resumes_where_it_stopped(local_cohort, tmp_path):
     """The local cohort's first scan, its stages up to export kept: the generic cluster executor
     submits the two splat runs and eval, each job a process of its own. The cohort is killed while
@@ -130,6 +136,106 @@ def test_a_cohort_on_the_cluster_executor_killed_mid_way_resumes_where_it_stoppe
     assert "--profile" in (out / "cohort" / "snakemake_command.txt").read_text()
     launcher = json.loads((out / "cohort" / "config.json").read_text())["cubecloud"]
     assert launcher[1:] == ["-m", "cubecloud_cli"]  # an executor may send jobs elsewhere: no job server
+
+
+# A stage's results: the same bits on the cluster as from the local cohort.
+RESULT_FILES = {
+    "preprocess": ["volume.npy"],
+    "cunerf": ["model.pt"],
+    "export": ["images.npy", "reference.npy", "points3D.ply", "novel/reference.npy"],
+    "splat": ["point_cloud.ply"],
+    "splat-random": ["point_cloud.ply"],
+}
+SUBMITTED = re.compile(r"submitted with SLURM jobid (\d+) \(log: .*/rule_(\w+)/(\w+)/\d+\.log\)")
+
+
+def results(work: Path) -> dict:
+    """The sha256 of each result file, as the stages' manifests record them, and eval's scores."""
+    digests = {}
+    for stage, names in RESULT_FILES.items():
+        files = json.loads((work / stage / "manifest.json").read_text())["files"]
+        digests.update({f"{stage}/{name}": files[name]["sha256"] for name in names})
+    metrics = json.loads((work / "eval" / "manifest.json").read_text())["metrics"]
+    digests["eval"] = {run: scores for run, scores in metrics.items() if isinstance(scores, dict)}
+    return digests
+
+
+def slurm_profile(folder: Path) -> Path:
+    """examples/slurm with the test cluster's partition and the README's settings for a cluster
+    without accounting (polling with squeue; the first status check soon, for a test)."""
+    folder.mkdir()
+    text = (Path(__file__).resolve().parents[1] / "examples" / "slurm" / "config.yaml").read_text()
+    text = text.replace('slurm_partition: "cpu"', 'slurm_partition: "debug"')
+    text += (
+        "slurm-status-command: squeue\n"
+        f"slurm-init-seconds-before-status-checks: {INIT_SECONDS_BEFORE_STATUS_CHECKS}\n"
+        "latency-wait: 5\n"
+    )
+    (folder / "config.yaml").write_text(text)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def slurm(tmp_path_factory):
+    """A one-node SLURM cluster on localhost, or a skip where SLURM cannot be installed."""
+    if unavailable_because():
+        pytest.skip(unavailable_because())
+    pytest.importorskip("snakemake_executor_plugin_slurm", reason="needs snakemake-executor-plugin-slurm")
+    with local_cluster(tmp_path_factory.mktemp("slurm")) as cluster:
+        yield cluster
+
+
+@pytest.mark.cluster  # some 4 minutes of jobs that mostly wait on the scheduler: apart from the suite
+def test_a_cohort_on_slurm_gives_the_local_bits_and_resumes_a_job_stopped_by_sigterm(slurm, local_cohort, tmp_path):
+    """The local cohort's first scan and its corrupt one, every stage an sbatch job. The export job
+    gets SIGTERM once its bake is saved, as SLURM stops a job at its time limit or on pre-emption;
+    the same command then resumes it, and finishes the scan with the local cohort's bits."""
+    _, local_scans, local_out = local_cohort
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for name in ("case0.nii.gz", "broken.nii.gz"):
+        shutil.copy2(local_scans / name, scans)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "cubecloud_cli", "cohort", str(scans), "-o", str(out),
+               "--profile", str(slurm_profile(tmp_path / "profile")), *TINY]  # fmt: skip
+    first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output: list[str] = []
+    reader = threading.Thread(target=lambda: output.extend(first.stdout), daemon=True)
+    reader.start()
+    bake = out / "case0" / ".export.partial" / "progress" / "bake.npy"
+    deadline = time.monotonic() + 300
+    while not bake.is_file() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert bake.is_file(), "the export job saved no bake"
+    job = next((out / ".snakemake" / "slurm_logs" / "rule_export" / "case0").glob("*.log")).stem  # its SLURM job id
+    subprocess.run(["scancel", "--signal=TERM", job], check=True)
+    first.wait(timeout=300)
+    reader.join(timeout=10)
+    assert first.returncode == 2, "".join(output)
+    log = (out / "cohort" / "logs" / "case0" / "export.log").read_text()
+    assert re.search(r"interrupted: \d+ of \d+ views are saved", log), log
+    assert not (out / "case0" / "export" / "manifest.json").exists() and bake.is_file()
+
+    second = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    errors = [line for line in second.stderr.splitlines() if line.startswith("error: ")]
+    assert second.returncode == 2 and len(errors) == 1, second.stdout + second.stderr
+    assert errors[0].startswith("error: 1 of 2 scans failed (broken: preprocess: cannot read"), errors[0]
+    log = (out / "cohort" / "logs" / "case0" / "export.log").read_text()
+    assert "continuing the interrupted export" in log and "(resumed from its saved work)" in log, log
+    assert json.loads((out / "case0" / "export" / "manifest.json").read_text())["resumed"]["bake"] is True
+
+    # Every job went through SLURM: each one the plugin submitted ended there, in this state.
+    submitted = [match.groups() for match in SUBMITTED.finditer("".join(output) + second.stdout + second.stderr)]
+    states = {record["JobId"]: record["JobState"] for record in slurm.completed_jobs()}
+    assert sorted((rule, scan, states.get(job)) for job, rule, scan in submitted) == sorted(
+        [(rule, "case0", "COMPLETED") for rule in ("preprocess", "cunerf", "export", "splat", "splat_random", "eval")]
+        + [("export", "case0", "FAILED")]
+        + [("preprocess", "broken", "FAILED")] * 2
+    )
+    launcher = json.loads((out / "cohort" / "config.json").read_text())["cubecloud"]
+    assert launcher[1:] == ["-m", "cubecloud_cli"]  # no job server: each job started cubecloud on the node
+    assert results(out / "case0") == results(local_out / "case0")
+    assert not list((out / "broken").glob("*/manifest.json")) and rows(out)["case0"]["status"] == "done"
 
 
 def test_bad_cohort_input_is_one_line(tmp_path):
