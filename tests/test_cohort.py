@@ -98,7 +98,8 @@ def cluster_profile(folder: Path) -> Path:
 
 
 @pytest.mark.skipif(
-    not unavailable_because(), reason="the SLURM test below runs a cohort on a cluster, stopped and resumed"
+    not unavailable_because(),
+    reason="SLURM can run here: `pytest -m cluster` stops a cohort's job on it and resumes it",
 )
 def test_a_cohort_on_the_cluster_executor_killed_mid_way_resumes_where_it_stopped(local_cohort, tmp_path):
     """The local cohort's first scan, its stages up to export kept: the generic cluster executor
