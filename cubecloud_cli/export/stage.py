@@ -128,10 +128,9 @@ def export_scene(
     total_views = job.total_views
     baked = progress.load("bake") is not None
     if saved or baked:
-        log.info(
-            f"continuing the interrupted export: {saved} of {total_views} views are already rendered"
-            + (", and the field is baked" if baked else "")
-        )
+        kept = [f"{saved} of {total_views} views are already rendered"] if saved else []
+        kept += ["the field is already baked"] if baked else []
+        log.info(f"continuing the interrupted export: {', and '.join(kept)}")
     writer.extra["resumed"] = {"views": saved, "bake": baked}
     reset_peak_memory(device)
     try:
