@@ -255,10 +255,16 @@ class StageWriter:
         if self._created_work and self.work.is_dir() and not any(self.work.iterdir()):
             self.work.rmdir()
 
-    def add_input(self, path: Path, label: str | None = None, digest: str | None = None) -> str:
-        """Record the sha256 of a file or folder that the stage read (``digest``: already taken)."""
+    def add_input(
+        self, path: Path, label: str | None = None, digest: str | None = None, remake: str | None = None
+    ) -> str:
+        """Record the sha256 of a file or folder that the stage read (``digest``: already taken);
+        with ``remake``, the command that rebuilds it, also check it against the sha256 its own
+        stage recorded (``verify_recorded``)."""
         digest = digest or sha256_of_path(Path(path))
         self.inputs[label or str(path)] = digest
+        if remake is not None:
+            verify_recorded(path, digest, remake)
         return digest
 
     @contextmanager

@@ -28,7 +28,6 @@ from cubecloud_cli.core.artifacts import (
     partial_dir,
     read_manifest,
     require_stage,
-    verify_recorded,
     write_csv_log,
 )
 from cubecloud_cli.core.errors import CubecloudError
@@ -271,8 +270,8 @@ def _prepare(
     context: dict,
 ) -> tuple[Trainer, TrainingVoxels, np.ndarray, list[int]]:
     """Load the volume, build the model and its trainer, and restore a checkpoint if any."""
-    digest = writer.add_input(volume_path, "preprocess/volume.npy")
-    verify_recorded(volume_path, digest, f"cubecloud preprocess SCAN -o {volume_path.parent.parent} --force")
+    remake = f"cubecloud preprocess SCAN -o {volume_path.parent.parent} --force"
+    writer.add_input(volume_path, "preprocess/volume.npy", remake=remake)
     volume_np = np.load(volume_path)
     if volume_np.ndim != 3 or len(set(volume_np.shape)) != 1 or not np.isfinite(volume_np).all():
         raise CubecloudError(f"{volume_path} is not a finite S³ volume: rerun `cubecloud preprocess --force`")

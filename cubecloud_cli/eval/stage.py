@@ -19,7 +19,6 @@ from cubecloud_cli.core.artifacts import (
     read_manifest,
     sha256_of_file,
     to_jsonable,
-    verify_recorded,
 )
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
@@ -197,7 +196,7 @@ def _load_runs(work: Path, folders: list[str], settings: EvalSettings, writer: S
             scenes[directory] = load_scored_scene(directory, channels)
         scene_of[run.name] = scenes[directory]
         ply = run.directory / "point_cloud.ply"
-        verify_recorded(ply, writer.add_input(ply, f"{run.name}/point_cloud.ply"), run.retrain)
+        writer.add_input(ply, f"{run.name}/point_cloud.ply", remake=run.retrain)
     for directory in scenes:
         _check_references(directory, writer)
     own_export = (work / "export").resolve()
@@ -233,7 +232,7 @@ def _check_references(directory: Path, writer: StageWriter) -> None:
     novel = directory / "novel"
     for path in [directory / "reference.npy", *sorted(novel.glob("reference*.npy"))]:
         if path.is_file():
-            verify_recorded(path, writer.add_input(path, f"{directory.name}/{path.relative_to(directory)}"), remake)
+            writer.add_input(path, f"{directory.name}/{path.relative_to(directory)}", remake=remake)
 
 
 def _score_run(

@@ -26,7 +26,6 @@ from cubecloud_cli.core.artifacts import (
     read_manifest,
     require_stage,
     stage_dir_name,
-    verify_recorded,
     write_csv_log,
 )
 from cubecloud_cli.core.errors import CubecloudError
@@ -251,8 +250,7 @@ def _record_inputs(writer: StageWriter, scene_dir: Path) -> dict[str, str]:
     for path in input_files(scene_dir):
         if path.is_file():
             label = str(path.relative_to(scene_dir.parent)) if scene_dir.parent in path.parents else str(path)
-            digests[path.name] = writer.add_input(path, label)
-            verify_recorded(path, digests[path.name], fix)
+            digests[path.name] = writer.add_input(path, label, remake=fix)
     return digests
 
 
