@@ -2,7 +2,7 @@
 slurm-client), for the cohort's cluster test. `.ci/run` installs the packages; this starts the
 daemons in a scratch folder and stops them after.
 
-Two settings matter, as the README's cluster section says:
+Two settings matter, as docs/cohort.md says:
 
 - No accounting (no slurmdbd): the SLURM executor plugin must poll with `squeue`, and slurm.conf's
   MinJobAge must be at least 3 × its `slurm-init-seconds-before-status-checks`, or a finished job
