@@ -40,12 +40,13 @@ def float32_stages() -> None:
 
 
 def float64_and_large() -> None:
-    """The float64 rasterizer with its gradients and the SSIM kernel in both dtypes (the two jobs
-    take about as long: 2 minutes each on the 2-core VM)."""
+    """The float64 rasterizer with its gradients, the SSIM kernel in both dtypes and the training
+    SSIM's window in float64 (the two jobs take about as long: 2 minutes each on the 2-core VM)."""
     import numpy as np
     import torch
     from test_raster import H, W, render_and_differentiate, scene
 
+    from cubecloud_cli.numerics.blur_kernel import blur_same
     from cubecloud_cli.numerics.metrics import K1, K2, gaussian_window
     from cubecloud_cli.numerics.ssim_kernel import stack_ssim_sums
     from cubecloud_cli.raster.backends import NUMBA
@@ -56,6 +57,7 @@ def float64_and_large() -> None:
     for dtype in (np.float32, np.float64):
         stack = np.random.default_rng(0).random((2, 16, 16)).astype(dtype)
         stack_ssim_sums(stack, stack, stack > 0.5, window, K1**2, K2**2)
+    blur_same(np.zeros((1, 4, 4)), window)
 
 
 JOBS = {"float32": float32_stages, "float64": float64_and_large}

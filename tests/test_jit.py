@@ -16,6 +16,7 @@ from numba.core.registry import CPUDispatcher
 from test_raster import H, W, camera, scene
 
 from cubecloud_cli.cunerf import grid_kernels
+from cubecloud_cli.numerics import blur_kernel, ssim_kernel
 from cubecloud_cli.numerics.jit import (
     EXACT_FASTMATH,
     FASTMATH,
@@ -36,11 +37,11 @@ pytestmark = pytest.mark.slow  # runs first: pytest-xdist's workers then end tog
 
 def test_parallel_kernels_convert_no_numpy_call_into_a_loop_of_its_own():
     parallel = {}
-    for module in (binning, compositing, projection_kernels, grid_kernels, smoothing):
+    for module in (binning, compositing, projection_kernels, grid_kernels, smoothing, ssim_kernel, blur_kernel):
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value.targetoptions.get("parallel"):
                 parallel[f"{module.__name__}.{name}"] = value.targetoptions["parallel"]
-    assert len(parallel) == 11
+    assert len(parallel) == 13
     assert all(options is PRANGE_ONLY for options in parallel.values()), parallel
     assert PRANGE_ONLY.prange and not (PRANGE_ONLY.numpy or PRANGE_ONLY.setitem or PRANGE_ONLY.fusion)
 
@@ -130,7 +131,7 @@ def test_no_kernel_lets_llvm_fuse_multiply_and_add():
     """``contract`` (FMA) rounded the copy of a prange loop that a kernel compiled in the process
     runs otherwise than the copy a kernel loaded from the cache runs (cubecloud_cli/numerics/jit.py)."""
     flags = {}
-    for module in (binning, compositing, projection_kernels, grid_kernels, smoothing):
+    for module in (binning, compositing, projection_kernels, grid_kernels, smoothing, ssim_kernel, blur_kernel):
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value.targetoptions.get("fastmath"):
                 flags[f"{module.__name__}.{name}"] = value.targetoptions["fastmath"]
@@ -145,6 +146,7 @@ FRESH_OR_CACHED = """
 import hashlib, sys
 import numpy as np
 from cubecloud_cli.cunerf import grid_kernels
+from cubecloud_cli.numerics import blur_kernel, ssim_kernel
 from cubecloud_cli.raster.cpu import compositing
 inputs = np.load(sys.argv[1])
 forward = [inputs[f"forward_{i}"] for i in range(9)]
