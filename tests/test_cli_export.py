@@ -358,3 +358,18 @@ def test_export_takes_the_cunerf_stages_own_bake_where_baking_would_give_the_sam
     result = invoke("export", other_torch, *SMALL, "-q")
     assert result.exit_code == 0, result.output
     assert "cunerf/recon.nii.gz" not in json.loads((other_torch / "export" / "manifest.json").read_text())["inputs"]
+
+
+def test_saved_work_is_found_from_its_header_and_a_damaged_file_is_not(tmp_path):
+    from cubecloud_cli.export.finished_views import ExportProgress
+
+    progress = ExportProgress(tmp_path / ".export.partial", {"volume": "a"})
+    progress.prepare()
+    assert not progress.has("bake")
+    progress.save("bake", np.ones((4, 4, 4), dtype=np.float32))
+    assert progress.has("bake") and progress.load("bake").shape == (4, 4, 4)
+    path = progress.directory / "bake.npy"
+    whole = path.read_bytes()
+    for cut in (40, len(whole) - 4):  # inside the header, inside the values
+        path.write_bytes(whole[:cut])
+        assert not progress.has("bake") and progress.load("bake") is None

@@ -62,6 +62,14 @@ class ExportProgress:
         except Exception:  # missing, empty or damaged (np.load raises several types): redo it
             return None
 
+    def has(self, name: str) -> bool:
+        """Whether ``name`` is saved and readable, from its header alone (a 512³ bake is 512 MB)."""
+        try:
+            np.load(self._path(name), mmap_mode="r")
+        except Exception:  # as load's
+            return False
+        return True
+
     def save(self, name: str, array: np.ndarray) -> None:
         def write(temporary: Path) -> None:
             with open(temporary, "wb") as handle:

@@ -126,7 +126,7 @@ def export_scene(
     progress = ExportProgress(writer.directory, fingerprint)
     saved = progress.prepare()
     total_views = job.total_views
-    baked = progress.load("bake") is not None
+    baked = progress.has("bake")
     if saved or baked:
         kept = [f"{saved} of {total_views} views are already rendered"] if saved else []
         kept += ["the field is already baked"] if baked else []
