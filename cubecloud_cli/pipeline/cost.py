@@ -8,13 +8,13 @@ import math
 
 # size -> (seconds from the scan to the report, peak memory in GB): `bench/scaling.py` on the
 # chest CT with `--preset detail`, both splat runs included, numba's first compilation included
-# (docs/results.md, "The scan's own detail": the scaling table, runs U and Z).
+# (docs/results.md, "The scan's own detail": the scaling table, run S).
 MEASURED_DETAIL: dict[int, tuple[float, float]] = {
-    128: (211.0, 0.67),
-    192: (250.0, 0.81),
-    256: (367.0, 1.15),
-    384: (642.0, 2.36),
-    512: (1171.0, 4.76),
+    128: (231.0, 0.67),
+    192: (243.0, 0.82),
+    256: (331.0, 1.17),
+    384: (533.0, 2.46),
+    512: (967.0, 4.74),
 }
 
 
