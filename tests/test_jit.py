@@ -139,6 +139,9 @@ def test_no_kernel_lets_llvm_fuse_multiply_and_add():
     assert {name for name, f in flags.items() if f == EXACT_FASTMATH} == {
         "cubecloud_cli.cunerf.grid_kernels.mlp_forward",
         "cubecloud_cli.cunerf.grid_kernels.mlp_backward",
+        "cubecloud_cli.numerics.ssim_kernel._blur_rows",
+        "cubecloud_cli.numerics.ssim_kernel.slice_ssim_sums",
+        "cubecloud_cli.numerics.blur_kernel.blur_same_into",
     }
 
 
