@@ -181,6 +181,8 @@ def test_a_foreign_colmap_scene_with_png_images(exported, tmp_path):
         (["--sh-degree", "4"], r"--sh-degree 4 must be within 0..3"),
         (["--max-gaussians", "0"], r"--max-gaussians 0"),
         (["--scalar", "--channels", "3"], r"--scalar Gaussians carry one scan value"),
+        (["--scalar", "--value-anchor", "-1"], r"--value-anchor -1 must be a finite weight"),
+        (["--scalar", "--value-anchor", "nan"], r"--value-anchor nan must be a finite weight"),
     ],
 )
 def test_bad_options(exported, tmp_path, args, pattern):
@@ -222,6 +224,24 @@ def test_a_scalar_scene_needs_the_transfer_function_its_images_were_rendered_und
         invoke("splat", tmp_path / "work", "--scene", scene, "--scalar", *QUICK),
         r"does not say which transfer function",
     )
+
+
+def test_a_scalar_run_holds_its_values_to_the_volume_its_scene_was_exported_from(exported, tmp_path):
+    work = _copy(exported, tmp_path)
+    volume = work / "preprocess" / "volume.npy"
+    values = np.load(volume)
+    np.save(volume, values[::-1].copy())  # another volume than the export's
+    assert_one_line_error(invoke("splat", work, "--scalar", *QUICK), r"preprocess/volume.npy")
+    volume.unlink()
+    assert_one_line_error(invoke("splat", work, "--scalar", *QUICK), r"give --value-anchor 0")
+    assert not (work / "splat").exists()
+    result = invoke("splat", work, "--scalar", "--value-anchor", "0", *QUICK, "-q")
+    assert result.exit_code == 0, result.output
+    np.save(volume, values)
+    result = invoke("splat", work, "--scalar", *QUICK, "-q", "--force")
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "splat" / "manifest.json").read_text())
+    assert manifest["params"]["value_anchor"] == 1.0 and "preprocess/volume.npy" in manifest["inputs"]
 
 
 def test_missing_export_or_scene(exported, tmp_path):

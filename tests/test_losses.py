@@ -9,7 +9,14 @@ from hypothesis import strategies as st
 
 from cubecloud_cli.numerics.blur_kernel import blur_same
 from cubecloud_cli.numerics.metrics import gaussian_window
-from cubecloud_cli.splat.losses import blur_matrix, blur_same_size, photometric_loss, training_ssim
+from cubecloud_cli.splat.losses import (
+    blur_matrix,
+    blur_same_size,
+    photometric_loss,
+    training_ssim,
+    value_anchor_loss,
+    volume_at,
+)
 
 
 def dense_reference_ssim(image, target):
@@ -103,3 +110,39 @@ def test_the_loss_and_its_gradient_stay_finite_at_flat_and_extreme_images(image_
     loss = photometric_loss(image, target)
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(image.grad).all()
+
+
+def voxel_centres(shape):
+    """World coordinates of every voxel centre of a volume of ``shape`` over the cube [-1, 1]³, [x, y, z] order."""
+    axes = [(2 * torch.arange(n, dtype=torch.float64) + 1) / n - 1 for n in shape]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+
+
+@settings(max_examples=25, deadline=None)
+@given(shape=st.tuples(st.integers(1, 7), st.integers(1, 7), st.integers(1, 7)), seed=st.integers(0, 2**16))
+def test_the_volume_is_read_at_its_voxel_centres_in_its_own_axis_order(shape, seed):
+    volume = torch.rand(shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    sampled = volume_at(volume, voxel_centres(shape))
+    assert torch.allclose(sampled, volume.reshape(-1), atol=1e-12, rtol=0)
+
+
+def test_the_volume_is_air_outside_the_cube_and_trilinear_between_centres():
+    volume = torch.tensor([[[0.0]], [[1.0]]], dtype=torch.float64)  # two voxels along x
+    points = torch.tensor([[-0.5, 0, 0], [0.0, 0, 0], [0.5, 0, 0], [1.5, 0, 0], [0, 3, 0], [0, 0, -7]])
+    assert volume_at(volume, points).tolist() == [0.0, 0.5, 1.0, 0.0, 0.0, 0.0]
+
+
+def test_the_value_anchor_pulls_values_only_and_is_finite_at_the_extremes():
+    volume = torch.rand(4, 5, 6, generator=torch.Generator().manual_seed(0))
+    means = voxel_centres((4, 5, 6)).float().requires_grad_(True)
+    exact = volume.reshape(-1).clone().requires_grad_(True)
+    assert float(value_anchor_loss(exact, means, volume).detach()) < 1e-12
+    for level in (0.0, 1.0):  # values at the sigmoid's ends, a scan of air and of bone
+        values = torch.full((len(means),), level, requires_grad=True)
+        loss = value_anchor_loss(values, means, volume)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(values.grad).all() and means.grad is None
+        expected = 2 * (level - volume.reshape(-1)) / len(means)
+        assert torch.allclose(values.grad, expected, atol=1e-6)
+    empty = value_anchor_loss(torch.zeros(0, requires_grad=True), torch.zeros(0, 3), volume)
+    assert float(empty.detach()) == 0.0

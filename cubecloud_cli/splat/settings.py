@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import ClassVar, Literal, get_args
 
@@ -28,6 +29,9 @@ class SplatSettings:
     """Train Gaussians that carry the scan's value and an optical length instead of a baked grey level and opacity:
     a transfer function gives their colour and opacity when drawn, so the scene shows other tissue without retraining.
     Needs a dvr scene from `cubecloud export`."""
+    value_anchor: float = 1.0
+    """--scalar: weight of a term that holds each Gaussian's value to the scan's at its centre (WORK/preprocess/volume.npy),
+    so that Gaussians no training transfer function shows keep true values for those that will. 0 leaves values free."""
     channels: int = 1
     """Colour channels: 1 for CT (grey), 3 for RGB scenes."""
     sh_degree: int = 0
@@ -69,6 +73,10 @@ class SplatSettings:
             raise CubecloudError(f"--init {self.init!r} must be cloud or random")
         if self.scalar and self.channels != 1:
             raise CubecloudError("--scalar Gaussians carry one scan value: leave --channels at 1")
+        if not (math.isfinite(self.value_anchor) and self.value_anchor >= 0.0):
+            raise CubecloudError(
+                f"--value-anchor {self.value_anchor:g} must be a finite weight of 0 or more (default 1)"
+            )
         if self.channels not in (1, 3):
             raise CubecloudError(f"--channels {self.channels} must be 1 (grey CT) or 3")
         if not 0 <= self.sh_degree <= MAX_DEGREE:

@@ -18,7 +18,7 @@ from cubecloud_cli.numerics.readback import GroupedReads
 from cubecloud_cli.raster.backends import NUMBA, Rasterized, Rasterizer, rasterizer_for
 from cubecloud_cli.raster.cpu.backward_compile import BackwardCompile
 from cubecloud_cli.splat.densify import DensityStrategy, Trainable
-from cubecloud_cli.splat.losses import photometric_loss
+from cubecloud_cli.splat.losses import photometric_loss, value_anchor_loss
 from cubecloud_cli.splat.scalar_gaussians import GaussianModel
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
@@ -79,8 +79,12 @@ class SplatTrainer:
         settings: SplatSettings,
         device: torch.device,
         strategy: DensityStrategy,
+        scan_values: torch.Tensor | None = None,
     ):
+        """``scan_values``: the preprocessed volume ([x, y, z] over the cube) that a scalar model's
+        values are held to with weight ``settings.value_anchor``; None holds them to nothing."""
         self.settings = settings
+        self.scan_values = scan_values
         self.scene = scene
         self.device = device
         self.rasterizer = rasterizer_for(device)
@@ -165,6 +169,9 @@ class SplatTrainer:
         target = self._target(view)
         rendered = self.render(view, retain=True)
         loss = photometric_loss(rendered.image, target, self.settings.dssim_weight)
+        if self.scan_values is not None and self.settings.value_anchor > 0 and hasattr(self.gaussians, "values"):
+            anchor = value_anchor_loss(self.gaussians.values(), self.gaussians.means, self.scan_values)
+            loss = loss + self.settings.value_anchor * anchor
         if backward_compile is not None:
             backward_compile.before_backward()
         loss.backward()
