@@ -14,6 +14,7 @@ from cubecloud_cli.numerics.blur_kernel import blur_same
 from cubecloud_cli.numerics.metrics import K1, K2, SSIM_RADIUS, gaussian_window
 
 DSSIM_WEIGHT = 0.2
+_WINDOW = gaussian_window().numpy()  # float64; the kernel takes it in each stack's dtype
 
 
 def blur_matrix(size: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -33,12 +34,11 @@ class _SameBlurOnCpu(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, stack: torch.Tensor) -> torch.Tensor:
-        window = gaussian_window().numpy()
-        return torch.from_numpy(blur_same(stack.detach().numpy(), window))
+        return torch.from_numpy(blur_same(stack.detach().numpy(), _WINDOW))
 
     @staticmethod
     def backward(ctx, gradient: torch.Tensor) -> torch.Tensor:
-        return torch.from_numpy(blur_same(gradient.detach().numpy(), gaussian_window().numpy()))
+        return torch.from_numpy(blur_same(gradient.detach().numpy(), _WINDOW))
 
 
 def blur_same_size(stack: torch.Tensor) -> torch.Tensor:

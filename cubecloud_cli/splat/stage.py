@@ -275,7 +275,7 @@ def _scan_values(scene_dir: Path, writer: StageWriter, device: torch.device) -> 
     with warnings.catch_warnings():  # read-only: the map is never written
         warnings.simplefilter("ignore", UserWarning)
         volume = torch.from_numpy(np.load(path, mmap_mode="r"))
-    return volume if device.type == "cpu" else volume.to(device)
+    return volume.to(device)  # the map itself on a CPU
 
 
 def _build_trainer(

@@ -79,12 +79,11 @@ class SplatTrainer:
         settings: SplatSettings,
         device: torch.device,
         strategy: DensityStrategy,
-        scan_values: torch.Tensor | None = None,
     ):
-        """``scan_values``: the preprocessed volume ([x, y, z] over the cube) that a scalar model's
-        values are held to with weight ``settings.value_anchor``; None holds them to nothing."""
         self.settings = settings
-        self.scan_values = scan_values
+        # A scalar model's values are held to this volume ([x, y, z] over the cube) with weight
+        # settings.value_anchor; the stage sets it for --scalar runs (None: held to nothing).
+        self.scan_values: torch.Tensor | None = None
         self.scene = scene
         self.device = device
         self.rasterizer = rasterizer_for(device)
@@ -169,7 +168,7 @@ class SplatTrainer:
         target = self._target(view)
         rendered = self.render(view, retain=True)
         loss = photometric_loss(rendered.image, target, self.settings.dssim_weight)
-        if self.scan_values is not None and self.settings.value_anchor > 0 and hasattr(self.gaussians, "values"):
+        if self.scan_values is not None:
             anchor = value_anchor_loss(self.gaussians.values(), self.gaussians.means, self.scan_values)
             loss = loss + self.settings.value_anchor * anchor
         if backward_compile is not None:
