@@ -7,7 +7,9 @@ import json
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, invoke, tiny_work
+from cli_helpers import assert_one_line_error, invoke, tiny_export_options, tiny_work
+from hypothesis import given
+from hypothesis import strategies as st
 
 from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
 from cubecloud_cli.transfer.function import TransferFunction
@@ -17,12 +19,14 @@ from cubecloud_cli.transfer.training_set import (
     RAMP_DENSITY,
     NamedTransfer,
     held_out_transfers,
+    member_views,
     random_ramps,
     random_windows,
     training_transfers,
 )
 
 CT_WINDOW = {"modality": "ct", "low": -160.0, "high": 240.0}
+WINDOWS = ["held-out-window-band-0", "held-out-window-ramp-1"]  # --held-out-windows 2
 
 
 def test_the_set_starts_with_the_exports_own_and_never_holds_out_what_eval_tests():
@@ -39,6 +43,19 @@ def test_the_set_starts_with_the_exports_own_and_never_holds_out_what_eval_tests
     assert training_transfers(primary, 8, CT_WINDOW, seed=0) == chosen  # seeded: the same set again
     with pytest.raises(ValueError):
         training_transfers(primary, 0, CT_WINDOW, seed=0)
+
+
+def test_held_out_windows_come_after_the_four_from_a_stream_no_training_set_draws():
+    primary = NamedTransfer("tissue", resolve_transfer("tissue", CT_WINDOW))
+    for seed in (0, 1, 7):
+        trained = training_transfers(primary, 64, CT_WINDOW, seed=seed)
+        four = held_out_transfers(CT_WINDOW, seed=seed, trained=trained)
+        wider = held_out_transfers(CT_WINDOW, seed=seed, trained=trained, windows=12)
+        assert wider.transfers[: len(four.transfers)] == four.transfers and wider.not_scored == four.not_scored
+        windows = wider.transfers[len(four.transfers) :]
+        assert [w.name for w in windows][:2] == WINDOWS and len({w.name for w in windows}) == 12
+        assert {w.function for w in windows}.isdisjoint({t.function for t in trained})
+        assert {w.function for w in windows}.isdisjoint({t.function for t in four.transfers})
 
 
 def test_random_windows_are_valid_bands_and_ramps_by_turns():
@@ -63,7 +80,8 @@ def test_random_ramps_are_valid_transfer_functions_over_the_value_range():
 @pytest.fixture(scope="module")
 def exported_under_three(tmp_path_factory):
     return tiny_work(tmp_path_factory.mktemp("transfer_set") / "work", cunerf_iterations=60, views=12,
-                     max_points=1500, novel_directions=2, splat=None, export=("--transfer-set", "3"))  # fmt: skip
+                     max_points=1500, novel_directions=2, splat=None,
+                     export=("--transfer-set", "3", "--held-out-windows", "2"))  # fmt: skip
 
 
 def test_export_renders_the_training_views_under_each_transfer_function(exported_under_three):
@@ -97,7 +115,7 @@ def test_export_renders_the_novel_views_under_the_held_out_transfer_functions(ex
     listed = json.loads((novel / "transfers.json").read_text())
     held = listed["held_out"]
     # The abdomen window (-160..240 HU) keeps nothing of the lung band (-950..-300 HU).
-    assert [t["name"] for t in held] == ["bone", "vessels", "held-out-ramp-0"]
+    assert [t["name"] for t in held] == ["bone", "vessels", "held-out-ramp-0", *WINDOWS]
     assert list(listed["not_scored"]) == ["lung"] and "--window" in listed["not_scored"]["lung"]
     assert held[1]["fall_low"] == 1.0 and held[1]["fall_high"] == 1.0  # the band's fall lies above the window
     trained = json.loads((exported_under_three / "export" / "manifest.json").read_text())["transfers"]
@@ -125,7 +143,7 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     assert result.exit_code == 0, result.output
     results = json.loads((work / "eval" / "metrics.json").read_text())["results"]
     held = results["splat"]["held_out_transfers"]
-    assert list(held) == ["bone", "vessels", "held-out-ramp-0"]
+    assert list(held) == ["bone", "vessels", "held-out-ramp-0", *WINDOWS]
     for summary in held.values():
         assert summary["views"] == 2 * 3 and 5 < summary["psnr"] < 100  # 2 directions × 0.75, 1, 1.33
     assert "held_out_transfers" not in results["splat-baked"]
@@ -141,9 +159,85 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     [
         (["--transfer-set", "0"], r"--transfer-set 0 must be within 1\.\.64"),
         (["--transfer-set", "2", "--view", "mip"], r"only --view dvr has"),
+        (["--held-out-windows", "3", "--transfer-set", "1"], r"--held-out-windows .* needs --transfer-set 2 or more"),
+        (["--transfer-stride", "0"], r"--transfer-stride 0 must be within 1\.\.\d+ \(the views\)"),
+        (["--transfer-stride", "2", "--transfer-set", "1"], r"--transfer-stride .* needs --transfer-set 2 or more"),
+        (["--held-out-windows", "65"], r"--held-out-windows 65 must be within 0\.\.64"),
         (["--transfer", "lung"], r"--transfer lung shows -950\.\.-300 HU, which the window .* clips away"),
     ],
 )
 def test_bad_transfer_sets_are_refused(exported_under_three, tmp_path, args, pattern):
     assert_one_line_error(invoke("export", exported_under_three, "--force", *args), pattern)
     assert (exported_under_three / "export" / "manifest.json").is_file()  # nothing lost
+
+
+@given(views=st.integers(1, 200), stride=st.integers(1, 200), member=st.integers(0, 100))
+def test_member_views_share_the_views_out_evenly(views, stride, member):
+    if stride > views:
+        with pytest.raises(ValueError):
+            member_views(member, stride, views)
+        return
+    chosen = member_views(member, stride, views)
+    assert len(chosen) == views // stride and chosen[0] == member % stride and chosen[-1] < views
+    assert all(b - a == stride for a, b in zip(chosen, chosen[1:]))
+    shared = sorted(v for k in range(stride) for v in member_views(k, stride, views))
+    assert shared == list(range((views // stride) * stride))  # a stride's members take each view once
+    assert member_views(member, 1, views) == list(range(views))
+
+
+@pytest.fixture(scope="module")
+def strided(exported_under_three):
+    """The same work directory exported again with the set spread over the views (--transfer-stride 2)."""
+    result = invoke("export", exported_under_three, "--name", "strided", "--transfer-set", "3",
+                    "--transfer-stride", "2", *tiny_export_options(12, 1500, 2), "-q")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    return exported_under_three / "export-strided"
+
+
+def test_a_strided_set_renders_each_member_at_its_share_of_the_views(exported_under_three, strided):
+    every_view = np.load(exported_under_three / "export" / "transfer_images.npy")
+    stack = np.load(strided / "transfer_images.npy")
+    assert stack.shape == (3, 6, 32, 32)
+    for member in range(3):
+        np.testing.assert_array_equal(stack[member], every_view[member, member_views(member, 2, 12)])
+    manifest = json.loads((strided / "manifest.json").read_text())
+    assert manifest["transfer_stride"] == 2 and manifest["params"]["transfer_stride"] == 2
+
+
+def test_a_scalar_run_draws_only_the_images_a_strided_set_rendered(exported_under_three, strided):
+    import torch
+
+    from cubecloud_cli.splat.densify import strategy_for
+    from cubecloud_cli.splat.scalar_gaussians import scalar_gaussians_from_points
+    from cubecloud_cli.splat.settings import SplatSettings
+    from cubecloud_cli.splat.trainer import SplatTrainer
+    from cubecloud_cli.splat.training_views import load_scene
+
+    every_view = np.load(exported_under_three / "export" / "transfer_images.npy")
+    scene = load_scene(strided, every_transfer=True)
+    assert scene.transfer_stride == 2
+    pairs = scene.transfer_pairs()
+    assert pairs and all(view in scene.train and view in member_views(k, 2, 12) for k, view in pairs)
+    rng = np.random.default_rng(0)
+    model = scalar_gaussians_from_points(rng.uniform(-1, 1, (50, 3)), rng.uniform(0, 1, 50), scene.transfers)
+    settings = SplatSettings(iterations=10, scalar=True)
+    trainer = SplatTrainer(model, scene, settings, torch.device("cpu"), strategy_for(settings, scene.extent))
+    own = 0
+    for _ in range(400):
+        view, image = trainer._target(trainer.next_view())
+        member = scene.transfers.index(trainer.gaussians.transfer)
+        assert view in scene.train
+        np.testing.assert_array_equal(image[..., 0].numpy(), every_view[member, view])
+        own += member == 0
+    # Every image rendered is drawn alike: the export's own at each training view, each other member at its share.
+    expected = len(scene.train) / (len(scene.train) + len(pairs))
+    assert abs(own / 400 - expected) < 0.1
+
+
+def test_a_scalar_run_trains_on_a_strided_set(exported_under_three, strided):
+    work = exported_under_three
+    result = invoke("splat", work, "--scene", strided, "--scalar", "--name", "strided", "--iterations", "40",
+                    "--eval-every", "40", "--device", "cpu", "-q")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((work / "splat-strided" / "manifest.json").read_text())
+    assert "transfer_images.npy" in " ".join(manifest["inputs"]) and manifest["metrics"]["test_psnr"] > 15

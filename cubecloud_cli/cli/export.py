@@ -76,6 +76,8 @@ def export_command(
     tf_high: Annotated[Optional[float], _option("tf_high")] = None,
     tf_density: Annotated[Optional[float], _option("tf_density")] = None,
     transfer_set: Annotated[Optional[int], _option("transfer_set")] = None,
+    transfer_stride: Annotated[Optional[int], _option("transfer_stride")] = None,
+    held_out_windows: Annotated[Optional[int], _option("held_out_windows")] = None,
     step: Annotated[Optional[float], _option("step")] = None,
     render_from: Annotated[Optional[RenderSource], _option("render_from")] = None,
     bake_size: Annotated[Optional[int], _option("bake_size")] = None,
@@ -104,7 +106,9 @@ def export_command(
 
       cubecloud export work --transfer bone --elevation 20 --resolution 256
 
-      cubecloud export work --transfer-set 8                 # views under 8 transfer functions, for splat --scalar
+      cubecloud export work --transfer-set 41 --transfer-stride 6   # views under 41 transfer functions, one view in 6 each, for splat --scalar
+
+      cubecloud export work --transfer-set 41 --transfer-stride 6 --held-out-windows 12   # and 12 random ones held out, for eval
     """
     configure_logging(quiet)
     settings = export_settings(
@@ -126,6 +130,8 @@ def export_command(
         tf_high=tf_high,
         tf_density=tf_density,
         transfer_set=transfer_set,
+        transfer_stride=transfer_stride,
+        held_out_windows=held_out_windows,
         step=step,
         render_from=render_from,
         bake_size=bake_size,

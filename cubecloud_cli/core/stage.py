@@ -26,6 +26,8 @@ ADDED_PARAMETERS = {
     "precision": "float32",
     "scalar": False,
     "transfer_set": 1,
+    "held_out_windows": 0,
+    "transfer_stride": 1,
     "lr_value": 0.0025,
     "lr_length": 0.025,
 }

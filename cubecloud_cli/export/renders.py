@@ -21,7 +21,7 @@ from cubecloud_cli.export.novel_references import render_novel_references
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
-from cubecloud_cli.transfer.training_set import HeldOutSet, NamedTransfer
+from cubecloud_cli.transfer.training_set import HeldOutSet, NamedTransfer, member_views
 
 
 @dataclass(frozen=True)
@@ -46,9 +46,15 @@ class ExportJob:
         return self.work / stage_dir_name("cunerf", self.cunerf_name)
 
     @property
+    def training_renders(self) -> int:
+        """The training views rendered: all under the export's own transfer function, a share under each other."""
+        others = len(member_views(1, self.settings.transfer_stride, len(self.cameras)))
+        return len(self.cameras) + (len(self.transfers) - 1) * others
+
+    @property
     def total_views(self) -> int:
         held_out = len(self.held_out.transfers) if self.held_out else 0
-        return (1 + len(self.transfers)) * len(self.cameras) + (1 + held_out) * len(self.novel)
+        return self.training_renders + len(self.cameras) + (1 + held_out) * len(self.novel)
 
 
 @dataclass
@@ -87,15 +93,17 @@ def render_export(
     transfer_images = None
     if len(job.transfers) > 1:
         with writer.phase("render_transfers"):
-            stack = [images]
+            stride = job.settings.transfer_stride
+            stack = [images[member_views(0, stride, len(cameras))]]
             for index, named in enumerate(job.transfers[1:], start=1):
                 model = replace(job.image_model, transfer=named.function)
-                counter = count_views("transfers", index * len(cameras))
-                stack.append(
-                    _render_saving_views(cunerf_images_field, cameras, model, device, progress, f"tf{index}", counter)
-                )
+                counter = count_views("transfers", len(cameras) + (index - 1) * len(stack[0]))
+                shown = cameras.subset(member_views(index, stride, len(cameras)))
+                # A strided member's saved views are its own: an export resumed with another stride redraws them.
+                prefix = f"tf{index}" if stride == 1 else f"tf{index}_every{stride}"
+                stack.append(_render_saving_views(cunerf_images_field, shown, model, device, progress, prefix, counter))
             transfer_images = np.stack(stack)
-    rendered = len(job.transfers) * len(cameras)
+    rendered = job.training_renders
     # One field for both: its support and clear cells are made once.
     volume_field = GridField(volume, device)
     with writer.phase("render_reference"):

@@ -20,6 +20,7 @@ CAMERA_PATHS = get_args(CameraPath)
 CAMERA_BUILDERS = {"sphere": sphere_cameras, "orbit": orbit_cameras, "stack": stack_cameras}
 MAX_NOVEL_DIRECTIONS = 256
 MAX_TRANSFER_SET = 64
+MAX_HELD_OUT_WINDOWS = 64
 MAX_RESOLUTION = 16384  # beyond this a single view no longer fits a float32 tensor of pixels × steps
 # A resolution the preset leaves to the volume: views as wide as the volume, up to this.
 RESOLUTION_FROM_VOLUME = "volume"
@@ -73,8 +74,17 @@ class ExportSettings:
     transfer_set: int = 1
     """dvr: render the training views under this many transfer functions: --transfer first, then the presets eval
     does not hold out, then seeded random bands and ramps by turns. A `splat --scalar` run trains under all of them,
-    so that it shows other tissue without retraining; each one more costs a render of every training view. 5 scored
-    best of 3, 5 and 8 on the held-out transfer functions (docs/results.md, "Scalar scenes")."""
+    so that it shows other tissue without retraining; each one more costs a render of every training view, or of one
+    in --transfer-stride. 41 at a stride of 6 scored best on transfer functions held out of training: 7.7 renders of
+    every view, against 5 for 5 at every view (docs/results.md, "Scalar scenes")."""
+    transfer_stride: int = 1
+    """dvr with --transfer-set: render each transfer function after the export's own at every N-th view only, each
+    from an offset of its own, so that a set N times as large costs the same renders (the export's own is rendered
+    at every view). splat --scalar draws among the images rendered."""
+    held_out_windows: int = 0
+    """dvr with --transfer-set > 1: also hold out this many seeded random bands and ramps, which eval scores the scalar
+    run under beside bone, lung, vessels and one random ramp: a wider measure of transfer functions never trained on.
+    Each costs a render of the novel views."""
     step: float = 1.0  # voxels of the preprocessed volume between ray samples
     """Ray-march step in voxels of the preprocessed volume."""
     render_from: RenderSource = "grid"
@@ -155,6 +165,23 @@ class ExportSettings:
         if self.transfer_set > 1 and self.view != "dvr":
             raise CubecloudError(
                 f"--transfer-set renders through transfer functions, which only --view dvr has (got --view {self.view})"
+            )
+        if not 0 <= self.held_out_windows <= MAX_HELD_OUT_WINDOWS:
+            raise CubecloudError(f"--held-out-windows {self.held_out_windows} must be within 0..{MAX_HELD_OUT_WINDOWS}")
+        if not 1 <= self.transfer_stride <= self.views:
+            raise CubecloudError(
+                f"--transfer-stride {self.transfer_stride} must be within 1..{self.views} (the views): 1 renders "
+                "every view under every transfer function"
+            )
+        if self.transfer_stride > 1 and self.transfer_set < 2:
+            raise CubecloudError(
+                "--transfer-stride spreads a set of transfer functions over the views: it needs --transfer-set 2 or "
+                "more (e.g. 41 with --transfer-stride 6)"
+            )
+        if self.held_out_windows and (self.transfer_set < 2 or self.novel_directions == 0):
+            raise CubecloudError(
+                "--held-out-windows scores a scalar scene at the novel views: it needs --transfer-set 2 or more "
+                "(e.g. 5) and --novel-directions 1 or more"
             )
         if not (0.05 <= self.step <= 8.0):
             raise CubecloudError(f"--step {self.step:g} must be within 0.05..8 voxels (1 is the usual choice)")

@@ -3,8 +3,9 @@
 WORK/export/ holds
   images/view_000.png …     training images rendered from CuNeRF (8-bit grey, stored as RGB)
   images.npy                the same as float32 (N, H, W): what `splat` trains on
-  transfer_images.npy       with --transfer-set K > 1: float32 (K, N, H, W), the training views under each
-                            transfer function the manifest's "transfers" lists (the first is images.npy)
+  transfer_images.npy       with --transfer-set K > 1: float32 (K, N // S, H, W), the training views under each
+                            transfer function the manifest's "transfers" lists (the first is images.npy), member
+                            k at views k mod S, + S, + 2S … for --transfer-stride S (all of them at S = 1)
   reference/view_000.png …  the same views rendered from the preprocessed volume (ground truth)
   reference.npy             float32 (N, H, W): what `eval` scores against
   sparse/0/                 cameras, images, points3D (.bin and .txt), points3D.ply, test.txt
@@ -196,7 +197,7 @@ def _plan_export(
         device,
         cunerf_name,
         tuple(transfers),
-        held_out_transfers(preprocess.get("intensity"), settings.seed, transfers)
+        held_out_transfers(preprocess.get("intensity"), settings.seed, transfers, windows=settings.held_out_windows)
         if settings.transfer_set > 1 and settings.novel_directions > 0
         else None,
     )
@@ -279,6 +280,7 @@ def _record(writer: StageWriter, job: ExportJob, names: list[str], renders: Expo
             },
             "image_model": {**job.image_model.as_dict(), "step_voxels": settings.step},
             "transfers": [{"name": t.name, **t.function.as_dict()} for t in job.transfers],
+            "transfer_stride": settings.transfer_stride,
             "render_source": {
                 "training_images": "cunerf grid" if settings.render_from == "grid" else "cunerf field",
                 "bake_size": settings.bake_resolution(job.size) if settings.render_from == "grid" else None,

@@ -122,6 +122,7 @@ class SplatTrainer:
         self.images = scene.images.to(device)
         # A scalar scene trained under several transfer functions: each step draws one.
         self.transfer_images = None if scene.transfer_images is None else scene.transfer_images.to(device)
+        self._transfer_pairs = scene.transfer_pairs() if scene.transfer_images is not None else []
         self.identity: dict | None = None  # the scene, as the stage describes it in checkpoints
         self.training_cameras = scene.cameras.subset(scene.train)
         self._update_smoothing()
@@ -165,7 +166,7 @@ class SplatTrainer:
         if not self._stepped and self.rasterizer is NUMBA:
             backward_compile = BackwardCompile.start()
         self._stepped = True
-        target = self._target(view)
+        view, target = self._target(view)
         rendered = self.render(view, retain=True)
         loss = photometric_loss(rendered.image, target, self.settings.dssim_weight)
         if self.scan_values is not None:
@@ -194,14 +195,27 @@ class SplatTrainer:
         self.elapsed_s += time.perf_counter() - started
         return loss.detach()
 
-    def _target(self, view: int) -> torch.Tensor:
-        """The view's image under this step's transfer function: the scene's one, or one drawn
-        from its set (the Gaussians are drawn under it until the next step's draw)."""
+    def _target(self, view: int) -> tuple[int, torch.Tensor]:
+        """This step's view and its image: ``view`` under the scene's transfer function, or an image
+        drawn from its set (the Gaussians are drawn under its transfer function until the next draw).
+        With every member at every view a member is drawn for ``view``; with a strided set, one of
+        the images rendered, the export's own at ``view`` among them."""
         if self.transfer_images is None:
-            return self.images[view]
-        index = int(torch.randint(len(self.scene.transfers), (1,), generator=self.generator))
+            return view, self.images[view]
+        if self.scene.transfer_stride == 1:
+            index = int(torch.randint(len(self.scene.transfers), (1,), generator=self.generator))
+            self.gaussians.transfer = self.scene.transfers[index]
+            return view, self.transfer_images[index, view]
+        pick = int(torch.randint(len(self.scene.train) + len(self._transfer_pairs), (1,), generator=self.generator))
+        index = 0
+        if pick >= len(self.scene.train):
+            index, view = self._transfer_pairs[pick - len(self.scene.train)]
         self.gaussians.transfer = self.scene.transfers[index]
-        return self.transfer_images[index, view]
+        return view, (self.images[view] if index == 0 else self._strided_image(index, view))
+
+    def _strided_image(self, member: int, view: int) -> torch.Tensor:
+        stride = self.scene.transfer_stride
+        return self.transfer_images[member, (view - member % stride) // stride]
 
     def draw_under_first_transfer(self) -> None:
         """Draw the Gaussians under the scene's own transfer function (that of ``images``), as

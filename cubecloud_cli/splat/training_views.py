@@ -19,6 +19,7 @@ from cubecloud_cli.core.artifacts import read_manifest
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.scene import find_colmap_model, read_colmap_model, read_point_cloud_ply
 from cubecloud_cli.transfer.function import TransferFunction
+from cubecloud_cli.transfer.training_set import member_views
 
 HOLDOUT_EVERY = 8
 TRANSFER_IMAGES = "transfer_images.npy"  # our export's training views under each transfer function
@@ -40,9 +41,21 @@ class TrainingScene:
     point_values: np.ndarray | None = None
     # The transfer functions the images were rendered under (our dvr export's); none for a
     # scene that does not say. With more than one, transfer_images holds the views under each
-    # (K, V, H, W, C), the first being ``images``.
+    # (K, V // S, H, W, C): member k at views member_views(k, S, V), the first's being ``images``'.
     transfers: list[TransferFunction] = field(default_factory=list)
     transfer_images: torch.Tensor | None = None
+    transfer_stride: int = 1
+
+    def transfer_pairs(self) -> list[tuple[int, int]]:
+        """(member, view) of every training image rendered under a member of the set other than the first."""
+        views = len(self.names)
+        train = set(self.train)
+        return [
+            (member, view)
+            for member in range(1, len(self.transfers))
+            for view in member_views(member, self.transfer_stride, views)
+            if view in train
+        ]
 
     def _centre_spread(self) -> tuple[float, float]:
         """The largest distance of a training camera from their mean, and that mean's distance
@@ -145,7 +158,19 @@ def _transfers(directory: Path) -> list[TransferFunction]:
     return functions
 
 
-def _transfer_images(directory: Path, transfers: int, views: int, height: int, width: int) -> torch.Tensor | None:
+def _transfer_stride(directory: Path, views: int) -> int:
+    """The export's --transfer-stride (1 for exports made before it)."""
+    stride = json.loads((directory / "manifest.json").read_text()).get("transfer_stride", 1)
+    if not isinstance(stride, int) or not 1 <= stride <= views:
+        raise CubecloudError(
+            f"{directory / 'manifest.json'} records a transfer stride {stride!r} outside 1..{views}: re-export the scene"
+        )
+    return stride
+
+
+def _transfer_images(
+    directory: Path, transfers: int, views: int, height: int, width: int, stride: int
+) -> torch.Tensor | None:
     path = directory / TRANSFER_IMAGES
     if transfers < 2:
         return None
@@ -154,9 +179,10 @@ def _transfer_images(directory: Path, transfers: int, views: int, height: int, w
             f"{directory} lists {transfers} transfer functions but has no {TRANSFER_IMAGES}: re-export the scene"
         )
     stack = np.load(path, mmap_mode="r")
-    if stack.shape != (transfers, views, height, width):
+    if stack.shape != (transfers, views // stride, height, width):
         raise CubecloudError(
-            f"{path} holds {stack.shape} but the scene has {transfers} transfer functions of {views} views of {width}x{height}: re-export the scene"
+            f"{path} holds {stack.shape} but the scene has {transfers} transfer functions of {views // stride} views "
+            f"of {width}x{height}: re-export the scene"
         )
     images = np.array(stack, dtype=np.float32)[..., None]
     if not np.isfinite(images).all():
@@ -231,8 +257,12 @@ def load_scene(directory: Path, channels: int = 1, every_transfer: bool = False)
         points,
         point_values,
         transfers,
-        _transfer_images(directory, len(transfers), len(names), height, width) if every_transfer else None,
     )
+    if every_transfer and len(transfers) > 1:
+        scene.transfer_stride = _transfer_stride(directory, len(names))
+        scene.transfer_images = _transfer_images(
+            directory, len(transfers), len(names), height, width, scene.transfer_stride
+        )
     if not scene.extent > 1e-9:
         raise CubecloudError(
             f"the training cameras of {directory} sit together at the world origin, so the scene has no extent: 3DGS needs views from different places"

@@ -31,6 +31,8 @@ BAND_TOP = (0.02, 0.3)
 BAND_SIDE = (0.005, 0.1)
 RANDOM_BAND = "band"
 HELD_OUT_SEED_OFFSET = 1_000_003  # eval's ramps come from a stream no training seed reaches
+HELD_OUT_WINDOW_SEED_OFFSET = HELD_OUT_SEED_OFFSET + 7  # and its extra bands and ramps from a third
+HELD_OUT_WINDOW = "held-out-window"
 
 
 @dataclass(frozen=True)
@@ -90,6 +92,17 @@ def training_transfers(
     return chosen
 
 
+def member_views(member: int, stride: int, views: int) -> list[int]:
+    """The views member ``member`` of a training set is rendered at: all of them at stride 1, else
+    every ``stride``-th from an offset of its own (``member`` mod ``stride``), so that a set of
+    ``stride`` times as many members costs the same renders and its members share the views out.
+    Every member gets ``views // stride`` views."""
+    if stride < 1 or views < stride:
+        raise ValueError(f"a stride of {stride} needs 1 <= stride <= views ({views})")
+    start = member % stride
+    return list(range(start, start + (views // stride) * stride, stride))
+
+
 @dataclass(frozen=True)
 class HeldOutSet:
     transfers: list[NamedTransfer]
@@ -97,10 +110,12 @@ class HeldOutSet:
 
 
 def held_out_transfers(
-    intensity_map: dict | None, seed: int, trained: list[NamedTransfer], ramps: int = 1
+    intensity_map: dict | None, seed: int, trained: list[NamedTransfer], ramps: int = 1, windows: int = 0
 ) -> HeldOutSet:
     """The transfer functions eval scores a scalar scene under, none of them in ``trained``:
-    the held-out presets the volume's window keeps, and seeded ramps of another stream."""
+    the held-out presets the volume's window keeps, seeded ramps of another stream, then
+    ``windows`` seeded bands and ramps of a third (a wider sample of the transfer functions a
+    person might choose, drawn as the training set's random part is)."""
     held, not_scored = [], {}
     trained_names = {t.name for t in trained}
     for name in HELD_OUT_PRESETS:
@@ -112,4 +127,8 @@ def held_out_transfers(
         else:
             not_scored[name] = f"{name} is the transfer function the scene was exported under"
     held += [NamedTransfer(f"held-out-{r.name}", r.function) for r in random_ramps(ramps, seed + HELD_OUT_SEED_OFFSET)]
+    held += [
+        NamedTransfer(f"{HELD_OUT_WINDOW}-{r.name}", r.function)
+        for r in random_windows(windows, seed + HELD_OUT_WINDOW_SEED_OFFSET)
+    ]
     return HeldOutSet(held, not_scored)
