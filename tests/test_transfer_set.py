@@ -19,6 +19,7 @@ from cubecloud_cli.transfer.training_set import (
     RAMP_DENSITY,
     NamedTransfer,
     held_out_transfers,
+    member_slot,
     member_views,
     random_ramps,
     random_windows,
@@ -180,6 +181,7 @@ def test_member_views_share_the_views_out_evenly(views, stride, member):
     chosen = member_views(member, stride, views)
     assert len(chosen) == views // stride and chosen[0] == member % stride and chosen[-1] < views
     assert all(b - a == stride for a, b in zip(chosen, chosen[1:]))
+    assert [member_slot(member, view, stride) for view in chosen] == list(range(len(chosen)))
     shared = sorted(v for k in range(stride) for v in member_views(k, stride, views))
     assert shared == list(range((views // stride) * stride))  # a stride's members take each view once
     assert member_views(member, 1, views) == list(range(views))

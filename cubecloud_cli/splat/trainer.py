@@ -23,6 +23,7 @@ from cubecloud_cli.splat.scalar_gaussians import GaussianModel
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
 from cubecloud_cli.splat.training_views import TrainingScene
+from cubecloud_cli.transfer.training_set import member_slot
 
 
 def render_camera(
@@ -211,11 +212,9 @@ class SplatTrainer:
         if pick >= len(self.scene.train):
             index, view = self._transfer_pairs[pick - len(self.scene.train)]
         self.gaussians.transfer = self.scene.transfers[index]
-        return view, (self.images[view] if index == 0 else self._strided_image(index, view))
-
-    def _strided_image(self, member: int, view: int) -> torch.Tensor:
-        stride = self.scene.transfer_stride
-        return self.transfer_images[member, (view - member % stride) // stride]
+        if index == 0:
+            return view, self.images[view]
+        return view, self.transfer_images[index, member_slot(index, view, self.scene.transfer_stride)]
 
     def draw_under_first_transfer(self) -> None:
         """Draw the Gaussians under the scene's own transfer function (that of ``images``), as

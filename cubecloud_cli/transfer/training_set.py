@@ -103,6 +103,11 @@ def member_views(member: int, stride: int, views: int) -> list[int]:
     return list(range(start, start + (views // stride) * stride, stride))
 
 
+def member_slot(member: int, view: int, stride: int) -> int:
+    """Where ``view`` lies among :func:`member_views` of ``member``: its row in the stack."""
+    return (view - member % stride) // stride
+
+
 @dataclass(frozen=True)
 class HeldOutSet:
     transfers: list[NamedTransfer]
