@@ -18,10 +18,11 @@ from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
 from cubecloud_cli.splat.densify import strategy_for
-from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
+from cubecloud_cli.splat.gaussian_ply import read_scalar_properties, read_splat_ply
+from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
-from cubecloud_cli.splat.trainer import SplatTrainer, render
+from cubecloud_cli.splat.trainer import SCAN_REREAD_EVERY, SplatTrainer, render
 from cubecloud_cli.splat.training_views import TrainingScene
 
 # These tests are of the CPU trainer (the numba kernels, bits repeated on resume), also on a
@@ -297,6 +298,27 @@ def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch)
     assert counts[0]["initial_gaussians"] == counts[1]["initial_gaussians"] != counts[0]["gaussians"]
     assert len(state["gaussians"]["means"]) != counts[1]["initial_gaussians"]
     assert_one_line_error(invoke("splat", work, *options, "--resume"), r"already complete")
+
+
+def test_a_scalar_run_resumes_exactly_from_a_checkpoint_between_reads_of_the_scan(exported, tmp_path, monkeypatch):
+    """The scan is read at the centres every SCAN_REREAD_EVERY steps and after each change of the
+    Gaussians; a checkpoint at step 21 keeps the values read at 20, so the resumed run holds its
+    values to what the uninterrupted one did, bit for bit."""
+    assert 21 % SCAN_REREAD_EVERY != 0
+    options = ["--scalar", "--iterations", "60", "--eval-every", "60", "--checkpoint-every", "7", *CPU]
+    reference = _copy(exported, tmp_path / "reference")
+    assert invoke("splat", reference, *options, "-q").exit_code == 0
+    work = _copy(exported, tmp_path / "interrupted")
+    interrupt_splat_at_step(monkeypatch, 25, ctrl_c=False)
+    assert invoke("splat", work, *options).exit_code == 130
+    monkeypatch.undo()
+    state = torch.load(work / ".splat.partial" / "checkpoint.pt", weights_only=False)
+    assert state["iteration"] == 21 and len(state["scan_at_means"]) == len(state["gaussians"]["means"])
+    assert invoke("splat", work, *options, "--resume", "-q").exit_code == 0
+    a, b = (read_splat_ply(w / "splat" / "point_cloud.ply") for w in (work, reference))
+    assert isinstance(a, ScalarGaussians)
+    for name, value in a.parameters().items():
+        torch.testing.assert_close(value, b.parameters()[name], rtol=0, atol=0)
 
 
 def test_resume_refuses_another_scene(exported, tmp_path, monkeypatch):

@@ -132,17 +132,47 @@ def test_the_volume_is_air_outside_the_cube_and_trilinear_between_centres():
     assert volume_at(volume, points).tolist() == [0.0, 0.5, 1.0, 0.0, 0.0, 0.0]
 
 
+def grid_sample_at(volume, points):
+    """What a GPU reads (torch's grid_sample, zero padding), for the CPU kernel to match."""
+    grid = points.to(volume.dtype)[:, [2, 1, 0]].reshape(1, -1, 1, 1, 3)
+    return F.grid_sample(volume[None, None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    shape=st.tuples(st.integers(1, 9), st.integers(1, 9), st.integers(1, 9)),
+    seed=st.integers(0, 2**16),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+)
+def test_the_cpu_kernel_reads_the_volume_as_grid_sample_does(shape, seed, dtype):
+    generator = torch.Generator().manual_seed(seed)
+    volume = torch.rand(shape, generator=generator, dtype=torch.float64).to(dtype)
+    points = (torch.rand(200, 3, generator=generator, dtype=torch.float64) * 2.6 - 1.3).to(dtype)
+    expected = grid_sample_at(volume, points).reshape(-1)
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-12
+    assert volume_at(volume, points).dtype == dtype
+    assert torch.allclose(volume_at(volume, points), expected, atol=tolerance, rtol=0)
+
+
+def test_the_cpu_kernel_reads_air_at_points_that_are_not_finite_or_huge():
+    volume = torch.ones(3, 4, 5)
+    points = torch.tensor(
+        [[float("nan"), 0, 0], [0, float("inf"), 0], [0, 0, -float("inf")], [1e30, 0, 0], [0, -1e30, 0], [0, 0, 0]]
+    )
+    assert volume_at(volume, points).tolist() == [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+
+
 def test_the_value_anchor_pulls_values_only_and_is_finite_at_the_extremes():
     volume = torch.rand(4, 5, 6, generator=torch.Generator().manual_seed(0))
     means = voxel_centres((4, 5, 6)).float().requires_grad_(True)
     exact = volume.reshape(-1).clone().requires_grad_(True)
-    assert float(value_anchor_loss(exact, means, volume).detach()) < 1e-12
+    assert float(value_anchor_loss(exact, volume_at(volume, means)).detach()) < 1e-12
     for level in (0.0, 1.0):  # values at the sigmoid's ends, a scan of air and of bone
         values = torch.full((len(means),), level, requires_grad=True)
-        loss = value_anchor_loss(values, means, volume)
+        loss = value_anchor_loss(values, volume_at(volume, means))
         loss.backward()
         assert torch.isfinite(loss) and torch.isfinite(values.grad).all() and means.grad is None
         expected = 2 * (level - volume.reshape(-1)) / len(means)
         assert torch.allclose(values.grad, expected, atol=1e-6)
-    empty = value_anchor_loss(torch.zeros(0, requires_grad=True), torch.zeros(0, 3), volume)
+    empty = value_anchor_loss(torch.zeros(0, requires_grad=True), volume_at(volume, torch.zeros(0, 3)))
     assert float(empty.detach()) == 0.0

@@ -7,11 +7,13 @@ its plain mean. Evaluation uses `cubecloud_cli.numerics.metrics` (cropped, as sc
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from cubecloud_cli.numerics.blur_kernel import blur_same
 from cubecloud_cli.numerics.metrics import K1, K2, SSIM_RADIUS, gaussian_window
+from cubecloud_cli.numerics.trilinear import sample_cube_into
 
 DSSIM_WEIGHT = 0.2
 _WINDOW = gaussian_window().numpy()  # float64; the kernel takes it in each stack's dtype
@@ -86,18 +88,22 @@ def photometric_loss(image: torch.Tensor, target: torch.Tensor, dssim_weight: fl
 def volume_at(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """(N,) an (X, Y, Z) volume, indexed [x, y, z] as ``volume.npy`` is, read trilinearly at world
     points (N, 3) of the cube [-1, 1]³, whose faces are the outer faces of the edge voxels; it
-    falls to 0 (air) over the half voxel beyond the outer voxel centres and is 0 outside."""
+    falls to 0 (air) over the half voxel beyond the outer voxel centres and is 0 outside. Not
+    differentiable: it reads a fixed scan."""
+    if volume.device.type == "cpu":
+        grid = np.ascontiguousarray(volume.detach().numpy())
+        out = np.empty(points.shape[0], dtype=grid.dtype)
+        sample_cube_into(grid, np.ascontiguousarray(points.detach().to(volume.dtype).numpy()), out)
+        return torch.from_numpy(out)
     # grid_sample reads its grid's last axis as (W, H, D): the volume's z, y, x.
     grid = points.to(volume.dtype)[:, [2, 1, 0]].reshape(1, -1, 1, 1, 3)
     sampled = F.grid_sample(volume[None, None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     return sampled.reshape(-1)
 
 
-def value_anchor_loss(values: torch.Tensor, means: torch.Tensor, volume: torch.Tensor) -> torch.Tensor:
-    """Mean squared gap between each Gaussian's value and the scan's value at its centre; the
-    centres are not moved by it. 0 for no Gaussians."""
+def value_anchor_loss(values: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
+    """Mean squared gap between each Gaussian's value and ``scan``, the scan's value at its centre
+    (:func:`volume_at`, which moves no centre). 0 for no Gaussians."""
     if values.numel() == 0:
         return values.sum()
-    with torch.no_grad():
-        scan = volume_at(volume, means.detach()).to(values.dtype)
-    return ((values - scan) ** 2).mean()
+    return ((values - scan.to(values.dtype)) ** 2).mean()

@@ -1,0 +1,67 @@
+"""A voxel grid read trilinearly, in numba: one definition for the dvr march
+(``render/grid_march.py``) and for the scan values a scalar scene's Gaussians are held to
+(``splat/losses.py``).
+
+Corners outside the grid count as 0, as ``grid_sample``'s zero padding with
+``align_corners=False`` does. On a CPU ``grid_sample`` read the 50,000 centres of a scalar scene
+in 8 ms a step, a quarter of the step; this kernel reads them in well under one.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit, prange
+
+from cubecloud_cli.numerics.jit import PRANGE_ONLY
+
+
+@njit(cache=True, inline="always")
+def trilinear(volume, x, y, z):
+    """The grid's value at continuous voxel coordinates (voxel centres at integers), corners
+    outside the grid counting as 0; ``volume`` is indexed [x, y, z], as volume.npy is stored."""
+    size_x, size_y, size_z = volume.shape
+    ix, iy, iz = math.floor(x), math.floor(y), math.floor(z)
+    fx, fy, fz = x - ix, y - iy, z - iz
+    if 0 <= ix < size_x - 1 and 0 <= iy < size_y - 1 and 0 <= iz < size_z - 1:
+        # Every corner inside: most samples, read without a bounds test per corner.
+        c00 = volume[ix, iy, iz] * (1.0 - fx) + volume[ix + 1, iy, iz] * fx
+        c01 = volume[ix, iy + 1, iz] * (1.0 - fx) + volume[ix + 1, iy + 1, iz] * fx
+        c10 = volume[ix, iy, iz + 1] * (1.0 - fx) + volume[ix + 1, iy, iz + 1] * fx
+        c11 = volume[ix, iy + 1, iz + 1] * (1.0 - fx) + volume[ix + 1, iy + 1, iz + 1] * fx
+        return (c00 * (1.0 - fy) + c01 * fy) * (1.0 - fz) + (c10 * (1.0 - fy) + c11 * fy) * fz
+    total = 0.0
+    for c in range(2):
+        k = iz + c
+        if k < 0 or k >= size_z:
+            continue
+        wz = fz if c else 1.0 - fz
+        for b in range(2):
+            j = iy + b
+            if j < 0 or j >= size_y:
+                continue
+            wyz = wz * (fy if b else 1.0 - fy)
+            for a in range(2):
+                i = ix + a
+                if i < 0 or i >= size_x:
+                    continue
+                total += wyz * (fx if a else 1.0 - fx) * volume[i, j, k]
+    return total
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def sample_cube_into(volume, points, out) -> None:
+    """out[i] = ``volume`` read at world point ``points[i]`` of the cube [-1, 1]³, whose faces are
+    the outer faces of the edge voxels: 0 beyond half a voxel past the outer voxel centres, and
+    at points that are not finite."""
+    size_x, size_y, size_z = volume.shape
+    for i in prange(points.shape[0]):
+        # The voxel coordinate of the face at -1 is -0.5, of the face at +1 size - 0.5.
+        x = ((points[i, 0] + 1.0) * size_x - 1.0) * 0.5
+        y = ((points[i, 1] + 1.0) * size_y - 1.0) * 0.5
+        z = ((points[i, 2] + 1.0) * size_z - 1.0) * 0.5
+        # Also false for NaN, and keeps math.floor's integers in range for any huge coordinate.
+        if -1.0 < x < size_x and -1.0 < y < size_y and -1.0 < z < size_z:
+            out[i] = trilinear(volume, x, y, z)
+        else:
+            out[i] = 0.0
