@@ -276,11 +276,9 @@ def test_threads_bound_the_kernels_too(exported, tmp_path):
         torch.set_num_threads(torch_before)
 
 
-def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch):
-    """80 iterations densify every 10 until 40 and reset opacity at 10, 20, 30: an interrupt at
-    25 is resumed through densification, a reset and restored gradient statistics."""
-
-    options = ["--iterations", "80", "--eval-every", "40", "--checkpoint-every", "7", *CPU]
+def _resumed_beside_uninterrupted(exported, tmp_path, monkeypatch, options: list) -> tuple[Path, Path, dict]:
+    """A run of ``options`` interrupted at step 25 by a bare KeyboardInterrupt (so from its last
+    periodic checkpoint, which is returned) and resumed, beside the same run uninterrupted."""
     reference = _copy(exported, tmp_path / "reference")
     assert invoke("splat", reference, *options, "-q").exit_code == 0
     work = _copy(exported, tmp_path / "interrupted")
@@ -288,8 +286,17 @@ def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch)
     assert invoke("splat", work, *options).exit_code == 130
     monkeypatch.undo()
     state = torch.load(work / ".splat.partial" / "checkpoint.pt", weights_only=False)
-    assert state["iteration"] == 21 and state["stats"][1].sum() > 0  # mid-way, with statistics
     assert invoke("splat", work, *options, "--resume", "-q").exit_code == 0
+    return work, reference, state
+
+
+def test_resume_across_densification_and_resets(exported, tmp_path, monkeypatch):
+    """80 iterations densify every 10 until 40 and reset opacity at 10, 20, 30: an interrupt at
+    25 is resumed through densification, a reset and restored gradient statistics."""
+
+    options = ["--iterations", "80", "--eval-every", "40", "--checkpoint-every", "7", *CPU]
+    work, reference, state = _resumed_beside_uninterrupted(exported, tmp_path, monkeypatch, options)
+    assert state["iteration"] == 21 and state["stats"][1].sum() > 0  # mid-way, with statistics
     a, b = (read_gaussians_ply(w / "splat" / "point_cloud.ply") for w in (work, reference))
     for name, value in a.parameters().items():
         torch.testing.assert_close(value, b.parameters()[name])
@@ -306,15 +313,8 @@ def test_a_scalar_run_resumes_exactly_from_a_checkpoint_between_reads_of_the_sca
     values to what the uninterrupted one did, bit for bit."""
     assert 21 % SCAN_REREAD_EVERY != 0
     options = ["--scalar", "--iterations", "60", "--eval-every", "60", "--checkpoint-every", "7", *CPU]
-    reference = _copy(exported, tmp_path / "reference")
-    assert invoke("splat", reference, *options, "-q").exit_code == 0
-    work = _copy(exported, tmp_path / "interrupted")
-    interrupt_splat_at_step(monkeypatch, 25, ctrl_c=False)
-    assert invoke("splat", work, *options).exit_code == 130
-    monkeypatch.undo()
-    state = torch.load(work / ".splat.partial" / "checkpoint.pt", weights_only=False)
+    work, reference, state = _resumed_beside_uninterrupted(exported, tmp_path, monkeypatch, options)
     assert state["iteration"] == 21 and len(state["scan_at_means"]) == len(state["gaussians"]["means"])
-    assert invoke("splat", work, *options, "--resume", "-q").exit_code == 0
     a, b = (read_splat_ply(w / "splat" / "point_cloud.ply") for w in (work, reference))
     assert isinstance(a, ScalarGaussians)
     for name, value in a.parameters().items():
