@@ -184,6 +184,31 @@ def resolve_cunerf(preset: str, model: str | None, overrides: Mapping[str, Any])
     return values
 
 
+# `run --scalar`: the export's set of transfer functions and the scalar scene's training, over
+# the preset's values. Measured at fast only (docs/results.md, "Scalar scenes"): 41 members at
+# one view in 6 covered the transfer functions held out as 721 at one view each did; 50,000
+# Gaussians generalised better than 75,000; 4500 iterations gained 0.3-1.3 dB over 3000 in the
+# time 3000 took before the scan was read by a kernel; the pipeline is 1.77-1.80x one baked one.
+SCALAR_RUN: dict[str, dict[str, dict[str, Any]]] = {
+    "fast": {
+        "export": {"transfer_set": 41, "transfer_stride": 6},
+        "splat": {"scalar": True, "iterations": 4500, "max_gaussians": 50_000},
+    },
+}
+
+
+def resolve_scalar_run(preset: str, stage: str, overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """``run --scalar``'s options for ``stage`` (export or splat): those given, then the scalar
+    run's, as overrides of the preset's."""
+    if preset not in SCALAR_RUN:
+        raise ValueError(
+            f"run --scalar has settings measured for the {', '.join(SCALAR_RUN)} preset only, not {preset!r}"
+        )
+    chosen = dict(SCALAR_RUN[preset][stage])
+    chosen.update({key: value for key, value in overrides.items() if value is not None})
+    return chosen
+
+
 # The paper's 3DGS baseline looks at sagittal slices, whatever the preset's orbit axis.
 STACK_AXIS = "lr"
 

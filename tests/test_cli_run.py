@@ -182,3 +182,26 @@ def test_a_tiny_detail_run_follows_the_scan_from_cube_to_views(tmp_path):
     assert "novel PSNR" in (work / "eval" / "report.md").read_text()
     again = invoke("run", scan, "-o", work, "--preset", "detail", "--views", 8, "--splat-iterations", 5)
     assert again.exit_code == 0 and again.stderr.count("skipped (already complete)") == 6
+
+
+def test_run_scalar_trains_one_scalar_scene_under_the_measured_set_and_scores_it_held_out(tmp_path, phantom_nifti):
+    work = tmp_path / "w"
+    quick = ("--cunerf-iterations", 3, "--views", 12, "--resolution", 16, "--splat-iterations", 3)
+    result = invoke(
+        "run", phantom_nifti, "-o", work, "--size", 16, *quick, "--scalar", "--hu-min", -1000, "--hu-max", 1000
+    )
+    assert result.exit_code == 0, result.output
+    assert not (work / "splat-random").exists() and "splat-random" not in result.stderr
+    export = json.loads((work / "export" / "manifest.json").read_text())["params"]
+    splat = json.loads((work / "splat" / "manifest.json").read_text())["params"]
+    assert (export["transfer_set"], export["transfer_stride"]) == (41, 6)
+    assert splat["scalar"] is True and splat["max_gaussians"] == 50_000 and splat["iterations"] == 3
+    scored = json.loads((work / "eval" / "metrics.json").read_text())["results"]["splat"]["held_out_transfers"]
+    assert {"bone", "vessels", "held-out-ramp-0"} <= set(scored)
+    assert all(np.isfinite(entry["psnr"]) for entry in scored.values())
+
+
+def test_run_scalar_refuses_a_preset_it_was_not_measured_at(tmp_path, phantom_nifti):
+    work = tmp_path / "w"
+    assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--scalar", "--preset", "balanced"), "--preset fast")
+    assert not work.exists()
