@@ -198,6 +198,7 @@ def test_run_scalar_trains_one_scalar_scene_under_the_measured_set_and_scores_it
     assert splat["scalar"] is True and splat["max_gaussians"] == 50_000 and splat["iterations"] == 3
     scored = json.loads((work / "eval" / "metrics.json").read_text())["results"]["splat"]["held_out_transfers"]
     assert {"bone", "vessels", "held-out-ramp-0"} <= set(scored)
+    assert "never trained under" in result.stderr and "| splat | vessels |" in result.stderr
     assert all(np.isfinite(entry["psnr"]) for entry in scored.values())
 
 

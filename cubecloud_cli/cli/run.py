@@ -207,9 +207,16 @@ def _report(outcomes: list, output: Path, wall_seconds: float, whole: bool = Tru
     if (Path(output) / "splat-random").is_dir():  # not after run --scalar, which trains no baseline
         log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
-    from cubecloud_cli.eval.outputs import table_rows
+    from cubecloud_cli.eval.outputs import held_out_transfer_table, table_rows
 
     table = "\n".join(table_rows(results))
     log.info(
         f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}"
     )
+    transferred = {row: r["held_out_transfers"] for row, r in results.items() if r.get("held_out_transfers")}
+    if transferred:  # a scalar scene: what it shows under the tissue it never trained on
+        not_scored = {name: why for r in results.values() for name, why in r.get("held_out_not_scored", {}).items()}
+        lines = held_out_transfer_table(transferred, not_scored)
+        header = next(index for index, line in enumerate(lines) if line.startswith("| run |"))
+        table = "\n".join(lines[header:])  # report.md's table without its heading and prose
+        log.info(f"transfer functions it never trained under, novel views 0.75–1.33×:\n{table}")
