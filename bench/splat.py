@@ -5,6 +5,7 @@ iteration's time goes (render forward, loss, backward, optimizer, densification)
     python bench/splat.py work/export              # 300 iterations of the fast preset's schedule
     python bench/splat.py work/export --iterations 300 --schedule-iterations 7000
     python bench/splat.py work/export --preset fast --threads 1 --iterations 600 --profile 100
+    python bench/splat.py scalar/export --preset fast --scalar --iterations 600   # after run --scalar
 
 Densification follows the schedule of --schedule-iterations (the preset's length), so the first
 few hundred iterations measured here are those of a real run: from the initial cloud, before the
@@ -23,14 +24,16 @@ import statistics
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from cubecloud_cli.core.runtime import keep_freed_memory
-from cubecloud_cli.presets import PRESET_NAMES, resolve
+from cubecloud_cli.presets import PRESET_NAMES, resolve, resolve_scalar_run
 from cubecloud_cli.scene import read_point_cloud_ply
 from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.gaussians import gaussians_from_points
 from cubecloud_cli.splat.losses import photometric_loss
+from cubecloud_cli.splat.scalar_gaussians import scalar_gaussians_from_points
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.trainer import SplatTrainer, render
 from cubecloud_cli.splat.training_views import load_scene
@@ -47,6 +50,12 @@ def main() -> None:
     parser.add_argument("--preset", choices=PRESET_NAMES, help="the preset's splat settings (its length too)")
     parser.add_argument("--threads", type=int, help="numba's and torch's threads (default: theirs)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="N more iterations under cProfile")
+    parser.add_argument(
+        "--scalar",
+        action="store_true",
+        help="a scalar scene (splat --scalar) on an export with a transfer-function set, its values held to "
+        "WORK/preprocess/volume.npy; with --preset, run --scalar's length and budget",
+    )
     args = parser.parse_args()
     keep_freed_memory()  # as every stage's Runtime.apply does
     if args.threads:
@@ -55,19 +64,20 @@ def main() -> None:
         numba.set_num_threads(args.threads)
         torch.set_num_threads(args.threads)
 
-    scene = load_scene(args.scene, 1)
-    xyz, rgb, _ = read_point_cloud_ply(args.scene / "points3D.ply")
+    scene = load_scene(args.scene, 1, every_transfer=args.scalar)
+    xyz, rgb, extras = read_point_cloud_ply(args.scene / "points3D.ply")
+    scalar = resolve_scalar_run(args.preset, "splat", {}) if args.scalar and args.preset else {"scalar": args.scalar}
     if args.preset:
-        settings = SplatSettings(**resolve("splat", args.preset, {}))
+        settings = SplatSettings(**resolve("splat", args.preset, scalar))
     else:
-        settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians)
-    trainer = SplatTrainer(
-        gaussians_from_points(xyz, rgb[:, :1] / 255.0),
-        scene,
-        settings,
-        torch.device("cpu"),
-        strategy_for(settings, scene.extent),
-    )
+        settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians, **scalar)
+    if args.scalar:
+        gaussians = scalar_gaussians_from_points(xyz, extras["intensity"], scene.transfers)
+    else:
+        gaussians = gaussians_from_points(xyz, rgb[:, :1] / 255.0)
+    trainer = SplatTrainer(gaussians, scene, settings, torch.device("cpu"), strategy_for(settings, scene.extent))
+    if args.scalar:
+        trainer.scan_values = torch.from_numpy(np.load(args.scene.parent / "preprocess" / "volume.npy"))
     print(
         f"{scene.cameras.width}² views, {len(trainer.gaussians)} initial Gaussians, {torch.get_num_threads()} threads, "
         f"rasterizer: {trainer.rasterizer.description}"
@@ -92,6 +102,7 @@ def main() -> None:
         print(f"  {args.profile} more iterations under cProfile: {per_step:.1f} ms each; by own time:")
         pstats.Stats(profiler).sort_stats("tottime").print_stats(20)
 
+    trainer.draw_under_first_transfer()  # a scalar scene: its images' own transfer function
     splits = {"render forward": [], "loss": [], "backward": [], "optimizer": []}
     for _ in range(30):
         view = trainer.next_view()
