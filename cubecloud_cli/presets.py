@@ -197,6 +197,18 @@ SCALAR_RUN: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 
+def scalar_run_note() -> str:
+    """What ``run --scalar`` sets, for its --help."""
+    return (
+        " ".join(
+            f"{preset}: --transfer-set {run['export']['transfer_set']} --transfer-stride {run['export']['transfer_stride']}, "
+            f"{run['splat']['iterations']} splat iterations, at most {run['splat']['max_gaussians']:,} Gaussians."
+            for preset, run in SCALAR_RUN.items()
+        )
+        + f" ({', '.join(SCALAR_RUN)} only: the settings were measured there.)"
+    )
+
+
 def resolve_scalar_run(preset: str, stage: str, overrides: Mapping[str, Any]) -> dict[str, Any]:
     """``run --scalar``'s options for ``stage`` (export or splat): those given, then the scalar
     run's, as overrides of the preset's."""

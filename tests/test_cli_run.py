@@ -202,7 +202,13 @@ def test_run_scalar_trains_one_scalar_scene_under_the_measured_set_and_scores_it
     assert all(np.isfinite(entry["psnr"]) for entry in scored.values())
 
 
-def test_run_scalar_refuses_a_preset_it_was_not_measured_at(tmp_path, phantom_nifti):
+def test_run_scalar_refuses_before_any_stage_what_it_cannot_run(tmp_path, phantom_nifti, finished):
     work = tmp_path / "w"
     assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--scalar", "--preset", "balanced"), "--preset fast")
+    # Fewer views than the set's stride: export would refuse it only after preprocess and cunerf.
+    assert_one_line_error(invoke("run", phantom_nifti, "-o", work, "--scalar", "--views", 4), "--transfer-stride 6")
     assert not work.exists()
+    _, baked, _ = copy_of(finished, tmp_path / "baked")
+    before = sorted(p.name for p in baked.iterdir())
+    assert_one_line_error(invoke("run", phantom_nifti, "-o", baked, "--scalar"), "splat-random is the baseline")
+    assert sorted(p.name for p in baked.iterdir()) == before

@@ -314,7 +314,7 @@ def test_a_scalar_run_resumes_exactly_from_a_checkpoint_between_reads_of_the_sca
     assert 21 % SCAN_REREAD_EVERY != 0
     options = ["--scalar", "--iterations", "60", "--eval-every", "60", "--checkpoint-every", "7", *CPU]
     work, reference, state = _resumed_beside_uninterrupted(exported, tmp_path, monkeypatch, options)
-    assert state["iteration"] == 21 and len(state["scan_at_means"]) == len(state["gaussians"]["means"])
+    assert state["iteration"] == 21 and len(state["scan_at_centres"]) == len(state["gaussians"]["means"])
     a, b = (read_splat_ply(w / "splat" / "point_cloud.ply") for w in (work, reference))
     assert isinstance(a, ScalarGaussians)
     for name, value in a.parameters().items():

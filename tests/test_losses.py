@@ -162,7 +162,7 @@ def test_the_cpu_kernel_reads_air_at_points_that_are_not_finite_or_huge():
     assert volume_at(volume, points).tolist() == [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
 
 
-def test_the_value_anchor_pulls_values_only_and_is_finite_at_the_extremes():
+def test_the_value_anchor_pulls_values_and_is_finite_at_the_extremes():
     volume = torch.rand(4, 5, 6, generator=torch.Generator().manual_seed(0))
     means = voxel_centres((4, 5, 6)).float().requires_grad_(True)
     exact = volume.reshape(-1).clone().requires_grad_(True)
@@ -171,8 +171,12 @@ def test_the_value_anchor_pulls_values_only_and_is_finite_at_the_extremes():
         values = torch.full((len(means),), level, requires_grad=True)
         loss = value_anchor_loss(values, volume_at(volume, means))
         loss.backward()
-        assert torch.isfinite(loss) and torch.isfinite(values.grad).all() and means.grad is None
+        assert torch.isfinite(loss) and torch.isfinite(values.grad).all()
         expected = 2 * (level - volume.reshape(-1)) / len(means)
         assert torch.allclose(values.grad, expected, atol=1e-6)
     empty = value_anchor_loss(torch.zeros(0, requires_grad=True), volume_at(volume, torch.zeros(0, 3)))
     assert float(empty.detach()) == 0.0
+    # A read from before the Gaussians changed, even one that would broadcast, is refused.
+    for stale in (torch.zeros(1), torch.zeros(len(means) - 1)):
+        with pytest.raises(ValueError, match="scan values for"):
+            value_anchor_loss(values, stale)

@@ -49,7 +49,7 @@ from cubecloud_cli.cunerf.precision import Precision
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.export.settings import ExportSettings
-from cubecloud_cli.presets import DEFAULT_PRESET
+from cubecloud_cli.presets import DEFAULT_PRESET, scalar_run_note
 from cubecloud_cli.splat.settings import SplatSettings
 
 log = logging.getLogger("cubecloud")
@@ -91,8 +91,7 @@ def run_command(
             "--scalar",
             help="Train one scalar scene (`splat --scalar`) under a set of transfer functions, instead of the baked "
             "scene and its random-init baseline, so the scene shows any tissue in `view` without retraining; eval "
-            "scores it under transfer functions it never saw. The fast preset only (its measured set: "
-            "41 transfer functions at one view in 6, 4500 iterations, 50,000 Gaussians). Preprocess with a window "
+            f"scores it under transfer functions it never saw. {scalar_run_note()} Preprocess with a window "
             "that keeps every tissue, such as --hu-min -1000 --hu-max 1000.",
         ),
     ] = False,
@@ -110,7 +109,7 @@ def run_command(
 ) -> None:
     """Run every stage on a scan, skipping stages already complete with the same settings.
 
-    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval. On a CPU the two splat runs train side by side, each on its share of the cores, unless --threads is given. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
+    Takes the options of `cubecloud preprocess`; --preset also sets the cunerf, export and splat stages. Stages: preprocess, cunerf, export, splat (Cube-Cloud init), splat-random (the paper's baseline, random init), eval; with --scalar, one scalar splat run and no baseline. On a CPU the two splat runs train side by side, each on its share of the cores, unless --threads is given. An interrupted cunerf, export or splat stage continues from its saved work. Ends with each stage's time and the table of eval/report.md, headed by the novel-view score.
 
     Examples:
 
@@ -145,6 +144,8 @@ def run_command(
         export_options, splat_options = _scalar_options(preset, export_options, splat_options)
     export = build_settings(ExportSettings, preset, export_options)
     splat = build_settings(SplatSettings, preset, splat_options)
+    if scalar:
+        _check_scalar_run(output, export, splat)
     stages = stage_table(
         scan_or_sample(scan),
         output,
@@ -179,6 +180,22 @@ def _scalar_options(preset: str, export: dict, splat: dict) -> tuple[dict, dict]
         raise CubecloudError(
             f"{exc}: use --preset fast, or run export --transfer-set and splat --scalar yourself (README)"
         ) from None
+
+
+def _check_scalar_run(output: Path, export: ExportSettings, splat: SplatSettings) -> None:
+    """Refuse, before any stage runs, what would fail only after preprocess and cunerf: settings
+    the scalar set does not fit (a --view or --views it cannot use), and a baked baseline in the
+    work directory, which eval would score beside the scalar scene."""
+    from cubecloud_cli.pipeline.table import BASELINE_NAME
+
+    export.validate()
+    splat.validate()
+    baseline = Path(output) / f"splat-{BASELINE_NAME}"
+    if baseline.exists():
+        raise CubecloudError(
+            f"{baseline} is the baseline of a baked run, which eval would score beside the scalar scene: "
+            "run --scalar in another -o, or remove that folder"
+        )
 
 
 def _stage_done(display, outcome, output: Path, preset: str) -> None:
@@ -217,6 +234,6 @@ def _report(outcomes: list, output: Path, wall_seconds: float, whole: bool = Tru
     if transferred:  # a scalar scene: what it shows under the tissue it never trained on
         not_scored = {name: why for r in results.values() for name, why in r.get("held_out_not_scored", {}).items()}
         lines = held_out_transfer_table(transferred, not_scored)
-        header = next(index for index, line in enumerate(lines) if line.startswith("| run |"))
+        header = next((index for index, line in enumerate(lines) if line.startswith("|")), 0)
         table = "\n".join(lines[header:])  # report.md's table without its heading and prose
         log.info(f"transfer functions it never trained under, novel views 0.75–1.33×:\n{table}")

@@ -88,8 +88,9 @@ def photometric_loss(image: torch.Tensor, target: torch.Tensor, dssim_weight: fl
 def volume_at(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """(N,) an (X, Y, Z) volume, indexed [x, y, z] as ``volume.npy`` is, read trilinearly at world
     points (N, 3) of the cube [-1, 1]³, whose faces are the outer faces of the edge voxels; it
-    falls to 0 (air) over the half voxel beyond the outer voxel centres and is 0 outside. Not
-    differentiable: it reads a fixed scan."""
+    falls to 0 (air) over the voxel past the outer voxel centres, so it is 0 from half a voxel
+    outside the cube on. Not differentiable: it reads a fixed scan at fixed points."""
+    points = points.detach()
     if volume.device.type == "cpu":
         grid = np.ascontiguousarray(volume.detach().numpy())
         out = np.empty(points.shape[0], dtype=grid.dtype)
@@ -104,6 +105,8 @@ def volume_at(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 def value_anchor_loss(values: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
     """Mean squared gap between each Gaussian's value and ``scan``, the scan's value at its centre
     (:func:`volume_at`, which moves no centre). 0 for no Gaussians."""
+    if scan.shape != values.shape:  # a read from before the Gaussians changed
+        raise ValueError(f"{tuple(scan.shape)} scan values for {tuple(values.shape)} Gaussian values")
     if values.numel() == 0:
         return values.sum()
     return ((values - scan.to(values.dtype)) ** 2).mean()
