@@ -49,7 +49,7 @@ from cubecloud_cli.cunerf.precision import Precision
 from cubecloud_cli.cunerf.settings import CunerfSettings
 from cubecloud_cli.eval.settings import EvalSettings
 from cubecloud_cli.export.settings import ExportSettings
-from cubecloud_cli.presets import DEFAULT_PRESET, scalar_run_note
+from cubecloud_cli.presets import DEFAULT_PRESET, resolve_scalar_run, scalar_run_note
 from cubecloud_cli.splat.settings import SplatSettings
 
 log = logging.getLogger("cubecloud")
@@ -172,8 +172,6 @@ def run_command(
 
 
 def _scalar_options(preset: str, export: dict, splat: dict) -> tuple[dict, dict]:
-    from cubecloud_cli.presets import resolve_scalar_run
-
     try:
         return resolve_scalar_run(preset, "export", export), resolve_scalar_run(preset, "splat", splat)
     except ValueError as exc:
@@ -224,15 +222,14 @@ def _report(outcomes: list, output: Path, wall_seconds: float, whole: bool = Tru
     if (Path(output) / "splat-random").is_dir():  # not after run --scalar, which trains no baseline
         log.info(f"splat-random: {describe_splat(read_manifest(Path(output) / 'splat-random'))}")
     results = json.loads((Path(output) / "eval" / "metrics.json").read_text())["results"]
-    from cubecloud_cli.eval.outputs import held_out_transfer_table, table_rows
+    from cubecloud_cli.eval.outputs import held_out_transfer_results, held_out_transfer_table, table_rows
 
     table = "\n".join(table_rows(results))
     log.info(
         f"novel and held-out views against the volume's reference renders ({Path(output) / 'eval' / 'report.md'}):\n{table}"
     )
-    transferred = {row: r["held_out_transfers"] for row, r in results.items() if r.get("held_out_transfers")}
+    transferred, not_scored = held_out_transfer_results(results)
     if transferred:  # a scalar scene: what it shows under the tissue it never trained on
-        not_scored = {name: why for r in results.values() for name, why in r.get("held_out_not_scored", {}).items()}
         lines = held_out_transfer_table(transferred, not_scored)
         header = next((index for index, line in enumerate(lines) if line.startswith("|")), 0)
         table = "\n".join(lines[header:])  # report.md's table without its heading and prose

@@ -163,13 +163,8 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
         ]
         for row, novel in novel_runs.items():
             lines += ["", f"`{row}`:", ""] + cell_table(novel)
-    transferred = {
-        row: result["held_out_transfers"] for row, result in results.items() if result.get("held_out_transfers")
-    }
+    transferred, not_scored = held_out_transfer_results(results)
     if transferred:
-        not_scored = {
-            name: why for result in results.values() for name, why in result.get("held_out_not_scored", {}).items()
-        }
         lines += held_out_transfer_table(transferred, not_scored)
     if pictures.get("novel"):
         lines += ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]
@@ -199,6 +194,14 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["curves"]]
     lines += ["", "Per-view scores: [per_view.csv](per_view.csv). Machine-readable: [metrics.json](metrics.json).", ""]
     return "\n".join(lines)
+
+
+def held_out_transfer_results(results: dict[str, dict]) -> tuple[dict[str, dict[str, dict]], dict[str, str]]:
+    """From metrics.json's results: each scalar run's scores under the transfer functions it never
+    trained under, and the held-out presets the volume could not show (why, by name)."""
+    transferred = {row: r["held_out_transfers"] for row, r in results.items() if r.get("held_out_transfers")}
+    not_scored = {name: why for r in results.values() for name, why in r.get("held_out_not_scored", {}).items()}
+    return transferred, not_scored
 
 
 def held_out_transfer_table(transferred: dict[str, dict[str, dict]], not_scored: dict[str, str]) -> list[str]:

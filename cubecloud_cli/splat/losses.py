@@ -94,7 +94,7 @@ def volume_at(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     if volume.device.type == "cpu":
         grid = np.ascontiguousarray(volume.detach().numpy())
         out = np.empty(points.shape[0], dtype=grid.dtype)
-        sample_cube_into(grid, np.ascontiguousarray(points.detach().to(volume.dtype).numpy()), out)
+        sample_cube_into(grid, np.ascontiguousarray(points.to(volume.dtype).numpy()), out)
         return torch.from_numpy(out)
     # grid_sample reads its grid's last axis as (W, H, D): the volume's z, y, x.
     grid = points.to(volume.dtype)[:, [2, 1, 0]].reshape(1, -1, 1, 1, 3)
