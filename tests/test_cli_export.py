@@ -228,6 +228,32 @@ def test_ctrl_c_keeps_finished_views_and_the_same_command_continues(trained, exp
     assert "progress" not in json.dumps(json.loads((work / "export" / "manifest.json").read_text())["files"])
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the printed one
+def test_a_ctrl_c_that_python_could_only_print_still_stops_the_export(trained, tmp_path, monkeypatch):
+    """Numba compiles through ctypes callbacks, where a KeyboardInterrupt is printed and dropped
+    (what let a SLURM job's SIGTERM go unheeded): the export stops once the view is saved."""
+    import ctypes
+    import os
+    import signal
+
+    import cubecloud_cli.export.renders as stage
+
+    work = _copy_upstream(trained, tmp_path)
+    original, calls = stage.render_view, []
+    lost_interrupt = ctypes.CFUNCTYPE(None)(lambda: os.kill(os.getpid(), signal.SIGINT))
+
+    def render_then_lose_an_interrupt(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 12:
+            lost_interrupt()
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(stage, "render_view", render_then_lose_an_interrupt)
+    result = invoke("export", work, *SMALL)
+    assert result.exit_code == 130 and len(calls) == 12, result.output
+    assert "12 of 98 views are saved" in result.stderr and not (work / "export").exists()
+
+
 def _interrupt_after(monkeypatch, renders: int) -> None:
     import cubecloud_cli.export.renders as stage
 

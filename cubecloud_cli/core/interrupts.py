@@ -18,30 +18,58 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 @contextmanager
+def _stop_signals_handled_by(handler: Callable) -> Iterator[None]:
+    """``handler`` for Ctrl-C and SIGTERM in the main thread, restored afterwards. A signal that was
+    ignored (nohup, a parent that keeps Ctrl-C to itself) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+    previous = {number: signal.getsignal(number) for number in STOP_SIGNALS}
+    for number, before in previous.items():
+        if before not in (signal.SIG_IGN, None):  # None: a handler set from C, left alone
+            signal.signal(number, handler)
+    try:
+        yield
+    finally:
+        for number, before in previous.items():
+            if before not in (signal.SIG_IGN, None):
+                signal.signal(number, before)
+
+
+@contextmanager
 def deferred_interrupt() -> Iterator[dict]:
     """Ctrl-C or SIGTERM sets a flag that the loop reads between steps, so the checkpoint it then
-    saves is the state after a whole step. A second one interrupts at once. A signal that was
-    ignored (nohup, a parent that keeps Ctrl-C to itself) stays ignored."""
+    saves is the state after a whole step. A second one interrupts at once."""
     flag = {"requested": False}
-    if threading.current_thread() is not threading.main_thread():
-        yield flag  # signal handlers can only be set from the main thread
-        return
 
     def handler(signum, frame) -> None:
         if flag["requested"]:
             raise KeyboardInterrupt
         flag["requested"] = True
 
-    previous = {number: signal.getsignal(number) for number in STOP_SIGNALS}
-    for number, before in previous.items():
-        if before not in (signal.SIG_IGN, None):  # None: a handler set from C, left alone
-            signal.signal(number, handler)
-    try:
+    with _stop_signals_handled_by(handler):
         yield flag
-    finally:
-        for number, before in previous.items():
-            if before not in (signal.SIG_IGN, None):
-                signal.signal(number, before)
+
+
+@contextmanager
+def remembered_interrupt() -> Iterator[dict]:
+    """Ctrl-C or SIGTERM interrupts at once, as Python's own handler does, and also sets a flag for
+    ``raise_if_interrupted``. Python can only print a KeyboardInterrupt raised inside a ctypes
+    callback, and numba compiles through one: the flag makes the next check raise it after all."""
+    flag = {"requested": False}
+
+    def handler(signum, frame) -> None:
+        flag["requested"] = True
+        raise KeyboardInterrupt
+
+    with _stop_signals_handled_by(handler):
+        yield flag
+
+
+def raise_if_interrupted(flag: dict | None) -> None:
+    """Raise the interrupt ``remembered_interrupt`` recorded, if one came and was lost."""
+    if flag is not None and flag["requested"]:
+        raise KeyboardInterrupt
 
 
 def saved_iteration(checkpoint: Path) -> int | None:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cubecloud_cli.core.interrupts import raise_if_interrupted
 from cubecloud_cli.core.writes import write_atomically
 
 PROGRESS_DIR = "progress"
@@ -22,10 +23,12 @@ FINGERPRINT_FILE = "fingerprint.json"
 
 
 class ExportProgress:
-    def __init__(self, stage_partial_dir: Path, fingerprint: dict):
+    def __init__(self, stage_partial_dir: Path, fingerprint: dict, interrupt: dict | None = None):
         self.partial = Path(stage_partial_dir)
         self.directory = self.partial / PROGRESS_DIR
         self.fingerprint = json.loads(json.dumps(fingerprint, sort_keys=True))
+        # remembered_interrupt's flag: each save, once its work is safe, raises a Ctrl-C that was lost.
+        self.interrupt = interrupt
 
     def prepare(self) -> int:
         """Keep the saved work of a run with the same fingerprint and clear everything else in
@@ -78,3 +81,4 @@ class ExportProgress:
                 os.fsync(handle.fileno())  # so a power cut cannot leave an empty file under the final name
 
         write_atomically(self._path(name), write)
+        raise_if_interrupted(self.interrupt)

@@ -34,6 +34,7 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.cameras.novel import NovelViewSet, nearest_angles_deg
 from cubecloud_cli.core.artifacts import StageWriter, is_complete, read_manifest, require_stage, stage_dir_name
 from cubecloud_cli.core.errors import CubecloudError
+from cubecloud_cli.core.interrupts import raise_if_interrupted, remembered_interrupt
 from cubecloud_cli.core.progress import ProgressCallback, no_progress
 from cubecloud_cli.core.runtime import Runtime, peak_memory_mb, reset_peak_memory
 from cubecloud_cli.core.stage import Stage
@@ -135,7 +136,8 @@ def export_scene(
     writer.extra["resumed"] = {"views": saved, "bake": baked}
     reset_peak_memory(device)
     try:
-        return _export(job, writer, progress, on_progress)
+        with remembered_interrupt() as progress.interrupt:
+            return _export(job, writer, progress, on_progress)
     except KeyboardInterrupt:
         if not writer.directory.exists() and is_complete(writer.final_dir):
             raise KeyboardInterrupt(f"interrupted while tidying up: {writer.final_dir} is complete") from None
@@ -209,6 +211,7 @@ def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_pr
         with writer.phase("load"):
             volume, field = _load_inputs(job, writer)
         renders = render_export(job, volume, field, writer, progress, on_progress)
+        raise_if_interrupted(progress.interrupt)  # one lost after the last view was saved
         if renders.cloud.stats["points"] == 0:
             log.warning("the field is air everywhere: points3D holds no point (lower --air-threshold?)")
         with writer.phase("write"):
