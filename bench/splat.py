@@ -32,7 +32,6 @@ from cubecloud_cli.presets import PRESET_NAMES, resolve, resolve_scalar_run
 from cubecloud_cli.scene import read_point_cloud_ply
 from cubecloud_cli.splat.densify import strategy_for
 from cubecloud_cli.splat.gaussians import gaussians_from_points
-from cubecloud_cli.splat.losses import photometric_loss
 from cubecloud_cli.splat.scalar_gaussians import scalar_gaussians_from_points
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.trainer import SplatTrainer, render
@@ -109,7 +108,7 @@ def main() -> None:
         t0 = time.perf_counter()
         rendered = render(trainer.gaussians, scene, view, trainer.sh_degree, trainer.rasterizer, retain=True)
         t1 = time.perf_counter()
-        loss = photometric_loss(rendered.image, trainer.images[view], settings.dssim_weight)
+        loss = trainer.loss(rendered.image, trainer.images[view])  # with a scalar scene's value anchor
         t2 = time.perf_counter()
         loss.backward()
         t3 = time.perf_counter()

@@ -161,6 +161,15 @@ class SplatTrainer:
         start, end = self.settings.lr_means * self.extent, self.settings.lr_means_final * self.extent
         return math.exp((1 - t) * math.log(start) + t * math.log(end))
 
+    def loss(self, image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """A step's loss: the photometric loss, plus the value anchor in a scalar scene."""
+        loss = photometric_loss(image, target, self.settings.dssim_weight)
+        if self.scan_values is not None:
+            loss = loss + self.settings.value_anchor * value_anchor_loss(
+                self.gaussians.values(), self._scan_at_centres()
+            )
+        return loss
+
     def step(self) -> float:
         started = time.perf_counter()
         view = self.next_view()
@@ -175,10 +184,7 @@ class SplatTrainer:
         self._stepped = True
         view, target = self._target(view)
         rendered = self.render(view, retain=True)
-        loss = photometric_loss(rendered.image, target, self.settings.dssim_weight)
-        if self.scan_values is not None:
-            anchor = value_anchor_loss(self.gaussians.values(), self._scan_at_centres())
-            loss = loss + self.settings.value_anchor * anchor
+        loss = self.loss(rendered.image, target)
         if backward_compile is not None:
             backward_compile.before_backward()
         loss.backward()
