@@ -174,6 +174,11 @@ def report(options, base: Path) -> None:
         )
     for why in listed.get("not_scored", {}).values():
         print(f"not scored: {why}")
+    fixed = scores.get("novel_fixed_opacity")
+    if fixed:  # --chord-lengths: what one opacity per Gaussian (the PLY, view, share) shows of the own
+        print(
+            f"{primary} with one opacity per Gaussian (the PLY): {fixed['psnr']:.2f} ({fixed['psnr_foreground']:.2f})"
+        )
     one_total = shared + baked[primary]["export"] + baked[primary]["splat"]
     scalar_total = shared + seconds["scalar export"] + seconds["scalar splat"]
     baked_total = shared + sum(b["export"] + b["splat"] for b in baked.values())

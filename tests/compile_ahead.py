@@ -22,16 +22,16 @@ from pathlib import Path
 
 def float32_stages() -> None:
     """A tiny work directory through every stage, as the CLI tests make them, the grid bake
-    (which the stages take from 256³ on) and the scalar splat's read of the scan."""
+    (which the stages take from 256³ on) and a scalar splat's own kernels."""
     import numpy as np
     from cli_helpers import invoke, tiny_work
     from test_grid_bake import model_with_structure
 
     from cubecloud_cli.cunerf import grid_bake
-    from cubecloud_cli.numerics.trilinear import sample_cube_into
+    from cubecloud_cli.splat.on_cpu import compile_scalar_kernels
 
     grid_bake.bake_lattice(model_with_structure(), 8, None, np.empty((8, 8, 8), dtype=np.float32))
-    sample_cube_into(np.zeros((4, 4, 4), np.float32), np.zeros((2, 3), np.float32), np.empty(2, np.float32))
+    compile_scalar_kernels()
     with tempfile.TemporaryDirectory(prefix="cubecloud-compile-ahead-") as scratch:
         work = Path(scratch) / "work"
         splat = ["--iterations", "2", "--device", "cpu"]

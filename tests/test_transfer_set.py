@@ -148,8 +148,13 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     for summary in held.values():
         assert summary["views"] == 2 * 3 and 5 < summary["psnr"] < 100  # 2 directions × 0.75, 1, 1.33
     assert "held_out_transfers" not in results["splat-baked"]
+    # Its optical lengths follow the ray, so eval also scores the PLY's one opacity per Gaussian.
+    fixed = results["splat"]["novel_fixed_opacity"]
+    assert fixed["views"] == 2 * 3 and 5 < fixed["psnr"] < 100 and fixed["psnr"] != results["splat"]["novel_psnr"]
+    assert "novel_fixed_opacity" not in results["splat-baked"]
     report = (work / "eval" / "report.md").read_text()
     assert "## Transfer functions held out of training" in report and "| splat | bone |" in report
+    assert "Drawn with one opacity per Gaussian, as its PLY's reference columns" in report
     assert "Not scored: lung shows -950..-300 HU, which the window -160..240 HU clips away" in report
     rows = (work / "eval" / "per_view.csv").read_text()
     assert "held-out transfer function bone" in rows

@@ -163,6 +163,15 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
         ]
         for row, novel in novel_runs.items():
             lines += ["", f"`{row}`:", ""] + cell_table(novel)
+            fixed = results[row].get("novel_fixed_opacity")
+            if fixed:
+                lines += [
+                    "",
+                    f"`{row}`'s opacities follow the view (`--chord-lengths`). Drawn with one opacity per Gaussian, "
+                    f"as its PLY's reference columns, any splat viewer, `cubecloud view` and the shared page draw it: "
+                    f"{_number(fixed.get('psnr'))} dB ({_number(fixed.get('psnr_foreground'))} dB in the body) at the "
+                    f"novel views 0.75–1.33×, against {_number(novel['headline'].get('psnr'))} dB at the same views drawn as trained.",
+                ]
     transferred, not_scored = held_out_transfer_results(results)
     if transferred:
         lines += held_out_transfer_table(transferred, not_scored)

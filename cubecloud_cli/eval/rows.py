@@ -187,6 +187,35 @@ def picture_name(view_name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(view_name).with_suffix("").as_posix())
 
 
+def _headline(test) -> tuple[list[float], list[int]]:
+    """The headline magnifications (0.75–1.33×) and the storage index of each of their views."""
+    count = len(test.views.directions)
+    headline = [m for m in test.views.magnifications if any(abs(m - h) < 1e-9 for h in HEADLINE_MAGNIFICATIONS)]
+    return headline, [test.views.magnifications.index(m) * count + d for m in headline for d in range(count)]
+
+
+def _headline_renders(run: SplatRun, drawn, test, rasterizer, tick, what: str) -> np.ndarray:
+    count = len(test.views.directions)
+    renders = np.concatenate(
+        [
+            render_views(drawn, test.views.cameras(m), list(range(count)), rasterizer, tick, run.antialias)[0]
+            for m in _headline(test)[0]
+        ]
+    )
+    if not np.isfinite(renders).all():
+        raise CubecloudError(f"{run.name} renders NaN or Inf {what}: retrain it with `{run.retrain}`")
+    return renders
+
+
+def score_fixed_opacity(run: SplatRun, baked, scored: ScoredScene, rasterizer, tick, result: dict) -> None:
+    """A chord-length scalar scene as a viewer with one opacity per Gaussian draws it (its PLY's
+    reference columns: every splat viewer, `view`, `share`), at the headline novel views, into
+    ``result["novel_fixed_opacity"]``: what that approximation costs beside ``novel``."""
+    test = scored.novel
+    renders = _headline_renders(run, baked, test, rasterizer, tick, "from its PLY's reference columns")
+    result["novel_fixed_opacity"] = summarize(score_views(test.reference[_headline(test)[1]], renders))
+
+
 def score_held_out_transfers(
     run: SplatRun, scalar, scored: ScoredScene, rasterizer, tick, per_view: list[dict], result: dict
 ) -> None:
@@ -194,21 +223,11 @@ def score_held_out_transfers(
     the headline novel views (0.75–1.33×) against the volume's references under that transfer
     function; the summaries go into ``result["held_out_transfers"]`` by name."""
     test = scored.novel
-    count = len(test.views.directions)
-    headline = [m for m in test.views.magnifications if any(abs(m - h) < 1e-9 for h in HEADLINE_MAGNIFICATIONS)]
-    storage = [test.views.magnifications.index(m) * count + d for m in headline for d in range(count)]
+    storage = _headline(test)[1]
     angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
     summaries = {}
     for held in test.held_out:
-        drawn = scalar.drawn_as(held.function)
-        renders = np.concatenate(
-            [
-                render_views(drawn, test.views.cameras(m), list(range(count)), rasterizer, tick, run.antialias)[0]
-                for m in headline
-            ]
-        )
-        if not np.isfinite(renders).all():
-            raise CubecloudError(f"{run.name} renders NaN or Inf under {held.name}: retrain it with `{run.retrain}`")
+        renders = _headline_renders(run, scalar.drawn_as(held.function), test, rasterizer, tick, f"under {held.name}")
         all_rows = annotate([{}] * len(test.views.entries()), test, angles)
         rows = [
             {**all_rows[index], **scores}

@@ -70,8 +70,21 @@ class SplatRun:
         """Whether it trained Gaussians that carry the scan's value (``splat --scalar``)."""
         return bool(self.manifest.get("params", {}).get("scalar", False))
 
-    def gaussians(self) -> Gaussians:
-        """Read when needed, so that only one run's Gaussians are in memory at a time."""
+    @property
+    def chord_lengths(self) -> bool:
+        """Whether it is a scalar run whose optical lengths follow the ray (``--chord-lengths``)."""
+        return self.scalar and bool(self.manifest.get("params", {}).get("chord_lengths", False))
+
+    def gaussians(self) -> Gaussians | ScalarGaussians:
+        """Read when needed, so that only one run's Gaussians are in memory at a time: its PLY's
+        reference columns, or a chord-length scene's own model, whose opacities change with the
+        view as no PLY column can (``fixed_opacity_gaussians`` are its reference columns)."""
+        if self.chord_lengths:
+            return read_scalar_gaussians(self.directory / SPLAT_PLY)
+        return self.fixed_opacity_gaussians()
+
+    def fixed_opacity_gaussians(self) -> Gaussians:
+        """The PLY's reference columns: the run as every splat viewer draws it."""
         return read_gaussians_ply(self.directory / SPLAT_PLY)
 
     def scalar_gaussians(self) -> ScalarGaussians | None:

@@ -33,6 +33,7 @@ from cubecloud_cli.eval.rows import (
     cunerf_rows,
     picture_name,
     protocol_description,
+    score_fixed_opacity,
     score_held_out_transfers,
     score_novel,
     score_row,
@@ -122,7 +123,8 @@ class LoadedRuns:
             total += len(scored.scene.test) + (len(turntable) if turntable else 0)
             total += len(scored.novel.views) if scored.novel else 0
             if scored.novel and run.scalar:
-                total += len(scored.novel.held_out) * len(scored.novel.views.directions) * len(HEADLINE_MAGNIFICATIONS)
+                drawings = len(scored.novel.held_out) + run.chord_lengths  # and its fixed-opacity PLY
+                total += drawings * len(scored.novel.views.directions) * len(HEADLINE_MAGNIFICATIONS)
         return total
 
 
@@ -272,6 +274,8 @@ def _score_run(
         scalar = run.scalar_gaussians() if scored.novel.held_out else None
         if scalar is not None:
             score_held_out_transfers(run, scalar.to(device), scored, rasterizer, tick, scores.per_view, result)
+        if run.chord_lengths:
+            score_fixed_opacity(run, run.fixed_opacity_gaussians().to(device), scored, rasterizer, tick, result)
         if scored is loaded.main_scene:
             for index, render in pictured.items():
                 scores.novel_renders.setdefault(index, {})[run.name] = render

@@ -9,7 +9,9 @@ A scalar scene (``--scalar``) is written in that layout as drawn under its train
 function, so every splat viewer opens it, plus the columns a viewer that knows them uses to draw
 it under any other: ``scan_value`` (the value in [0, 1]), ``log_optical_length`` (log ℓ, world
 units) and ``filter_attenuation`` (what the 3D filter, folded into the scales, leaves of every
-opacity); comments record the transfer functions, as JSON.
+opacity); comments record the transfer functions, as JSON, and whether ℓ is scaled by the
+Gaussian's chord along each ray (``splat/chord.py``; the reference columns then hold r's mean over
+the sphere).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ LOG_OPTICAL_LENGTH = "log_optical_length"
 FILTER_ATTENUATION = "filter_attenuation"
 DRAWN_UNDER = "cubecloud drawn under "  # the transfer function of the reference columns
 TRAINED_UNDER = "cubecloud trained under "  # every transfer function the scene was trained under
+CHORD_LENGTHS = "cubecloud optical length times the chord ratio along the ray"
 
 
 @dataclass
@@ -44,6 +47,7 @@ class ScalarProperties:
     attenuation: np.ndarray  # (N,) float32 in (0, 1]
     drawn_under: TransferFunction
     trained_under: list[TransferFunction]
+    chord_lengths: bool = False
 
 
 def scalar_properties(gaussians: ScalarGaussians) -> ScalarProperties:
@@ -51,8 +55,9 @@ def scalar_properties(gaussians: ScalarGaussians) -> ScalarProperties:
         values = gaussians.values().cpu().float().numpy()
         log_lengths = gaussians.log_lengths.detach().cpu().float().numpy()
         attenuation = gaussians.filter_attenuation().detach().cpu().float().numpy()
+    trained_under = list(gaussians.transfers or [gaussians.transfer])
     return ScalarProperties(
-        values, log_lengths, attenuation, gaussians.transfer, list(gaussians.transfers or [gaussians.transfer])
+        values, log_lengths, attenuation, gaussians.transfer, trained_under, gaussians.chord_lengths
     )
 
 
@@ -88,6 +93,7 @@ def write_gaussians_ply(path: Path, gaussians: Gaussians, scalar: ScalarProperti
         comments += [
             DRAWN_UNDER + json.dumps(scalar.drawn_under.as_dict()),
             TRAINED_UNDER + json.dumps([t.as_dict() for t in scalar.trained_under]),
+            *([CHORD_LENGTHS] if scalar.chord_lengths else []),
         ]
     values = np.concatenate(columns, axis=1).astype(np.float32)
     vertices = np.empty(count, dtype=[(name, "f4") for name in names])
@@ -182,7 +188,9 @@ def _scalar_properties(data: PlyData, path: Path) -> ScalarProperties | None:
     attenuation = np.asarray(vertex[FILTER_ATTENUATION], dtype=np.float32)
     if not all(np.isfinite(a).all() for a in (values, log_lengths, attenuation)):
         raise CubecloudError(f"{path} holds NaN or Inf scan values, optical lengths or attenuations: train it again")
-    return ScalarProperties(values, log_lengths, attenuation, drawn_under, trained_under)
+    return ScalarProperties(
+        values, log_lengths, attenuation, drawn_under, trained_under, CHORD_LENGTHS in data.comments
+    )
 
 
 def read_scalar_gaussians(path: Path) -> ScalarGaussians | None:
@@ -210,4 +218,5 @@ def read_splat_ply(path: Path) -> Gaussians | ScalarGaussians:
         scalar.drawn_under,
         scalar.trained_under,
         opacity_scale=torch.from_numpy(np.clip(scalar.attenuation, 0.0, 1.0)),
+        chord_lengths=scalar.chord_lengths,
     )

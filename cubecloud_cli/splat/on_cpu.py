@@ -75,3 +75,20 @@ def compile_splat_kernels(settings: SplatSettings) -> None:
     trainer = SplatTrainer(start, scene, settings, torch.device("cpu"), strategy_for(settings, scene.extent))
     trainer.step()
     trainer.evaluate(scene.test)
+    if settings.scalar:
+        compile_scalar_kernels()
+
+
+def compile_scalar_kernels() -> None:
+    """What a scalar run adds: the read of the scan at the centres and the chord ratio both ways,
+    with training's dtypes and layouts."""
+    import numpy as np
+    import torch
+
+    from cubecloud_cli.numerics.trilinear import sample_cube_into
+    from cubecloud_cli.splat.chord import chord_log_ratio
+
+    sample_cube_into(np.zeros((4, 4, 4), np.float32), np.zeros((2, 3), np.float32), np.empty(2, np.float32))
+    quaternions = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, requires_grad=True)
+    scales = torch.full((2, 3), 0.1, requires_grad=True)
+    chord_log_ratio(torch.zeros(2, 3), quaternions, scales, torch.tensor([0.0, 0.0, 3.0])).sum().backward()

@@ -8,9 +8,15 @@ emits its value, as a dvr sample does (§3):
 
     α_t = 1 − exp(−σ_t(v) · ℓ),    c = v.
 
+With ``chord_lengths`` (``splat --chord-lengths``, the default) ℓ is the length a ray meets at a
+round Gaussian of the same volume, scaled for each view by the Gaussian's chord along the ray
+(``splat/chord.py``): α_t = 1 − exp(−σ_t(v) · ℓ · r(d)). Drawn without a camera (the PLY's
+reference columns, `cubecloud view`, the shared page: one opacity per Gaussian), r is its mean
+over the sphere.
+
 The rasterizers are not changed: they get these opacities and colours, and the gradients run back
-through the map to v and ℓ. A Gaussian whose value lies below every window it is trained under
-gets no gradient through its opacity; it is pruned as transparent.
+through the map to v, ℓ and the Gaussian's shape. A Gaussian whose value lies below every window
+it is trained under gets no gradient through its opacity; it is pruned as transparent.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from cubecloud_cli.splat.chord import chord_log_ratio, sphere_mean_log_ratio
 from cubecloud_cli.splat.gaussians import (
     LOG_SCALE_LIMIT,
     RESET_OPACITY,
@@ -84,6 +91,7 @@ class ScalarGaussians:
     # A scene read from its PLY has the 3D filter folded into its scales; this is what the filter
     # leaves of each opacity (``filter_attenuation``), applied under every transfer function.
     opacity_scale: torch.Tensor | None = None
+    chord_lengths: bool = False  # ℓ scaled by the chord along each ray (splat/chord.py)
 
     TRAINED = SCALAR_PARAMETERS
     OPACITY_PARAMETER = "log_lengths"
@@ -99,8 +107,17 @@ class ScalarGaussians:
     def scales(self) -> torch.Tensor:
         return rendered_scales(self.log_scales, self.smoothing)
 
-    def opacities(self) -> torch.Tensor:
-        opacity = transfer_opacities(self.values(), self.log_lengths, self.transfer)
+    def seen_log_lengths(self, camera_centre: torch.Tensor | None = None) -> torch.Tensor:
+        """(N,) log ℓ as drawn: times the chord ratio r seen from ``camera_centre``, or r's mean
+        over the sphere without a camera (one opacity per Gaussian); ℓ alone without chord_lengths."""
+        if not self.chord_lengths:
+            return self.log_lengths
+        if camera_centre is None:
+            return self.log_lengths + sphere_mean_log_ratio(self.scales().detach().log())
+        return self.log_lengths + chord_log_ratio(self.means, self.quaternions, self.scales(), camera_centre)
+
+    def opacities(self, camera_centre: torch.Tensor | None = None) -> torch.Tensor:
+        opacity = transfer_opacities(self.values(), self.seen_log_lengths(camera_centre), self.transfer)
         if self.opacity_scale is not None:
             opacity = opacity * self.opacity_scale
         return rendered_opacities(opacity, self.log_scales, self.smoothing)
@@ -153,7 +170,12 @@ class ScalarGaussians:
         smoothing = None if self.smoothing is None else self.smoothing.to(device)
         scale = None if self.opacity_scale is None else self.opacity_scale.to(device)
         return ScalarGaussians(
-            **moved, transfer=self.transfer, transfers=self.transfers, smoothing=smoothing, opacity_scale=scale
+            **moved,
+            transfer=self.transfer,
+            transfers=self.transfers,
+            smoothing=smoothing,
+            opacity_scale=scale,
+            chord_lengths=self.chord_lengths,
         )
 
     def parameters(self) -> dict[str, torch.Tensor]:
@@ -165,7 +187,7 @@ GaussianModel = Gaussians | ScalarGaussians
 
 
 def scalar_gaussians_from_points(
-    xyz: np.ndarray, values: np.ndarray, transfers: list[TransferFunction]
+    xyz: np.ndarray, values: np.ndarray, transfers: list[TransferFunction], chord_lengths: bool = False
 ) -> ScalarGaussians:
     """Isotropic Gaussians at points, sized by their neighbours, carrying the points' values (the
     Cube-Cloud's CuNeRF intensities), with opacity 0.1 under the most opaque of ``transfers``
@@ -192,4 +214,5 @@ def scalar_gaussians_from_points(
         log_length.float(),
         transfers[0],
         list(transfers),
+        chord_lengths=chord_lengths,
     )

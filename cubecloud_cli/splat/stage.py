@@ -120,7 +120,7 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings) -> Gaussia
     if settings.init == "random":
         xyz, grey = random_points(settings.random_points, settings.seed)
         if settings.scalar:
-            return scalar_gaussians_from_points(xyz, grey, _scalar_transfers(scene))
+            return scalar_gaussians_from_points(xyz, grey, _scalar_transfers(scene), settings.chord_lengths)
         return gaussians_from_points(xyz, grey, settings.channels, settings.sh_degree)
     if scene.points is None:
         raise CubecloudError(
@@ -136,7 +136,7 @@ def _initial_gaussians(scene: TrainingScene, settings: SplatSettings) -> Gaussia
         values = scene.point_values if scene.point_values is not None else rgb.mean(axis=1)
         if not np.isfinite(values).all():
             raise CubecloudError(f"the point values of {scene.directory} hold NaN or Inf: re-export the scene")
-        return scalar_gaussians_from_points(xyz, values, _scalar_transfers(scene))
+        return scalar_gaussians_from_points(xyz, values, _scalar_transfers(scene), settings.chord_lengths)
     return gaussians_from_points(xyz, rgb, settings.channels, settings.sh_degree)
 
 

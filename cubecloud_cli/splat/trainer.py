@@ -48,7 +48,7 @@ def render_camera(
         gaussians.means,
         gaussians.scales(),
         gaussians.quaternions,
-        gaussians.opacities(),
+        gaussians.opacities(centre),
         gaussians.colours(centre, sh_degree),
         rotation,
         translation,

@@ -94,7 +94,8 @@ class DrawnValues:
     def of(cls, scalar: ScalarGaussians) -> "DrawnValues":
         with torch.no_grad():
             values = scalar.values().clamp(0.0, 1.0)
-            lengths = torch.exp(scalar.log_lengths.clamp(-LOG_LENGTH_LIMIT, LOG_LENGTH_LIMIT))
+            # One opacity per Gaussian: with chord lengths, ℓ times r's mean over the sphere.
+            lengths = torch.exp(scalar.seen_log_lengths().clamp(-LOG_LENGTH_LIMIT, LOG_LENGTH_LIMIT))
             attenuation = scalar.filter_attenuation().clamp(0.0, 1.0)
         return cls(*(t.float().numpy() for t in (values, lengths, attenuation)))
 
