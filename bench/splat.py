@@ -55,6 +55,9 @@ def main() -> None:
         help="a scalar scene (splat --scalar) on an export with a transfer-function set, its values held to "
         "WORK/preprocess/volume.npy; with --preset, run --scalar's length and budget",
     )
+    parser.add_argument(
+        "--no-chord-lengths", action="store_true", help="with --scalar: one optical length for every direction"
+    )
     args = parser.parse_args()
     keep_freed_memory()  # as every stage's Runtime.apply does
     if args.threads:
@@ -66,12 +69,13 @@ def main() -> None:
     scene = load_scene(args.scene, 1, every_transfer=args.scalar)
     xyz, rgb, extras = read_point_cloud_ply(args.scene / "points3D.ply")
     scalar = resolve_scalar_run(args.preset, "splat", {}) if args.scalar and args.preset else {"scalar": args.scalar}
+    scalar = {**scalar, "chord_lengths": not args.no_chord_lengths}
     if args.preset:
         settings = SplatSettings(**resolve("splat", args.preset, scalar))
     else:
         settings = SplatSettings(iterations=args.schedule_iterations, max_gaussians=args.max_gaussians, **scalar)
     if args.scalar:
-        gaussians = scalar_gaussians_from_points(xyz, extras["intensity"], scene.transfers)
+        gaussians = scalar_gaussians_from_points(xyz, extras["intensity"], scene.transfers, settings.chord_lengths)
     else:
         gaussians = gaussians_from_points(xyz, rgb[:, :1] / 255.0)
     trainer = SplatTrainer(gaussians, scene, settings, torch.device("cpu"), strategy_for(settings, scene.extent))

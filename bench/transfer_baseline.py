@@ -11,7 +11,7 @@ preprocess, such as a window wide enough for every held-out tissue):
 1. a tiny run of both ways, untimed, which compiles numba's kernels; then preprocess and cunerf
    once (no transfer function enters them, so both ways share them);
 2. the scalar way: `export --transfer-set K --transfer-stride S`, `splat --scalar --iterations N
-   --max-gaussians B` (what docs/results.md chose: 41, 6, 4500 and 50000), `eval`; eval scores the scalar run under each held-out
+   --max-gaussians B` (what docs/results.md chose: 41, 6, 4000 and 50000), `eval`; eval scores the scalar run under each held-out
    transfer function;
 3. today's way, once per held-out transfer function and once for the export's own: a work
    directory with the same preprocess/ and cunerf/, `export --transfer NAME` (a random ramp by its
@@ -79,7 +79,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scan", nargs="?", help="a scan (default: the bundled abdomen CT)")
     parser.add_argument("--set", type=int, default=41, help="transfer functions the scalar scene trains under")
-    parser.add_argument("--iterations", type=int, default=4500, help="the scalar run's (fast's baked runs: 1500)")
+    parser.add_argument("--iterations", type=int, default=4000, help="the scalar run's (fast's baked runs: 1500)")
     parser.add_argument("--stride", type=int, default=6, help="export's --transfer-stride for the scalar set")
     parser.add_argument(
         "--budget", type=int, default=50000, help="the scalar run's --max-gaussians (fast's baked runs: 75000)"

@@ -124,9 +124,14 @@ def test_export_renders_the_novel_views_under_the_held_out_transfer_functions(ex
         {(t["low"], t["high"], t["density"]) for t in trained}
     )
     main = np.load(novel / "reference.npy")
+    views = json.loads((novel / "views.json").read_text())
+    # Eval scores them at the headline magnifications only, so only those are rendered.
+    headline = [i for i, v in enumerate(views["views"]) if v["magnification"] in (0.75, 1.0, 1.33)]
     for entry in held:
+        assert entry["magnifications"] == [0.75, 1.0, 1.33]
         reference = np.load(novel / entry["file"])
-        assert reference.shape == main.shape and np.isfinite(reference).all() and not np.allclose(reference, main)
+        assert reference.shape == main[headline].shape and np.isfinite(reference).all()
+        assert not np.allclose(reference, main[headline])
 
 
 def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_baked_one_not(
@@ -248,3 +253,13 @@ def test_a_scalar_run_trains_on_a_strided_set(exported_under_three, strided):
     assert result.exit_code == 0, result.output
     manifest = json.loads((work / "splat-strided" / "manifest.json").read_text())
     assert "transfer_images.npy" in " ".join(manifest["inputs"]) and manifest["metrics"]["test_psnr"] > 15
+
+
+def test_held_out_references_are_found_at_the_headline_views_in_either_layout():
+    """Exports from before 2026-11-29 rendered the held-out references at every magnification."""
+    from cubecloud_cli.eval.novel_scores import HeldOutTransfer
+
+    every = HeldOutTransfer("bone", TransferFunction(0.7, 0.9, 12.0), np.zeros((10, 4, 4)), (0.5, 0.75, 1.0, 1.33, 2.0))
+    headline = HeldOutTransfer("bone", TransferFunction(0.7, 0.9, 12.0), np.zeros((6, 4, 4)), (0.75, 1.0, 1.33))
+    assert every.views_at([0.75, 1.0, 1.33], 2) == [2, 3, 4, 5, 6, 7]
+    assert headline.views_at([0.75, 1.0, 1.33], 2) == [0, 1, 2, 3, 4, 5]

@@ -10,7 +10,7 @@ directions, which is within a few per cent of a sphere's training zoom; 2 zooms 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -111,3 +111,9 @@ def nearest_angles_deg(directions: np.ndarray, camera_centres: np.ndarray) -> np
         return np.full(len(directions), np.nan)
     cosines = np.clip(directions @ centres.T, -1.0, 1.0)
     return np.degrees(np.arccos(cosines.max(axis=1)))
+
+
+def headline_views(novel: NovelViewSet) -> NovelViewSet:
+    """The same directions at the headline magnifications only (those of ``novel`` among them)."""
+    kept = tuple(m for m in novel.magnifications if any(abs(m - h) < 1e-9 for h in HEADLINE_MAGNIFICATIONS))
+    return replace(novel, magnifications=kept)

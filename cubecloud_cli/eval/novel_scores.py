@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet, nearest_angles_deg
+from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet, headline_views, nearest_angles_deg
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.scoring import summarize
 from cubecloud_cli.transfer.function import TransferFunction
@@ -39,7 +39,15 @@ class HeldOutTransfer:
 
     name: str
     function: TransferFunction
-    reference: np.ndarray  # (V, H, W) float32, as NovelTest.reference
+    reference: np.ndarray  # (len(magnifications) × D, H, W) float32, magnification-major
+    magnifications: tuple[float, ...]  # the headline ones (earlier exports: every one)
+
+    def views_at(self, magnifications: list[float], directions: int) -> list[int]:
+        """Where the views of ``magnifications`` (each of them rendered here) lie in ``reference``."""
+        order = [
+            next(i for i, m in enumerate(self.magnifications) if abs(m - wanted) < 1e-9) for wanted in magnifications
+        ]
+        return [i * directions + d for i in order for d in range(directions)]
 
 
 @dataclass
@@ -67,10 +75,10 @@ def load_novel_test(scene_dir: Path, fix: str) -> NovelTest | None:
     reference = np.asarray(reference, dtype=np.float32)
     if not np.isfinite(reference).all():
         raise CubecloudError(f"{folder / REFERENCE_FILE} holds NaN or Inf: run `{fix}`")
-    return NovelTest(views, reference, *_held_out(folder, expected, fix))
+    return NovelTest(views, reference, *_held_out(folder, views, fix))
 
 
-def _held_out(folder: Path, expected: tuple[int, int, int], fix: str) -> tuple[list[HeldOutTransfer], dict[str, str]]:
+def _held_out(folder: Path, views: NovelViewSet, fix: str) -> tuple[list[HeldOutTransfer], dict[str, str]]:
     if not (folder / TRANSFERS_FILE).is_file():
         return [], {}
     held = []
@@ -80,10 +88,14 @@ def _held_out(folder: Path, expected: tuple[int, int, int], fix: str) -> tuple[l
         for entry in listed["held_out"]:
             function = TransferFunction.from_dict(entry)
             function.validate()
+            magnifications = tuple(float(m) for m in entry.get("magnifications", views.magnifications))
+            if not all(any(abs(m - h) < 1e-9 for m in magnifications) for h in headline_of(views)):
+                raise ValueError(f"{entry['file']} lacks a headline magnification")
+            expected = (len(magnifications) * len(views.directions), views.resolution, views.resolution)
             reference = np.asarray(np.load(folder / Path(entry["file"]).name, mmap_mode="r"), dtype=np.float32)
             if reference.shape != expected or not np.isfinite(reference).all():
                 raise ValueError(f"{entry['file']} is not {expected} finite values")
-            held.append(HeldOutTransfer(str(entry["name"]), function, reference))
+            held.append(HeldOutTransfer(str(entry["name"]), function, reference, magnifications))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise CubecloudError(
             f"{folder / TRANSFERS_FILE} or a reference it names is unreadable ({exc}): run `{fix}`"
@@ -153,3 +165,8 @@ def pictured_views(test: NovelTest) -> list[tuple[str, int]]:
         if direction < count and magnification in test.views.magnifications:
             chosen.append((label, test.views.magnifications.index(magnification) * count + direction))
     return chosen
+
+
+def headline_of(views: NovelViewSet) -> tuple[float, ...]:
+    """The headline magnifications (0.75–1.33×) among ``views``'."""
+    return headline_views(views).magnifications

@@ -11,10 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS
 from cubecloud_cli.core.artifacts import is_complete, read_manifest, sha256_of_file, verify_recorded
 from cubecloud_cli.core.errors import CubecloudError
-from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
+from cubecloud_cli.eval.novel_scores import annotate, headline_of, pictured_views, summarize_novel, view_angles
 from cubecloud_cli.eval.runs import (
     ScoredScene,
     SplatRun,
@@ -190,7 +189,7 @@ def picture_name(view_name: str) -> str:
 def _headline(test) -> tuple[list[float], list[int]]:
     """The headline magnifications (0.75–1.33×) and the storage index of each of their views."""
     count = len(test.views.directions)
-    headline = [m for m in test.views.magnifications if any(abs(m - h) < 1e-9 for h in HEADLINE_MAGNIFICATIONS)]
+    headline = list(headline_of(test.views))
     return headline, [test.views.magnifications.index(m) * count + d for m in headline for d in range(count)]
 
 
@@ -226,13 +225,12 @@ def score_held_out_transfers(
     storage = _headline(test)[1]
     angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
     summaries = {}
+    headline, count = _headline(test)[0], len(test.views.directions)
     for held in test.held_out:
         renders = _headline_renders(run, scalar.drawn_as(held.function), test, rasterizer, tick, f"under {held.name}")
         all_rows = annotate([{}] * len(test.views.entries()), test, angles)
-        rows = [
-            {**all_rows[index], **scores}
-            for index, scores in zip(storage, score_views(held.reference[storage], renders))
-        ]
+        references = held.reference[held.views_at(headline, count)]
+        rows = [{**all_rows[index], **scores} for index, scores in zip(storage, score_views(references, renders))]
         per_view += [
             {
                 "row": run.name,

@@ -11,7 +11,8 @@ WORK/export/novel/ holds
   views.json          the directions, poses, magnifications and focal lengths (NovelViewSet.as_json)
   reference.npy       float32 (V, H, W), magnification-major, in the order of views.json's "views"
   transfers.json      with --transfer-set K > 1: the transfer functions held out of training, and
-  reference-NAME.npy  the same views under each, for eval to score scalar scenes on
+  reference-NAME.npy  the same directions under each at the headline magnifications (0.75–1.33×,
+                      as transfers.json lists them), for eval to score scalar scenes on
   contact_sheet.png   every novel reference, for people
 """
 
@@ -92,13 +93,24 @@ def held_out_reference_file(name: str) -> str:
 
 
 def write_held_out(
-    directory: Path, held_out: list[tuple[NamedTransfer, np.ndarray]], not_scored: dict[str, str]
+    directory: Path,
+    held_out: list[tuple[NamedTransfer, np.ndarray]],
+    not_scored: dict[str, str],
+    magnifications: tuple[float, ...],
 ) -> None:
-    """The references under each held-out transfer function, the list that names them, and why
-    the held-out presets left out were left out."""
+    """The references under each held-out transfer function (the novel directions at
+    ``magnifications``, magnification-major), the list that names them, and why the held-out
+    presets left out were left out."""
     folder = directory / NOVEL_DIR
     listed = []
     for named, reference in held_out:
         save_array(folder / held_out_reference_file(named.name), reference)
-        listed.append({"name": named.name, **named.function.as_dict(), "file": held_out_reference_file(named.name)})
+        listed.append(
+            {
+                "name": named.name,
+                **named.function.as_dict(),
+                "file": held_out_reference_file(named.name),
+                "magnifications": list(magnifications),
+            }
+        )
     write_json(folder / TRANSFERS_FILE, {"held_out": listed, "not_scored": not_scored})

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from cubecloud_cli.cameras import PinholeCameras
-from cubecloud_cli.cameras.novel import NovelViewSet
+from cubecloud_cli.cameras.novel import NovelViewSet, headline_views
 from cubecloud_cli.core.artifacts import StageWriter, stage_dir_name
 from cubecloud_cli.core.progress import ProgressCallback
 from cubecloud_cli.cunerf.api import CunerfField
@@ -52,9 +52,15 @@ class ExportJob:
         return len(self.cameras) + (len(self.transfers) - 1) * others
 
     @property
+    def held_out_views(self) -> NovelViewSet:
+        """The novel views the held-out transfer functions are rendered at: eval scores them at
+        the headline magnifications only (0.75–1.33×)."""
+        return headline_views(self.novel)
+
+    @property
     def total_views(self) -> int:
         held_out = len(self.held_out.transfers) if self.held_out else 0
-        return self.training_renders + len(self.cameras) + (1 + held_out) * len(self.novel)
+        return self.training_renders + len(self.cameras) + len(self.novel) + held_out * len(self.held_out_views)
 
 
 @dataclass
@@ -129,11 +135,13 @@ def render_export(
     held_out = []
     if job.held_out and job.held_out.transfers:
         with writer.phase("render_held_out"):
+            shown = job.held_out_views
             for index, named in enumerate(job.held_out.transfers):
-                counter = count_views("held-out", rendered + len(cameras) + (1 + index) * len(job.novel))
+                counter = count_views("held-out", rendered + len(cameras) + len(job.novel) + index * len(shown))
                 model = replace(job.image_model, transfer=named.function, slice_offsets=())
+                # Saved under another prefix than the all-magnification views of earlier exports.
                 references = render_novel_references(
-                    volume_field, job.novel, model, device, progress, counter, prefix=f"held_out_{index}"
+                    volume_field, shown, model, device, progress, counter, prefix=f"held_out_{index}_headline"
                 )
                 held_out.append((named, references))
     with writer.phase("point_cloud"):

@@ -84,7 +84,7 @@ class ExportSettings:
     held_out_windows: int = 0
     """dvr with --transfer-set > 1: also hold out this many seeded random bands and ramps, which eval scores the scalar
     run under beside bone, lung, vessels and one random ramp: a wider measure of transfer functions never trained on.
-    Each costs a render of the novel views."""
+    Each costs a render of the novel views at 0.75–1.33×."""
     step: float = 1.0  # voxels of the preprocessed volume between ray samples
     """Ray-march step in voxels of the preprocessed volume."""
     render_from: RenderSource = "grid"

@@ -223,7 +223,12 @@ def _export(job: ExportJob, writer: StageWriter, progress: ExportProgress, on_pr
             if len(job.novel):
                 write_novel(writer.directory, job.novel, renders.novel_reference)
             if job.held_out is not None and len(job.novel):
-                write_held_out(writer.directory, renders.held_out_references, job.held_out.not_scored)
+                write_held_out(
+                    writer.directory,
+                    renders.held_out_references,
+                    job.held_out.not_scored,
+                    job.held_out_views.magnifications,
+                )
         _record(writer, job, names, renders)
         if len(job.novel):
             _record_novel(writer, job.cameras, names, job.novel)

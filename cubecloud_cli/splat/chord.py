@@ -78,39 +78,31 @@ def _log_ratio(l0, l1, l2, s0, s1, s2):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def _chord_forward(means, quaternions, scales, centre, out) -> None:
+def _chord_forward(means, quaternions, scales, centre, out, jacobian, with_jacobian) -> None:
+    """out[i] = log r; with ``with_jacobian``, jacobian[i] = its derivatives by the four raw
+    quaternion components and the three scales (0 where r is undefined or clamped), so that the
+    backward pass is one product and nothing is computed twice."""
     for i in prange(means.shape[0]):
-        ok, dx, dy, dz, w, x, y, z, _ = _unit_direction_and_quaternion(means, quaternions, centre, i)
         out[i] = 0.0
-        if ok:
-            l0, l1, l2 = _local(dx, dy, dz, w, x, y, z)
-            _, value, _, _, _, _ = _log_ratio(l0, l1, l2, float(scales[i, 0]), float(scales[i, 1]), float(scales[i, 2]))
-            out[i] = value
-
-
-@njit(parallel=PRANGE_ONLY, cache=True)
-def _chord_backward(means, quaternions, scales, centre, grad_out, grad_quaternions, grad_scales) -> None:
-    for i in prange(means.shape[0]):
-        for k in range(4):
-            grad_quaternions[i, k] = 0.0
-        for k in range(3):
-            grad_scales[i, k] = 0.0
+        if with_jacobian:
+            for k in range(7):
+                jacobian[i, k] = 0.0
         ok, dx, dy, dz, w, x, y, z, length_q = _unit_direction_and_quaternion(means, quaternions, centre, i)
-        g = float(grad_out[i])
-        if not ok or g == 0.0 or not math.isfinite(g):
+        if not ok:
             continue
         l0, l1, l2 = _local(dx, dy, dz, w, x, y, z)
         s0, s1, s2 = float(scales[i, 0]), float(scales[i, 1]), float(scales[i, 2])
-        ok, _, inverse, a0, a1, a2 = _log_ratio(l0, l1, l2, s0, s1, s2)
-        if not ok:
+        inside, value, inverse, a0, a1, a2 = _log_ratio(l0, l1, l2, s0, s1, s2)
+        out[i] = value
+        if not (with_jacobian and inside):
             continue  # undefined or clamped: no gradient
         # ∂ log r / ∂sⱼ = (aⱼ² / dᵀΣ⁻¹d − ⅓) / sⱼ
-        grad_scales[i, 0] = g * (a0 * a0 / inverse - 1.0 / 3.0) / s0
-        grad_scales[i, 1] = g * (a1 * a1 / inverse - 1.0 / 3.0) / s1
-        grad_scales[i, 2] = g * (a2 * a2 / inverse - 1.0 / 3.0) / s2
+        jacobian[i, 4] = (a0 * a0 / inverse - 1.0 / 3.0) / s0
+        jacobian[i, 5] = (a1 * a1 / inverse - 1.0 / 3.0) / s1
+        jacobian[i, 6] = (a2 * a2 / inverse - 1.0 / 3.0) / s2
         # To l (∂ log r / ∂lⱼ = −aⱼ / (sⱼ dᵀΣ⁻¹d)), to R's entries (l = Rᵀd: ∂/∂R_kj = d_k ∂/∂l_j),
         # then to the unit quaternion.
-        h0, h1, h2 = -g * a0 / (s0 * inverse), -g * a1 / (s1 * inverse), -g * a2 / (s2 * inverse)
+        h0, h1, h2 = -a0 / (s0 * inverse), -a1 / (s1 * inverse), -a2 / (s2 * inverse)
         g00, g01, g02 = dx * h0, dx * h1, dx * h2
         g10, g11, g12 = dy * h0, dy * h1, dy * h2
         g20, g21, g22 = dz * h0, dz * h1, dz * h2
@@ -119,30 +111,30 @@ def _chord_backward(means, quaternions, scales, centre, grad_out, grad_quaternio
         gy = 2 * (-2 * y * g00 + x * g01 + w * g02 + x * g10 + z * g12 - w * g20 + z * g21 - 2 * y * g22)
         gz = 2 * (-2 * z * g00 - w * g01 + x * g02 + w * g10 - 2 * z * g11 + y * g12 + x * g20 + y * g21)
         along = w * gw + x * gx + y * gy + z * gz  # through the normalisation q = u / |u|
-        grad_quaternions[i, 0] = (gw - w * along) / length_q
-        grad_quaternions[i, 1] = (gx - x * along) / length_q
-        grad_quaternions[i, 2] = (gy - y * along) / length_q
-        grad_quaternions[i, 3] = (gz - z * along) / length_q
+        jacobian[i, 0] = (gw - w * along) / length_q
+        jacobian[i, 1] = (gx - x * along) / length_q
+        jacobian[i, 2] = (gy - y * along) / length_q
+        jacobian[i, 3] = (gz - z * along) / length_q
 
 
 class _ChordLogRatio(torch.autograd.Function):
-    """log r per Gaussian by the kernels above, differentiable in the quaternions and scales."""
+    """log r per Gaussian by the kernel above, differentiable in the quaternions and scales."""
 
     @staticmethod
     def forward(ctx, means, quaternions, scales, centre):
         arrays = [np.ascontiguousarray(t.detach().numpy()) for t in (means, quaternions, scales, centre)]
         out = np.empty(means.shape[0], dtype=arrays[2].dtype)
-        _chord_forward(*arrays, out)
-        ctx.arrays = arrays
+        with_jacobian = bool(ctx.needs_input_grad[1] or ctx.needs_input_grad[2])
+        jacobian = np.empty((means.shape[0] if with_jacobian else 0, 7), dtype=arrays[2].dtype)
+        _chord_forward(*arrays, out, jacobian, with_jacobian)
+        ctx.jacobian = torch.from_numpy(jacobian)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
-        means, quaternions, scales, centre = ctx.arrays
-        grad_quaternions, grad_scales = np.empty_like(quaternions), np.empty_like(scales)
-        upstream = np.ascontiguousarray(grad_out.detach().numpy())
-        _chord_backward(means, quaternions, scales, centre, upstream, grad_quaternions, grad_scales)
-        return None, torch.from_numpy(grad_quaternions), torch.from_numpy(grad_scales), None
+        # A non-finite upstream gradient would turn the zeros of undefined rows into NaN.
+        upstream = torch.nan_to_num(grad_out, nan=0.0, posinf=0.0, neginf=0.0)[:, None] * ctx.jacobian
+        return None, upstream[:, :4], upstream[:, 4:], None
 
 
 def chord_log_ratio_reference(

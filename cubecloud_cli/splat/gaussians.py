@@ -85,7 +85,7 @@ class Gaussians:
         """The axis scales as rendered (with the 3D filter, when there is one)."""
         return rendered_scales(self.log_scales, self.smoothing)
 
-    def opacities(self, camera_centre: torch.Tensor | None = None) -> torch.Tensor:
+    def opacities(self, camera_centre: torch.Tensor | None = None, scales: torch.Tensor | None = None) -> torch.Tensor:
         """The opacities as rendered (with the 3D filter's attenuation, when there is one); the
         same from every camera."""
         return rendered_opacities(torch.sigmoid(self.opacity_logits), self.log_scales, self.smoothing)

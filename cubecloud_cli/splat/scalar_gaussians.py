@@ -107,17 +107,21 @@ class ScalarGaussians:
     def scales(self) -> torch.Tensor:
         return rendered_scales(self.log_scales, self.smoothing)
 
-    def seen_log_lengths(self, camera_centre: torch.Tensor | None = None) -> torch.Tensor:
+    def seen_log_lengths(
+        self, camera_centre: torch.Tensor | None = None, scales: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(N,) log ℓ as drawn: times the chord ratio r seen from ``camera_centre``, or r's mean
-        over the sphere without a camera (one opacity per Gaussian); ℓ alone without chord_lengths."""
+        over the sphere without a camera (one opacity per Gaussian); ℓ alone without chord_lengths.
+        ``scales``: ``self.scales()`` where the caller has them already."""
         if not self.chord_lengths:
             return self.log_lengths
+        scales = self.scales() if scales is None else scales
         if camera_centre is None:
-            return self.log_lengths + sphere_mean_log_ratio(self.scales().detach().log())
-        return self.log_lengths + chord_log_ratio(self.means, self.quaternions, self.scales(), camera_centre)
+            return self.log_lengths + sphere_mean_log_ratio(scales.detach().log())
+        return self.log_lengths + chord_log_ratio(self.means, self.quaternions, scales, camera_centre)
 
-    def opacities(self, camera_centre: torch.Tensor | None = None) -> torch.Tensor:
-        opacity = transfer_opacities(self.values(), self.seen_log_lengths(camera_centre), self.transfer)
+    def opacities(self, camera_centre: torch.Tensor | None = None, scales: torch.Tensor | None = None) -> torch.Tensor:
+        opacity = transfer_opacities(self.values(), self.seen_log_lengths(camera_centre, scales), self.transfer)
         if self.opacity_scale is not None:
             opacity = opacity * self.opacity_scale
         return rendered_opacities(opacity, self.log_scales, self.smoothing)

@@ -44,11 +44,12 @@ def render_camera(
     rotation = torch.as_tensor(cameras.rotations[view], dtype=torch.float32, device=device)
     translation = torch.as_tensor(cameras.translations[view], dtype=torch.float32, device=device)
     centre = torch.as_tensor(cameras.centres()[view], dtype=torch.float32, device=device)
+    scales = gaussians.scales()
     return rasterizer.render(
         gaussians.means,
-        gaussians.scales(),
+        scales,
         gaussians.quaternions,
-        gaussians.opacities(centre),
+        gaussians.opacities(centre, scales),
         gaussians.colours(centre, sh_degree),
         rotation,
         translation,
