@@ -143,7 +143,7 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     for stage in ("preprocess", "cunerf", "export"):
         shutil.copytree(exported_under_three / stage, work / stage)
     quick = ["--iterations", "40", "--eval-every", "40", "--device", "cpu", "-q"]
-    for extra in (["--scalar"], ["--name", "baked"]):
+    for extra in (["--scalar", "--chord-lengths"], ["--name", "baked"]):
         assert invoke("splat", work, *quick, *extra).exit_code == 0
     result = invoke("eval", work, "--turntable-frames", "0", "--device", "cpu", "-q")
     assert result.exit_code == 0, result.output
