@@ -113,7 +113,15 @@ def nearest_angles_deg(directions: np.ndarray, camera_centres: np.ndarray) -> np
     return np.degrees(np.arccos(cosines.max(axis=1)))
 
 
+def magnification_index(magnifications: tuple[float, ...] | list[float], wanted: float) -> int | None:
+    """Where ``wanted`` is among ``magnifications`` (read back from JSON: compared within 1e-9), or None."""
+    return next((i for i, m in enumerate(magnifications) if abs(m - wanted) < 1e-9), None)
+
+
+def is_headline(magnification: float) -> bool:
+    return magnification_index(HEADLINE_MAGNIFICATIONS, magnification) is not None
+
+
 def headline_views(novel: NovelViewSet) -> NovelViewSet:
     """The same directions at the headline magnifications only (those of ``novel`` among them)."""
-    kept = tuple(m for m in novel.magnifications if any(abs(m - h) < 1e-9 for h in HEADLINE_MAGNIFICATIONS))
-    return replace(novel, magnifications=kept)
+    return replace(novel, magnifications=tuple(m for m in novel.magnifications if is_headline(m)))

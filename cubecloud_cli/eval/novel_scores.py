@@ -14,7 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cubecloud_cli.cameras.novel import HEADLINE_MAGNIFICATIONS, NovelViewSet, headline_views, nearest_angles_deg
+from cubecloud_cli.cameras.novel import (
+    HEADLINE_MAGNIFICATIONS,
+    NovelViewSet,
+    headline_views,
+    is_headline,
+    magnification_index,
+    nearest_angles_deg,
+)
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.scoring import summarize
 from cubecloud_cli.transfer.function import TransferFunction
@@ -44,9 +51,7 @@ class HeldOutTransfer:
 
     def views_at(self, magnifications: list[float], directions: int) -> list[int]:
         """Where the views of ``magnifications`` (each of them rendered here) lie in ``reference``."""
-        order = [
-            next(i for i, m in enumerate(self.magnifications) if abs(m - wanted) < 1e-9) for wanted in magnifications
-        ]
+        order = [magnification_index(self.magnifications, wanted) for wanted in magnifications]
         return [i * directions + d for i in order for d in range(directions)]
 
 
@@ -89,7 +94,7 @@ def _held_out(folder: Path, views: NovelViewSet, fix: str) -> tuple[list[HeldOut
             function = TransferFunction.from_dict(entry)
             function.validate()
             magnifications = tuple(float(m) for m in entry.get("magnifications", views.magnifications))
-            if not all(any(abs(m - h) < 1e-9 for m in magnifications) for h in headline_of(views)):
+            if any(magnification_index(magnifications, h) is None for h in headline_views(views).magnifications):
                 raise ValueError(f"{entry['file']} lacks a headline magnification")
             expected = (len(magnifications) * len(views.directions), views.resolution, views.resolution)
             reference = np.asarray(np.load(folder / Path(entry["file"]).name, mmap_mode="r"), dtype=np.float32)
@@ -133,10 +138,6 @@ def annotate(rows: list[dict], test: NovelTest, angles: np.ndarray) -> list[dict
     return annotated
 
 
-def _is_headline(magnification: float) -> bool:
-    return any(abs(magnification - m) < 1e-9 for m in HEADLINE_MAGNIFICATIONS)
-
-
 def summarize_novel(rows: list[dict]) -> dict:
     """The novel-view summary of one run: the headline (0.75–1.33×), each magnification, and each
     (angle bin × magnification) cell, each a :func:`summarize` of its views."""
@@ -149,7 +150,7 @@ def summarize_novel(rows: list[dict]) -> dict:
             if members:
                 cells.append({"angle": label, "magnification": magnification, **summarize(members)})
     return {
-        "headline": summarize([r for r in rows if _is_headline(r["magnification"])]),
+        "headline": summarize([r for r in rows if is_headline(r["magnification"])]),
         "headline_magnifications": list(HEADLINE_MAGNIFICATIONS),
         "by_magnification": {f"{m:g}": summarize([r for r in rows if r["magnification"] == m]) for m in magnifications},
         "angle_bins": bins,
@@ -165,8 +166,3 @@ def pictured_views(test: NovelTest) -> list[tuple[str, int]]:
         if direction < count and magnification in test.views.magnifications:
             chosen.append((label, test.views.magnifications.index(magnification) * count + direction))
     return chosen
-
-
-def headline_of(views: NovelViewSet) -> tuple[float, ...]:
-    """The headline magnifications (0.75–1.33×) among ``views``'."""
-    return headline_views(views).magnifications

@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from cubecloud_cli.cameras.novel import headline_views
 from cubecloud_cli.core.artifacts import is_complete, read_manifest, sha256_of_file, verify_recorded
 from cubecloud_cli.core.errors import CubecloudError
-from cubecloud_cli.eval.novel_scores import annotate, headline_of, pictured_views, summarize_novel, view_angles
+from cubecloud_cli.eval.novel_scores import annotate, pictured_views, summarize_novel, view_angles
 from cubecloud_cli.eval.runs import (
     ScoredScene,
     SplatRun,
@@ -189,16 +190,16 @@ def picture_name(view_name: str) -> str:
 def _headline(test) -> tuple[list[float], list[int]]:
     """The headline magnifications (0.75–1.33×) and the storage index of each of their views."""
     count = len(test.views.directions)
-    headline = list(headline_of(test.views))
+    headline = list(headline_views(test.views).magnifications)
     return headline, [test.views.magnifications.index(m) * count + d for m in headline for d in range(count)]
 
 
-def _headline_renders(run: SplatRun, drawn, test, rasterizer, tick, what: str) -> np.ndarray:
+def _headline_renders(run: SplatRun, drawn, test, headline: list[float], rasterizer, tick, what: str) -> np.ndarray:
     count = len(test.views.directions)
     renders = np.concatenate(
         [
             render_views(drawn, test.views.cameras(m), list(range(count)), rasterizer, tick, run.antialias)[0]
-            for m in _headline(test)[0]
+            for m in headline
         ]
     )
     if not np.isfinite(renders).all():
@@ -211,8 +212,9 @@ def score_fixed_opacity(run: SplatRun, baked, scored: ScoredScene, rasterizer, t
     reference columns: every splat viewer, `view`, `share`), at the headline novel views, into
     ``result["novel_fixed_opacity"]``: what that approximation costs beside ``novel``."""
     test = scored.novel
-    renders = _headline_renders(run, baked, test, rasterizer, tick, "from its PLY's reference columns")
-    result["novel_fixed_opacity"] = summarize(score_views(test.reference[_headline(test)[1]], renders))
+    headline, storage = _headline(test)
+    renders = _headline_renders(run, baked, test, headline, rasterizer, tick, "from its PLY's reference columns")
+    result["novel_fixed_opacity"] = summarize(score_views(test.reference[storage], renders))
 
 
 def score_held_out_transfers(
@@ -222,12 +224,13 @@ def score_held_out_transfers(
     the headline novel views (0.75–1.33×) against the volume's references under that transfer
     function; the summaries go into ``result["held_out_transfers"]`` by name."""
     test = scored.novel
-    storage = _headline(test)[1]
+    headline, storage = _headline(test)
+    count = len(test.views.directions)
     angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
     summaries = {}
-    headline, count = _headline(test)[0], len(test.views.directions)
     for held in test.held_out:
-        renders = _headline_renders(run, scalar.drawn_as(held.function), test, rasterizer, tick, f"under {held.name}")
+        drawn = scalar.drawn_as(held.function)
+        renders = _headline_renders(run, drawn, test, headline, rasterizer, tick, f"under {held.name}")
         all_rows = annotate([{}] * len(test.views.entries()), test, angles)
         references = held.reference[held.views_at(headline, count)]
         rows = [{**all_rows[index], **scores} for index, scores in zip(storage, score_views(references, renders))]

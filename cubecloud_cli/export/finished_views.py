@@ -23,12 +23,13 @@ FINGERPRINT_FILE = "fingerprint.json"
 
 
 class ExportProgress:
-    def __init__(self, stage_partial_dir: Path, fingerprint: dict, interrupt: dict | None = None):
+    def __init__(self, stage_partial_dir: Path, fingerprint: dict):
         self.partial = Path(stage_partial_dir)
         self.directory = self.partial / PROGRESS_DIR
         self.fingerprint = json.loads(json.dumps(fingerprint, sort_keys=True))
-        # remembered_interrupt's flag: each save, once its work is safe, raises a Ctrl-C that was lost.
-        self.interrupt = interrupt
+        # The stage's remembered_interrupt flag, while it runs: each save, once its work is safe,
+        # raises a Ctrl-C that was lost.
+        self.interrupt: dict | None = None
 
     def prepare(self) -> int:
         """Keep the saved work of a run with the same fingerprint and clear everything else in
