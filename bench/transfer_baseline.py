@@ -11,7 +11,7 @@ preprocess, such as a window wide enough for every held-out tissue):
 1. a tiny run of both ways, untimed, which compiles numba's kernels; then preprocess and cunerf
    once (no transfer function enters them, so both ways share them);
 2. the scalar way: `export --transfer-set K --transfer-stride S`, `splat --scalar --iterations N
-   --max-gaussians B` (what docs/results.md chose: 41, 6, 4500 and 50000), `eval`; eval scores the scalar run under each held-out
+   --max-gaussians B` (what docs/results.md chose: 41, 6, 4000 and 50000), `eval`; eval scores the scalar run under each held-out
    transfer function;
 3. today's way, once per held-out transfer function and once for the export's own: a work
    directory with the same preprocess/ and cunerf/, `export --transfer NAME` (a random ramp by its
@@ -80,9 +80,13 @@ def main() -> None:
     parser.add_argument("scan", nargs="?", help="a scan (default: the bundled abdomen CT)")
     parser.add_argument("--set", type=int, default=41, help="transfer functions the scalar scene trains under")
     parser.add_argument(
-        "--chord-lengths", action="store_true", help="the scalar run's optical lengths follow the ray (4000 iterations)"
+        "--no-chord-lengths", action="store_true", help="one optical length for every direction (4500 iterations)"
     )
-    parser.add_argument("--iterations", type=int, default=4500, help="the scalar run's (fast's baked runs: 1500)")
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        help="the scalar run's (default 4000, 4500 with --no-chord-lengths; fast's baked runs: 1500)",
+    )
     parser.add_argument("--stride", type=int, default=6, help="export's --transfer-stride for the scalar set")
     parser.add_argument(
         "--budget", type=int, default=50000, help="the scalar run's --max-gaussians (fast's baked runs: 75000)"
@@ -116,7 +120,7 @@ def warm_up(scan: str, base: Path) -> None:
     small = ["--views", "6", "--resolution", "32", "--novel-directions", "2"]
     cubecloud("export", str(work), *small, "--transfer-set", "2")
     cubecloud("splat", str(work), "--scalar", "--iterations", "20")
-    cubecloud("splat", str(work), "--scalar", "--chord-lengths", "--iterations", "20", "--name", "chord")
+    cubecloud("splat", str(work), "--scalar", "--no-chord-lengths", "--iterations", "20", "--name", "one-length")
     cubecloud("splat", str(work), "--iterations", "20", "--name", "baked")
     shutil.rmtree(work)
 
@@ -132,8 +136,9 @@ def run_both_ways(options, base: Path) -> None:
     windows = ["--held-out-windows", str(options.held_out_windows)] if options.held_out_windows else []
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
     seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
-    scalar = ["--scalar", "--iterations", str(options.iterations), "--max-gaussians", str(options.budget)]
-    scalar += ["--chord-lengths"] if options.chord_lengths else []
+    iterations = options.iterations or (4500 if options.no_chord_lengths else 4000)
+    scalar = ["--scalar", "--iterations", str(iterations), "--max-gaussians", str(options.budget)]
+    scalar += ["--no-chord-lengths"] if options.no_chord_lengths else []
     seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
     cubecloud("eval", str(work), "--turntable-frames", "0")
     listed = json.loads((work / "export" / "novel" / "transfers.json").read_text())
@@ -180,7 +185,7 @@ def report(options, base: Path) -> None:
     for why in listed.get("not_scored", {}).values():
         print(f"not scored: {why}")
     fixed = scores.get("novel_fixed_opacity")
-    if fixed:  # --chord-lengths: what one opacity per Gaussian (the PLY, view, share) shows of the own
+    if fixed:  # chord lengths: what one opacity per Gaussian (the PLY, for other viewers) shows of the own
         print(
             f"{primary} with one opacity per Gaussian (the PLY): {fixed['psnr']:.2f} ({fixed['psnr_foreground']:.2f})"
         )

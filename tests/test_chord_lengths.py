@@ -183,10 +183,15 @@ def test_the_ply_draws_r_as_its_mean_over_the_sphere_and_reads_back_with_chord_l
     assert not read_scalar_gaussians(tmp_path / "fixed.ply").chord_lengths
 
 
-def test_the_viewer_draws_a_chord_scene_as_its_ply_does():
+def test_the_viewer_draws_a_chord_scene_as_the_trainer_does_from_its_camera_and_as_the_ply_without_one():
     from cubecloud_cli.view.transfer_view import DrawnValues
 
     gaussians = _flat_scene(True)
     drawn = DrawnValues.of(gaussians)
     expected = gaussians.baked().opacities().numpy()
     np.testing.assert_allclose(drawn.opacities(SOFT), expected, rtol=1e-4, atol=1e-6)
+    for centre in ([0.0, 0.0, 4.0], [3.0, -2.0, 0.5]):
+        with torch.no_grad():
+            seen = gaussians.opacities(torch.tensor(centre)).numpy()
+        np.testing.assert_allclose(drawn.opacities(SOFT, np.asarray(centre)), seen, rtol=1e-4, atol=1e-6)
+    assert DrawnValues.of(_flat_scene(False)).chord is None

@@ -5,6 +5,7 @@ import hashlib
 import json
 import math
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ from cubecloud_cli.share.spz import encode_spz
 from cubecloud_cli.splat.gaussians import Gaussians
 from cubecloud_cli.transfer.tissue_presets import resolve_transfer
 from cubecloud_cli.view.browser import Chromium, chromium
-from cubecloud_cli.view.transfer_view import ViewTransfer, read_intensity_map
+from cubecloud_cli.view.transfer_view import DrawnValues, ViewTransfer, read_intensity_map
 
 pytestmark = pytest.mark.slow
 
@@ -129,7 +130,8 @@ def first_view(work, side: int = SIDE) -> PinholeCameras:
 @pytest.mark.usefixtures("every_core")
 def test_a_scalar_scenes_page_recolours_it_as_our_rasterizer_draws_it_under_each_transfer_function(work, tmp_path):
     """The page's transfer-function map against ScalarGaussians drawn by our rasterizer, under the
-    tissue preset and under a narrow dense window (0.30–0.45, opacity × 7.5)."""
+    tissue preset and under a narrow dense window (0.30–0.45, opacity × 7.5); then its opacities
+    against ours, from the first view and after the camera has moved to the sixth and rested."""
     assert invoke("share", work, "--run", "splat-scalar", "-o", tmp_path / "page", "-q").exit_code == 0
     run = load_run(work, "splat-scalar")
     scalar = run.scalar_gaussians()
@@ -141,6 +143,13 @@ def test_a_scalar_scenes_page_recolours_it_as_our_rasterizer_draws_it_under_each
         for name, choice in choices.items():
             evaluate(browser, f"window.cubecloud.setTransfer({json.dumps(choice)})")
             shots[name] = settle(browser)
+        at_home = evaluate(browser, "window.cubecloud.opacities()")
+        side = read_colmap_model(work / "export").cameras.centres()[5]
+        evaluate(browser, f"window.cubecloud.moveCamera({json.dumps(side.tolist())})")
+        deadline = time.monotonic() + 60
+        while not evaluate(browser, "window.cubecloud.redraws") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        moved = evaluate(browser, "window.cubecloud.opacities()")
     assert presets[0] == "as trained" and "tissue" in presets and presets[-1] == "custom"
     tissue = resolve_transfer("tissue", read_intensity_map(work))
     presets_of = {"tissue": tissue, "window": ViewTransfer(tissue.with_window(0.3, 0.45), 7.5).effective()}
@@ -151,6 +160,15 @@ def test_a_scalar_scenes_page_recolours_it_as_our_rasterizer_draws_it_under_each
     correlation = {(a, b): np.corrcoef(shots[a].ravel(), ours[b].ravel())[0, 1] for a in shots for b in ours}
     assert correlation["tissue", "tissue"] > 0.9 and correlation["window", "window"] > 0.9, correlation
     assert correlation["window", "window"] > correlation["window", "tissue"], correlation
+    # The scene's opacities follow the camera (chord lengths): the page redraws them once it rests.
+    assert scalar.chord_lengths
+    home = np.asarray(read_colmap_model(work / "export").cameras.centres()[0])
+    side = np.asarray(read_colmap_model(work / "export").cameras.centres()[5])
+    drawn, window = DrawnValues.of(scalar), presets_of["window"]
+    assert np.abs(np.asarray(at_home) - drawn.opacities(window, home)).max() < 0.03
+    assert np.abs(np.asarray(moved) - drawn.opacities(window, side)).max() < 0.03
+    page_change, our_change = np.subtract(moved, at_home), drawn.opacities(window, side) - drawn.opacities(window, home)
+    assert np.abs(our_change).max() > 0.05 and np.corrcoef(page_change, our_change)[0, 1] > 0.9
 
 
 def two_blob_page(tmp_path, world_to_scanner: np.ndarray):

@@ -353,6 +353,28 @@ def test_the_viewer_recolours_a_scalar_run_and_refuses_a_baked_one(scalar_viewer
     assert viewer._controls["transfer preset"].value == TRAINED_PRESET
 
 
+def test_a_chord_scene_is_drawn_for_the_camera_it_rests_at(scalar_viewer):
+    """The scalar scene's opacities follow the view (chord lengths): the viewer draws them as the
+    trainer does for the camera at rest, first the export's first view, then wherever a page's
+    camera stops."""
+    viewer = scalar_viewer
+    scalar = viewer.scalar_scene.scalar
+    assert viewer.scalar_scene.follows_camera
+    centres = viewer.context.cameras.centres()
+
+    def model_opacities(centre):
+        with torch.no_grad():
+            return np.sort(scalar.opacities(torch.as_tensor(centre, dtype=torch.float32)).numpy())
+
+    drawn = np.sort(viewer.splats.opacities[:, 0])
+    np.testing.assert_allclose(drawn, model_opacities(centres[0]), atol=2e-5)
+    viewer.look_from(centres[5] * viewer.scale)
+    moved = np.sort(viewer.splats.opacities[:, 0])
+    np.testing.assert_allclose(moved, model_opacities(centres[5]), atol=2e-5)
+    assert np.abs(moved - drawn).max() > 1e-3
+    viewer.look_from(centres[0] * viewer.scale)
+
+
 @pytest.mark.skipif(chromium() is None, reason="needs chromium (.ci/run installs it)")
 @pytest.mark.usefixtures("every_core")
 def test_a_real_browser_shows_the_scene_under_the_transfer_function_chosen(scalar_viewer, work, tmp_path):

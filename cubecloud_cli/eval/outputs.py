@@ -167,8 +167,9 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
             if fixed:
                 lines += [
                     "",
-                    f"`{row}`'s opacities follow the view (`--chord-lengths`). Drawn with one opacity per Gaussian, "
-                    f"as its PLY's reference columns, any splat viewer, `cubecloud view` and the shared page draw it: "
+                    f"`{row}`'s opacities follow the view (chord lengths; `cubecloud view` and the shared page redraw "
+                    f"them when the camera rests). Drawn with one opacity per Gaussian, as its PLY's reference columns "
+                    f"and so any other splat viewer draw it: "
                     f"{_number(fixed.get('psnr'))} dB ({_number(fixed.get('psnr_foreground'))} dB in the body) at the "
                     f"novel views 0.75–1.33×, against {_number(novel['headline'].get('psnr'))} dB at the same views drawn as trained.",
                 ]

@@ -209,7 +209,7 @@ def _headline_renders(run: SplatRun, drawn, test, headline: list[float], rasteri
 
 def score_fixed_opacity(run: SplatRun, baked, scored: ScoredScene, rasterizer, tick, result: dict) -> None:
     """A chord-length scalar scene as a viewer with one opacity per Gaussian draws it (its PLY's
-    reference columns: every splat viewer, `view`, `share`), at the headline novel views, into
+    reference columns: any splat viewer but `view` and `share`), at the headline novel views, into
     ``result["novel_fixed_opacity"]``: what that approximation costs beside ``novel``."""
     test = scored.novel
     headline, storage = _headline(test)

@@ -120,10 +120,14 @@ def read_scalar_block(data: bytes) -> DrawnValues:
     return DrawnValues(values, lengths.astype(np.float32), attenuation)
 
 
-def scalar_info(presets: dict[str, TransferFunction], hu_window: tuple[float, float] | None) -> dict:
-    """The transfer-function presets (the first as trained) and colour maps the page offers, and
-    the HU at intensity 0 and 1 for a CT (the window sliders read in HU), else None."""
+def scalar_info(
+    presets: dict[str, TransferFunction], hu_window: tuple[float, float] | None, chord_lengths: bool = False
+) -> dict:
+    """The transfer-function presets (the first as trained) and colour maps the page offers, the
+    HU at intensity 0 and 1 for a CT (the window sliders read in HU), else None, and whether ℓ is
+    scaled by each Gaussian's chord along the ray (the page then recolours when its camera rests)."""
     return {
+        "chordLengths": bool(chord_lengths),
         "huWindow": None if hu_window is None else [float(hu_window[0]), float(hu_window[1])],
         "presets": {name: function.as_dict() for name, function in presets.items()},
         "colourMaps": {name: [list(c) for c in anchors] for name, anchors in COLOUR_MAPS.items()},

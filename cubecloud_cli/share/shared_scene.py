@@ -100,7 +100,9 @@ def share_scene(work: Path, run_name: str | None, out: Path, force: bool = False
     if scalar is not None:  # the page recolours it under any transfer function, as `cubecloud view` does
         block = scalar_block(DrawnValues.of(scalar))
         intensity_map = read_intensity_map(work)
-        info["scalar"] = scalar_info(transfer_presets(scalar, intensity_map), ct_window(intensity_map))
+        info["scalar"] = scalar_info(
+            transfer_presets(scalar, intensity_map), ct_window(intensity_map), scalar.chord_lengths
+        )
     page = render_page(spz, info, block).encode("utf-8")
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))

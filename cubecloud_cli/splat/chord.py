@@ -13,9 +13,10 @@ from the camera centre to each Gaussian's centre (the centres are not moved by i
 at the camera centre, a zero quaternion or a non-finite input gets r = 1, and log r is clamped
 to ±LOG_RATIO_LIMIT, where its gradient is 0.
 
-A viewer that draws one opacity per Gaussian (a PLY in any splat viewer, `cubecloud view`, the
-shared page) gets ``sphere_mean_log_ratio``: the mean of log r over directions spread evenly over
-the sphere, which the cameras of an orbit around the volume approach.
+`cubecloud view` and the shared page compute r for their camera when it rests. A viewer that
+draws one opacity per Gaussian (a PLY in any other splat viewer) gets ``sphere_mean_log_ratio``:
+the mean of log r over directions spread evenly over the sphere, which the cameras of an orbit
+around the volume approach.
 """
 
 from __future__ import annotations

@@ -10,9 +10,9 @@ emits its value, as a dvr sample does (§3):
 
 With ``chord_lengths`` (``splat --chord-lengths``, the default) ℓ is the length a ray meets at a
 round Gaussian of the same volume, scaled for each view by the Gaussian's chord along the ray
-(``splat/chord.py``): α_t = 1 − exp(−σ_t(v) · ℓ · r(d)). Drawn without a camera (the PLY's
-reference columns, `cubecloud view`, the shared page: one opacity per Gaussian), r is its mean
-over the sphere.
+(``splat/chord.py``): α_t = 1 − exp(−σ_t(v) · ℓ · r(d)). `cubecloud view` and the shared page
+draw r for their camera once it rests; drawn without a camera (the PLY's reference columns, for
+other splat viewers: one opacity per Gaussian), r is its mean over the sphere.
 
 The rasterizers are not changed: they get these opacities and colours, and the gradients run back
 through the map to v, ℓ and the Gaussian's shape. A Gaussian whose value lies below every window

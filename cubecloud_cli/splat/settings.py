@@ -32,11 +32,11 @@ class SplatSettings:
     value_anchor: float = 1.0
     """--scalar: weight of a term that holds each Gaussian's value to the scan's at its centre (WORK/preprocess/volume.npy),
     so that Gaussians no training transfer function shows keep true values for those that will. 0 leaves values free."""
-    chord_lengths: bool = False
+    chord_lengths: bool = True
     """--scalar: scale each Gaussian's optical length by its chord along the ray over a round Gaussian's, so that its
-    opacity changes with the view as a volume's does: 0.5–2.3 dB better under held-out transfer functions as eval draws
-    it, about 4 ms more a step. The PLY, `view` and `share` draw one opacity per Gaussian (the ratio's mean over the
-    sphere), 0–1.6 dB below a scene trained without it, so it is off until they draw the ratio per view."""
+    opacity changes with the view as a volume's does: 0.5–2.3 dB better under held-out transfer functions, about 4 ms
+    more a step. `view` and `share` redraw it for the camera once it rests; the PLY, for other splat viewers, holds the
+    ratio's mean over the sphere (docs/design.md §4)."""
     channels: int = 1
     """Colour channels: 1 for CT (grey), 3 for RGB scenes."""
     sh_degree: int = 0

@@ -15,6 +15,7 @@ import logging
 import math
 import socket
 import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.runs import find_splat_runs
 from cubecloud_cli.splat.gaussian_ply import read_splat_ply
 from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
+from cubecloud_cli.view.camera_rest import CameraRest
 from cubecloud_cli.view.context import load_context
 from cubecloud_cli.view.delivery import SplatDelivery
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
@@ -152,6 +154,8 @@ class SceneViewer:
             raise CubecloudError(f"{work} has no finished run {run!r}: choose one of {', '.join(self.runs)}")
         self.current = run or next(iter(self.runs))
         self.intensity_map = read_intensity_map(Path(work))
+        self._seen_from: np.ndarray | None = None  # the last camera at rest, world units
+        self._redraw_lock = threading.Lock()  # a recolour and a camera's redraw must not cross
         self._load_run(self.current)
         self.scale = view_scale(self.splats.covariances)
         self.detail = detail_percent(detail)
@@ -161,6 +165,8 @@ class SceneViewer:
             log.warning(line)
         cameras = self.context.cameras
         self.home = (ANTERIOR_VIEW if cameras is None else camera_view(cameras, 0)).scaled(self.scale)
+        self._camera_rest = CameraRest(self.look_from)
+        self.look_from(self.home.position, draw=False)
         self.slices = SliceLayer(self.context.volume)
         self._controls: dict = {}  # the page's controls, by name, so changes from Python show there
         self._nodes: dict = {}  # the scene nodes that change after they are drawn
@@ -202,10 +208,21 @@ class SceneViewer:
         opacities are computed again and sent (transfer_view.py)."""
         if self.scalar_scene is None:
             raise CubecloudError(f"{self.current} is not a scalar scene: train one with `cubecloud splat --scalar`")
-        if self.scalar_scene.choose(**choice):
-            self.splats = self.scalar_scene.splats()
-            self._draw()
+        with self._redraw_lock:
+            if self.scalar_scene.choose(**choice):
+                self.splats = self.scalar_scene.splats()
+                self._draw()
         self._sync_transfer_controls()
+
+    def look_from(self, position, draw: bool = True) -> None:
+        """Redraw a chord-length scalar scene as seen from ``position`` (view units), where a
+        page's camera came to rest (camera_rest.py); other scenes look alike from everywhere."""
+        self._seen_from = np.asarray(position, dtype=np.float64) / self.scale
+        with self._redraw_lock:
+            if self.scalar_scene is not None and self.scalar_scene.look_from(self._seen_from):
+                self.splats = self.scalar_scene.splats()
+                if draw:
+                    self._draw()
 
     def set_detail(self, percent: float) -> None:
         """Draw the ``percent`` of the Gaussians that shape the picture most (see by_importance)."""
@@ -294,6 +311,7 @@ class SceneViewer:
         return len(self.drawn_splats())
 
     def stop(self) -> None:
+        self._camera_rest.cancel()
         with contextlib.redirect_stdout(io.StringIO()):  # viser's own "Server stopped"
             self.server.stop()
 
@@ -307,6 +325,7 @@ class SceneViewer:
         if self.scalar_scene is None:
             self.splats = by_importance(view_splats(model))
         else:
+            self.scalar_scene.look_from(self._seen_from)
             self.splats = self.scalar_scene.splats()
 
     def _set_initial_camera(self) -> None:
@@ -428,6 +447,8 @@ class SceneViewer:
                 length = float(np.linalg.norm(direction))
                 if length > 0:  # kept for the next cut: redrawing on every camera move would flood the page
                     self.clip.view_direction = direction / length
+                if self.scalar_scene is not None and self.scalar_scene.follows_camera:
+                    self._camera_rest.moved(camera.position)  # redrawn once the camera rests
 
     def _add_clip_controls(self) -> None:
         gui = self.server.gui

@@ -19,6 +19,7 @@ import torch
 
 from cubecloud_cli.core.errors import CubecloudError
 from cubecloud_cli.eval.figures import anchor_colours
+from cubecloud_cli.splat.chord import chord_log_ratio, sphere_mean_log_ratio
 from cubecloud_cli.splat.scalar_gaussians import LOG_LENGTH_LIMIT, ScalarGaussians
 from cubecloud_cli.transfer.function import TransferFunction
 from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS, clipped_away, resolve_transfer
@@ -80,36 +81,74 @@ def transfer_presets(scalar: ScalarGaussians, intensity_map: dict | None) -> dic
 
 
 @dataclass(frozen=True)
+class ChordGeometry:
+    """What a chord-length scene's ratio r(d) needs (splat/chord.py): each Gaussian's centre,
+    quaternion and scales as rendered (the 3D filter folded in), float32."""
+
+    means: np.ndarray  # (N, 3)
+    quaternions: np.ndarray  # (N, 4)
+    scales: np.ndarray  # (N, 3)
+
+    def log_ratios(self, camera_centre: np.ndarray) -> np.ndarray:
+        """(N,) log r of each Gaussian seen from ``camera_centre`` (world units)."""
+        tensors = (torch.from_numpy(a) for a in (self.means, self.quaternions, self.scales))
+        centre = torch.as_tensor(np.asarray(camera_centre, dtype=np.float32))
+        with torch.no_grad():
+            return chord_log_ratio(*tensors, centre).numpy()
+
+
+@dataclass(frozen=True)
 class DrawnValues:
     """What of a scalar scene no transfer function changes, computed once: each Gaussian's value,
     optical length (world units) and the factor its 3D filter scales every opacity by. A recolour
     is then a few float32 passes over them (2 ms for 100k, where the torch map took 25 ms on a
-    machine busy drawing the page)."""
+    machine busy drawing the page). A chord-length scene's ℓ is scaled by r(d) for the camera
+    it is seen from, or by r's mean over the sphere without one."""
 
     values: np.ndarray  # (N,) float32 in [0, 1]
     lengths: np.ndarray  # (N,) float32, exp of the clamped log length
     attenuation: np.ndarray  # (N,) float32 in (0, 1]
+    chord: ChordGeometry | None = None  # a chord-length scene's shapes, else None
+    sphere_log_ratios: np.ndarray | None = None  # (N,) log r's mean over the sphere (chord scenes)
 
     @classmethod
     def of(cls, scalar: ScalarGaussians) -> "DrawnValues":
         with torch.no_grad():
             values = scalar.values().clamp(0.0, 1.0)
-            # One opacity per Gaussian: with chord lengths, ℓ times r's mean over the sphere.
-            lengths = torch.exp(scalar.seen_log_lengths().clamp(-LOG_LENGTH_LIMIT, LOG_LENGTH_LIMIT))
+            lengths = torch.exp(scalar.log_lengths.clamp(-LOG_LENGTH_LIMIT, LOG_LENGTH_LIMIT))
             attenuation = scalar.filter_attenuation().clamp(0.0, 1.0)
-        return cls(*(t.float().numpy() for t in (values, lengths, attenuation)))
+            arrays = [t.float().numpy() for t in (values, lengths, attenuation)]
+            if not scalar.chord_lengths:
+                return cls(*arrays)
+            scales = scalar.scales()
+            chord = ChordGeometry(*(t.detach().float().numpy() for t in (scalar.means, scalar.quaternions, scales)))
+            sphere = sphere_mean_log_ratio(scales.log()).float().numpy()
+        return cls(*arrays, chord, sphere)
 
-    def opacities(self, transfer: TransferFunction) -> np.ndarray:
-        """(N,) α = (1 − exp(−σ(v) ℓ)) × the filter's factor, as ScalarGaussians.opacities gives it."""
-        depth = np.asarray(transfer.extinction(self.values), dtype=np.float32) * self.lengths
-        return np.clip(-np.expm1(-depth) * self.attenuation, 0.0, 1.0)
+    def seen_lengths(self, camera_centre: np.ndarray | None = None) -> np.ndarray:
+        """(N,) ℓ as drawn: times r seen from ``camera_centre``, or r's mean over the sphere
+        without one; ℓ alone for a scene without chord lengths (as ScalarGaussians.seen_log_lengths)."""
+        if self.chord is None:
+            return self.lengths
+        log_ratios = self.sphere_log_ratios if camera_centre is None else self.chord.log_ratios(camera_centre)
+        log_lengths = np.log(np.maximum(self.lengths, np.float32(np.exp(-LOG_LENGTH_LIMIT)))) + log_ratios
+        return np.exp(np.clip(log_lengths, -LOG_LENGTH_LIMIT, LOG_LENGTH_LIMIT)).astype(np.float32)
+
+    def opacities(self, transfer: TransferFunction, camera_centre: np.ndarray | None = None) -> np.ndarray:
+        """(N,) α = (1 − exp(−σ(v) ℓ r)) × the filter's factor, as ScalarGaussians.opacities gives
+        it (r seen from ``camera_centre``, see :meth:`seen_lengths`)."""
+        depth = np.asarray(transfer.extinction(self.values), dtype=np.float32) * self.seen_lengths(camera_centre)
+        return np.clip(-np.expm1(-depth) * self.attenuation, 0.0, 1.0).astype(np.float32)
 
 
-def recoloured(geometry: ViewSplats, drawn: DrawnValues, chosen: ViewTransfer) -> ViewSplats:
+def recoloured(
+    geometry: ViewSplats, drawn: DrawnValues, chosen: ViewTransfer, camera_centre: np.ndarray | None = None
+) -> ViewSplats:
     """``geometry`` (the scene's centres and covariances, in the PLY's order, from
-    :func:`view_splats`) with the colours and opacities the rasterizer gives it under ``chosen``:
-    only these change with a transfer function, so a change of control redoes nothing else."""
-    opacities = drawn.opacities(chosen.effective())
+    :func:`view_splats`) with the colours and opacities the rasterizer gives it under ``chosen``
+    (seen from ``camera_centre``, world units, in a chord-length scene): only these change with a
+    transfer function, so a change of control redoes nothing else."""
+    opacities = drawn.opacities(chosen.effective(), camera_centre)
     # Grey is the value itself: no interpolation (a sixth of a recolouring's time for 100k).
     grey = chosen.colour_map == "grey"
     rgbs = np.repeat(drawn.values[:, None], 3, axis=1) if grey else colour_map(drawn.values, chosen.colour_map)
@@ -127,10 +166,28 @@ class ScalarScene:
         self.variances = mean_variances(self.geometry.covariances)  # the importance order's other factor
         self.presets = transfer_presets(scalar, intensity_map)
         self.chosen = ViewTransfer(scalar.transfer)
+        self.camera_centre: np.ndarray | None = None  # where a chord-length scene is seen from
+
+    @property
+    def follows_camera(self) -> bool:
+        """Whether the opacities change with the camera (a chord-length scene)."""
+        return self.drawn.chord is not None
+
+    def look_from(self, camera_centre: np.ndarray | None) -> bool:
+        """Draw a chord-length scene as seen from ``camera_centre`` (world units; None: r's mean
+        over the sphere); True when that changes its opacities."""
+        if not self.follows_camera:
+            return False
+        centre = None if camera_centre is None else np.asarray(camera_centre, dtype=np.float64).copy()
+        unchanged = (centre is None and self.camera_centre is None) or (
+            centre is not None and self.camera_centre is not None and np.array_equal(centre, self.camera_centre)
+        )
+        self.camera_centre = centre
+        return not unchanged
 
     def splats(self) -> ViewSplats:
         """The Gaussians under the current choice, in importance order (it changes with opacity)."""
-        splats = recoloured(self.geometry, self.drawn, self.chosen)
+        splats = recoloured(self.geometry, self.drawn, self.chosen, self.camera_centre)
         return splats.subset(importance_order(splats, self.variances, stable=False))
 
     def choose(

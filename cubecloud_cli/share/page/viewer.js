@@ -3,7 +3,7 @@
 // (base64) and what cubecloud knew of it (scene-info), so it opens from file:// with no network.
 (async function () {
   "use strict";
-  const state = { ready: false, error: null, frames: 0, distanceMm: null, picks: [] };
+  const state = { ready: false, error: null, frames: 0, distanceMm: null, picks: [], redraws: 0 };
   window.cubecloud = state; // what tests and a curious person at the console read
   const status = document.getElementById("status");
   try {
@@ -46,7 +46,17 @@ async function main(state, status) {
   const cut = setUpCut(info, splats, mesh);
   if (info.scalar) {
     const drawn = await readScalar(document.getElementById("scene-scalar").textContent, splats.count);
-    Object.assign(state, { setTransfer: setUpTransfer(info.scalar, drawn, splats, cut) });
+    const transfer = setUpTransfer(info.scalar, drawn, splats, cut, camera);
+    // A chord-length scene's opacities follow the camera: drawn again once it has come to rest.
+    let rest = null;
+    if (info.scalar.chordLengths) controls.addEventListener("change", () => {
+      clearTimeout(rest);
+      rest = setTimeout(() => {
+        transfer.redraw();
+        state.redraws += 1;
+      }, CAMERA_REST_MS);
+    });
+    Object.assign(state, { setTransfer: transfer.set, opacities: () => Array.from(splats.opacity) });
   }
   const ruler = setUpRuler(THREE, scene, camera, canvas, info, splats, cut, state);
   const labels = setUpAxisLabels(THREE, info);
@@ -68,6 +78,10 @@ async function main(state, status) {
     setCut: cut.set,
     pickAt: ruler.pickAt,
     resetView,
+    moveCamera: (position) => {
+      camera.position.fromArray(position);
+      controls.update();
+    },
     project: (point) => projectToPixels(THREE, camera, point),
   });
   renderer.setAnimationLoop(() => {
@@ -87,12 +101,17 @@ function base64Bytes(text) {
   return bytes;
 }
 
-// Each Gaussian's centre, opacity and precision matrix (the inverse covariance, 6 terms), as
-// Spark decoded them: the ruler picks in these, the cut hides by the centres.
+const CAMERA_REST_MS = 300; // still this long after the last move: the drag has ended (view/camera_rest.py)
+
+// Each Gaussian's centre, opacity, precision matrix (the inverse covariance, 6 terms) and mean log
+// scale, as Spark decoded them: the ruler picks in these, the cut hides by the centres, a chord-length
+// scene's opacities follow the camera by them.
 function readSplats(packed) {
   const count = packed.numSplats;
   const centres = new Float32Array(3 * count), opacity = new Float32Array(count), precision = new Float32Array(6 * count);
+  const meanLogScale = new Float32Array(count);
   packed.forEachSplat((i, centre, scales, q, alpha) => {
+    meanLogScale[i] = (Math.log(scales.x) + Math.log(scales.y) + Math.log(scales.z)) / 3;
     centres.set([centre.x, centre.y, centre.z], 3 * i);
     opacity[i] = alpha;
     const { x, y, z, w } = q;
@@ -105,7 +124,21 @@ function readSplats(packed) {
     const term = (a, b) => r[3 * a] * r[3 * b] * inverse[0] + r[3 * a + 1] * r[3 * b + 1] * inverse[1] + r[3 * a + 2] * r[3 * b + 2] * inverse[2];
     precision.set([term(0, 0), term(0, 1), term(0, 2), term(1, 1), term(1, 2), term(2, 2)], 6 * i);
   });
-  return { count, centres, opacity, precision };
+  return { count, centres, opacity, precision, meanLogScale };
+}
+
+// log r of splat/chord.py: the Gaussian's chord along the ray from the camera against a round
+// Gaussian's of the same volume, −½ log dᵀΣ⁻¹d − mean log s for the unit direction d; 0 where it is
+// undefined, within ±12 (LOG_RATIO_LIMIT).
+function chordLogRatio(splats, i, eye) {
+  const c = splats.centres, p = splats.precision;
+  const dx = c[3 * i] - eye.x, dy = c[3 * i + 1] - eye.y, dz = c[3 * i + 2] - eye.z;
+  const squared = dx * dx + dy * dy + dz * dz;
+  const o = 6 * i;
+  const form = p[o] * dx * dx + p[o + 3] * dy * dy + p[o + 5] * dz * dz + 2 * (p[o + 1] * dx * dy + p[o + 2] * dx * dz + p[o + 4] * dy * dz);
+  if (!(squared > 0 && form > 0 && Number.isFinite(form) && Number.isFinite(squared))) return 0;
+  const value = -0.5 * Math.log(form / squared) - splats.meanLogScale[i];
+  return Number.isFinite(value) ? Math.min(Math.max(value, -12), 12) : 0;
 }
 
 // The anatomical cut: Gaussians whose centre lies beyond the plane get opacity 0 in Spark's packed
@@ -150,12 +183,14 @@ async function readScalar(text, count) {
   const raw = new DataView(await new Response(stream).arrayBuffer());
   if (raw.byteLength !== 6 * count) throw new Error(`the scalar values hold ${raw.byteLength} bytes for ${count} Gaussians`);
   const values = new Float32Array(count), lengths = new Float32Array(count), attenuation = new Float32Array(count);
+  const logLengths = new Float32Array(count);
   for (let i = 0; i < count; i++) {
     values[i] = raw.getUint16(2 * i, true) / 65535;
-    lengths[i] = Math.exp(raw.getInt16(2 * count + 2 * i, true) / 2048);
+    logLengths[i] = raw.getInt16(2 * count + 2 * i, true) / 2048;
+    lengths[i] = Math.exp(logLengths[i]);
     attenuation[i] = raw.getUint16(4 * count + 2 * i, true) / 65535;
   }
-  return { values, lengths, attenuation };
+  return { values, lengths, logLengths, attenuation };
 }
 
 // σ(v) of cubecloud's TransferFunction: a linear rise from low to high, for a band a fall from
@@ -180,8 +215,8 @@ function mapColour(anchors, v) {
 
 // The page's transfer-function controls: each Gaussian's opacity is α = (1 − exp(−σ(v) ℓ)) times
 // its 3D filter's factor and its colour the value (or the colour map's), as `cubecloud view`
-// recolours a scalar scene.
-function setUpTransfer(scalar, drawn, splats, cut) {
+// recolours a scalar scene; a chord-length scene's ℓ is scaled by r seen from the camera.
+function setUpTransfer(scalar, drawn, splats, cut, camera) {
   document.getElementById("transfer").hidden = false;
   const preset = document.getElementById("tf-preset"), colours = document.getElementById("tf-colours");
   const low = document.getElementById("tf-low"), high = document.getElementById("tf-high");
@@ -195,9 +230,11 @@ function setUpTransfer(scalar, drawn, splats, cut) {
   const draw = () => {
     const tf = { ...chosen.tf, density: Math.min(chosen.tf.density * chosen.scale, 999999) };
     const anchors = scalar.colourMaps[chosen.map];
+    const eye = camera.position;
     for (let i = 0; i < splats.count; i++) {
       const v = drawn.values[i];
-      const alpha = Math.min(Math.max(-Math.expm1(-extinction(tf, v) * drawn.lengths[i]) * drawn.attenuation[i], 0), 1);
+      const length = scalar.chordLengths ? Math.exp(Math.min(Math.max(drawn.logLengths[i] + chordLogRatio(splats, i, eye), -10), 10)) : drawn.lengths[i];
+      const alpha = Math.min(Math.max(-Math.expm1(-extinction(tf, v) * length) * drawn.attenuation[i], 0), 1);
       const [r, g, b] = chosen.map === "grey" ? [v, v, v] : mapColour(anchors, v);
       rgba[i] = (byte(r) | (byte(g) << 8) | (byte(b) << 16) | (byte(alpha) << 24)) >>> 0;
       splats.opacity[i] = alpha; // the ruler picks in what is shown
@@ -232,7 +269,7 @@ function setUpTransfer(scalar, drawn, splats, cut) {
   opacity.addEventListener("input", () => set({ opacity: Number(opacity.value) }));
   colours.addEventListener("change", () => set({ colourMap: colours.value }));
   set({ preset: Object.keys(scalar.presets)[0] });
-  return set;
+  return { set, redraw: draw };
 }
 
 function planeText(info, axis, offset) {
