@@ -125,6 +125,10 @@ def warm_up(scan: str, base: Path) -> None:
     shutil.rmtree(work)
 
 
+def scalar_iterations(options) -> int:
+    return options.iterations or (4500 if options.no_chord_lengths else 4000)
+
+
 def run_both_ways(options, base: Path) -> None:
     """Every run, its seconds written to ``base``/seconds.json for the report."""
     work = base / "scalar"
@@ -136,8 +140,7 @@ def run_both_ways(options, base: Path) -> None:
     windows = ["--held-out-windows", str(options.held_out_windows)] if options.held_out_windows else []
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
     seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
-    iterations = options.iterations or (4500 if options.no_chord_lengths else 4000)
-    scalar = ["--scalar", "--iterations", str(iterations), "--max-gaussians", str(options.budget)]
+    scalar = ["--scalar", "--iterations", str(scalar_iterations(options)), "--max-gaussians", str(options.budget)]
     scalar += ["--no-chord-lengths"] if options.no_chord_lengths else []
     seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
     cubecloud("eval", str(work), "--turntable-frames", "0")
@@ -161,7 +164,8 @@ def report(options, base: Path) -> None:
     shared = seconds["preprocess"] + seconds["cunerf"]
     print(
         f"scan: {options.scan or 'bundled abdomen CT'}; scalar set {options.set} (stride {options.stride}), "
-        f"{options.iterations} iterations, {options.budget} Gaussians at most; fast"
+        f"{scalar_iterations(options)} iterations{', one length' if options.no_chord_lengths else ''}, "
+        f"{options.budget} Gaussians at most; fast"
     )
     print(f"shared: preprocess {seconds['preprocess']:.1f} s, cunerf {seconds['cunerf']:.1f} s")
     print()

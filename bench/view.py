@@ -9,7 +9,7 @@ first frame with the Gaussians drawn, on a 100k-Gaussian scene (issue 18's goal:
     python bench/view.py --query fixedDpr=0.5   # the canvas at half the resolution (viser's URL option)
     python bench/view.py --work work --trade    # what --detail costs: held-out PSNR at each detail
     python bench/view.py --work work --bytes    # also the bytes that reach the page, per load
-    python bench/view.py --scalar --recolour 20 # a scalar scene: control change to colours sent, 20 times
+    python bench/view.py --scalar --recolour 20 # a scalar (chord-length) scene: control change, and camera at rest, to colours sent, 20 times each
 
 
 Chromium is driven over the DevTools protocol, and the page's frames are taken from a screencast
@@ -71,7 +71,7 @@ def synthetic_work(directory: Path, count: int, seed: int = 0, scalar: bool = Fa
         model = ScalarGaussians(
             gaussians.means, gaussians.log_scales, gaussians.quaternions,
             torch.logit(0.05 + 0.9 * torch.rand(count, generator=g)), torch.log(0.05 + 0.2 * torch.rand(count, generator=g)),
-            TransferFunction(0.3, 0.9, 4.0),
+            TransferFunction(0.3, 0.9, 4.0), chord_lengths=True,
         )  # fmt: skip
         write_gaussians_ply(run / "point_cloud.ply", model.baked(), scalar_properties(model))
     else:
@@ -98,6 +98,19 @@ def time_recolours(viewer: SceneViewer, count: int) -> list[float]:
     for index in range(count):
         start = time.perf_counter()
         viewer.set_transfer(**RECOLOUR_CHOICES[index % len(RECOLOUR_CHOICES)])
+        times.append(1000.0 * (time.perf_counter() - start))
+    return times
+
+
+def time_camera_rests(viewer: SceneViewer, count: int) -> list[float]:
+    """Milliseconds from a camera coming to rest (look_from, as view/camera_rest.py calls it) to
+    a chord-length scene's opacities for it handed to every open page's websocket."""
+    times = []
+    for index in range(count):
+        angle = 2.0 * np.pi * (index + 1) / (count + 1)
+        position = 4.0 * viewer.scale * np.array([np.cos(angle), np.sin(angle), 0.3])
+        start = time.perf_counter()
+        viewer.look_from(position)
         times.append(1000.0 * (time.perf_counter() - start))
     return times
 
@@ -235,6 +248,10 @@ def main() -> None:
                     times = time_recolours(viewer, args.recolour)
                     print(f"recolour, {len(viewer.splats)} Gaussians, one page open: median {np.median(times):.0f} ms, "
                           f"max {max(times):.0f} ms over {len(times)} changes")  # fmt: skip
+                    if viewer.scalar_scene is not None and viewer.scalar_scene.follows_camera:
+                        times = time_camera_rests(viewer, args.recolour)
+                        print(f"camera at rest, chord lengths redrawn: median {np.median(times):.0f} ms, "
+                              f"max {max(times):.0f} ms over {len(times)} rests")  # fmt: skip
             if args.save:
                 import imageio.v3 as iio
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import itertools
 import json
 import logging
 import math
@@ -441,14 +442,19 @@ class SceneViewer:
 
         @self.server.on_client_connect
         def _follow_camera(client) -> None:
+            reports = itertools.count()
+
             @client.camera.on_update
             def _(camera) -> None:
                 direction = np.asarray(camera.look_at) - np.asarray(camera.position)
                 length = float(np.linalg.norm(direction))
                 if length > 0:  # kept for the next cut: redrawing on every camera move would flood the page
                     self.clip.view_direction = direction / length
-                if self.scalar_scene is not None and self.scalar_scene.follows_camera:
-                    self._camera_rest.moved(camera.position)  # redrawn once the camera rests
+                # A page's first report is viser's default camera, from before it took the home view
+                # (the scene is drawn from there already); later ones redraw once the camera rests.
+                first = next(reports) == 0
+                if not first and self.scalar_scene is not None and self.scalar_scene.follows_camera:
+                    self._camera_rest.moved(camera.position)
 
     def _add_clip_controls(self) -> None:
         gui = self.server.gui
