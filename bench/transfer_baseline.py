@@ -11,7 +11,7 @@ preprocess, such as a window wide enough for every held-out tissue):
 1. a tiny run of both ways, untimed, which compiles numba's kernels; then preprocess and cunerf
    once (no transfer function enters them, so both ways share them);
 2. the scalar way: `export --transfer-set K --transfer-stride S`, `splat --scalar --iterations N
-   --max-gaussians B` (what docs/results.md chose: 41, 6, 4000 and 50000), `eval`; eval scores the scalar run under each held-out
+   --max-gaussians B` (what docs/results.md chose: 41, 6, 3500 and 50000, and `--filter-scale 0.01`), `eval`; eval scores the scalar run under each held-out
    transfer function;
 3. today's way, once per held-out transfer function and once for the export's own: a work
    directory with the same preprocess/ and cunerf/, `export --transfer NAME` (a random ramp by its
@@ -80,12 +80,19 @@ def main() -> None:
     parser.add_argument("scan", nargs="?", help="a scan (default: the bundled abdomen CT)")
     parser.add_argument("--set", type=int, default=41, help="transfer functions the scalar scene trains under")
     parser.add_argument(
-        "--no-chord-lengths", action="store_true", help="one optical length for every direction (4500 iterations)"
+        "--no-chord-lengths",
+        action="store_true",
+        help="one optical length for every direction (4500 iterations, the 3D filter at 0.2)",
     )
     parser.add_argument(
         "--iterations",
         type=int,
-        help="the scalar run's (default 4000, 4500 with --no-chord-lengths; fast's baked runs: 1500)",
+        help="the scalar run's (default 3500, 4500 with --no-chord-lengths; fast's baked runs: 1500)",
+    )
+    parser.add_argument(
+        "--filter-scale",
+        type=float,
+        help="the scalar run's 3D filter, squared training pixels (default 0.01, 0.2 with --no-chord-lengths)",
     )
     parser.add_argument("--stride", type=int, default=6, help="export's --transfer-stride for the scalar set")
     parser.add_argument(
@@ -126,7 +133,13 @@ def warm_up(scan: str, base: Path) -> None:
 
 
 def scalar_iterations(options) -> int:
-    return options.iterations or (4500 if options.no_chord_lengths else 4000)
+    return options.iterations or (4500 if options.no_chord_lengths else 3500)
+
+
+def scalar_filter_scale(options) -> float:
+    if options.filter_scale is not None:
+        return options.filter_scale
+    return 0.2 if options.no_chord_lengths else 0.01
 
 
 def run_both_ways(options, base: Path) -> None:
@@ -141,6 +154,7 @@ def run_both_ways(options, base: Path) -> None:
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
     seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
     scalar = ["--scalar", "--iterations", str(scalar_iterations(options)), "--max-gaussians", str(options.budget)]
+    scalar += ["--filter-scale", str(scalar_filter_scale(options))]
     scalar += ["--no-chord-lengths"] if options.no_chord_lengths else []
     seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
     cubecloud("eval", str(work), "--turntable-frames", "0")
@@ -165,6 +179,7 @@ def report(options, base: Path) -> None:
     print(
         f"scan: {options.scan or 'bundled abdomen CT'}; scalar set {options.set} (stride {options.stride}), "
         f"{scalar_iterations(options)} iterations{', one length' if options.no_chord_lengths else ''}, "
+        f"3D filter {scalar_filter_scale(options):g} px², "
         f"{options.budget} Gaussians at most; fast"
     )
     print(f"shared: preprocess {seconds['preprocess']:.1f} s, cunerf {seconds['cunerf']:.1f} s")

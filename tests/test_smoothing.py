@@ -46,6 +46,17 @@ def test_the_interval_is_that_of_the_nearest_camera_that_sees_the_point():
     torch.testing.assert_close(intervals[:3], torch.tensor([4.0, 3.0, 8.0], dtype=torch.float64) / 100.0)
     assert float(intervals[3]) == pytest.approx(8.0 / 100.0)  # the largest interval of those seen
     torch.testing.assert_close(filter_variances(means, cameras), FILTER_SCALE * intervals**2)
+    torch.testing.assert_close(filter_variances(means, cameras, 0.01), 0.01 * intervals**2)
+    assert (filter_variances(means, cameras, 0.0) == 0).all()  # no filter: the scales as trained
+
+
+@pytest.mark.parametrize("scale", [-0.1, float("nan"), float("inf"), 11.0])
+def test_a_filter_scale_outside_its_range_is_refused_in_one_line(scale):
+    from cubecloud_cli.core.errors import CubecloudError
+    from cubecloud_cli.splat.settings import SplatSettings
+
+    with pytest.raises(CubecloudError, match="--filter-scale .* must be within"):
+        SplatSettings(filter_scale=scale).validate()
 
 
 def test_a_sphere_of_cameras_sees_every_point_of_the_cube_at_about_its_distance():

@@ -62,6 +62,9 @@ class SplatSettings:
     """Mip-Splatting's anti-aliasing: a 3D smoothing filter tied to the training views' sampling rate (baked into
     point_cloud.ply) and a 2D Mip filter instead of the 0.3 px dilation, so the scene holds when the view zooms.
     --no-antialias is the paper's plain 3DGS."""
+    filter_scale: float = 0.2
+    """The 3D filter's variance in squared training pixels (Mip-Splatting's 0.2). A scalar scene, whose values are held
+    to the scan at every Gaussian's centre, knows detail finer than a training pixel: `run --scalar` takes 0.01."""
     seed: int = 0
     """Seed of the view order, random points and splits."""
     eval_every: int = 500
@@ -92,6 +95,10 @@ class SplatSettings:
             raise CubecloudError(f"--random-points {self.random_points} must be at least 1")
         if not 0.0 <= self.dssim_weight <= 1.0:
             raise CubecloudError(f"--dssim-weight {self.dssim_weight:g} must be within [0, 1] (the paper: 0.2)")
+        if not (math.isfinite(self.filter_scale) and 0.0 <= self.filter_scale <= 10.0):
+            raise CubecloudError(
+                f"--filter-scale {self.filter_scale:g} must be within [0, 10] squared pixels (Mip-Splatting: 0.2)"
+            )
         if self.eval_every < 1 or self.checkpoint_every < 1:
             raise CubecloudError("--eval-every and --checkpoint-every must be at least 1")
 

@@ -24,7 +24,7 @@ from cubecloud_cli.cameras import PinholeCameras
 from cubecloud_cli.numerics.jit import PRANGE_ONLY
 from cubecloud_cli.raster.projection import NEAR_PLANE
 
-FILTER_SCALE = 0.2  # s: the filter's variance in squared training pixels
+FILTER_SCALE = 0.2  # s: the filter's variance in squared training pixels (the paper's; `splat --filter-scale`)
 # A Gaussian projecting within this band beyond the image border still counts as seen: the
 # filter should not jump when a mean drifts across the edge (Mip-Splatting's 15%).
 SCREEN_MARGIN = 0.15
@@ -78,9 +78,9 @@ def nearest_seen_depths(means, rotations, translations, focal, limit_x, limit_y,
     return nearest
 
 
-def filter_variances(means: torch.Tensor, cameras: PinholeCameras) -> torch.Tensor:
+def filter_variances(means: torch.Tensor, cameras: PinholeCameras, scale: float = FILTER_SCALE) -> torch.Tensor:
     """(N,) the 3D filter's variance (world units²) for each mean."""
-    return FILTER_SCALE * sampling_intervals(means, cameras) ** 2
+    return scale * sampling_intervals(means, cameras) ** 2
 
 
 def smoothed_scales(log_scales: torch.Tensor, variances: torch.Tensor) -> torch.Tensor:

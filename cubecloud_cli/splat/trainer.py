@@ -138,7 +138,9 @@ class SplatTrainer:
     def _update_smoothing(self) -> None:
         """The 3D filter for the Gaussians as they are now (Mip-Splatting's, from the training views)."""
         if self.settings.antialias:
-            self.gaussians.smoothing = filter_variances(self.gaussians.means.detach(), self.training_cameras)
+            self.gaussians.smoothing = filter_variances(
+                self.gaussians.means.detach(), self.training_cameras, self.settings.filter_scale
+            )
 
     def render(self, view: int, retain: bool = False) -> Rasterized:
         return render_camera(
