@@ -137,18 +137,24 @@ class DrawnValues:
     def opacities(self, transfer: TransferFunction, camera_centre: np.ndarray | None = None) -> np.ndarray:
         """(N,) α = (1 − exp(−σ(v) ℓ r)) × the filter's factor, as ScalarGaussians.opacities gives
         it (r seen from ``camera_centre``, see :meth:`seen_lengths`)."""
-        depth = np.asarray(transfer.extinction(self.values), dtype=np.float32) * self.seen_lengths(camera_centre)
+        return self.opacities_at(transfer, self.seen_lengths(camera_centre))
+
+    def opacities_at(self, transfer: TransferFunction, seen_lengths: np.ndarray) -> np.ndarray:
+        """:meth:`opacities` for lengths :meth:`seen_lengths` gave: a recolour under another
+        transfer function does not compute r again while the camera rests."""
+        depth = np.asarray(transfer.extinction(self.values), dtype=np.float32) * seen_lengths
         return np.clip(-np.expm1(-depth) * self.attenuation, 0.0, 1.0).astype(np.float32)
 
 
 def recoloured(
-    geometry: ViewSplats, drawn: DrawnValues, chosen: ViewTransfer, camera_centre: np.ndarray | None = None
+    geometry: ViewSplats, drawn: DrawnValues, chosen: ViewTransfer, seen_lengths: np.ndarray | None = None
 ) -> ViewSplats:
     """``geometry`` (the scene's centres and covariances, in the PLY's order, from
     :func:`view_splats`) with the colours and opacities the rasterizer gives it under ``chosen``
-    (seen from ``camera_centre``, world units, in a chord-length scene): only these change with a
-    transfer function, so a change of control redoes nothing else."""
-    opacities = drawn.opacities(chosen.effective(), camera_centre)
+    (with ``seen_lengths`` from :meth:`DrawnValues.seen_lengths`; the camera-less ones without):
+    only these change with a transfer function, so a change of control redoes nothing else."""
+    lengths = drawn.seen_lengths() if seen_lengths is None else seen_lengths
+    opacities = drawn.opacities_at(chosen.effective(), lengths)
     # Grey is the value itself: no interpolation (a sixth of a recolouring's time for 100k).
     grey = chosen.colour_map == "grey"
     rgbs = np.repeat(drawn.values[:, None], 3, axis=1) if grey else colour_map(drawn.values, chosen.colour_map)
@@ -167,6 +173,7 @@ class ScalarScene:
         self.presets = transfer_presets(scalar, intensity_map)
         self.chosen = ViewTransfer(scalar.transfer)
         self.camera_centre: np.ndarray | None = None  # where a chord-length scene is seen from
+        self.seen_lengths = self.drawn.seen_lengths()  # ℓ as drawn from there, kept while it rests
 
     @property
     def follows_camera(self) -> bool:
@@ -179,15 +186,15 @@ class ScalarScene:
         if not self.follows_camera:
             return False
         centre = None if camera_centre is None else np.asarray(camera_centre, dtype=np.float64).copy()
-        unchanged = (centre is None and self.camera_centre is None) or (
-            centre is not None and self.camera_centre is not None and np.array_equal(centre, self.camera_centre)
-        )
+        if np.array_equal(centre, self.camera_centre):  # None against None too
+            return False
         self.camera_centre = centre
-        return not unchanged
+        self.seen_lengths = self.drawn.seen_lengths(centre)
+        return True
 
     def splats(self) -> ViewSplats:
         """The Gaussians under the current choice, in importance order (it changes with opacity)."""
-        splats = recoloured(self.geometry, self.drawn, self.chosen, self.camera_centre)
+        splats = recoloured(self.geometry, self.drawn, self.chosen, self.seen_lengths)
         return splats.subset(importance_order(splats, self.variances, stable=False))
 
     def choose(

@@ -52,7 +52,7 @@ async function main(state, status) {
     if (info.scalar.chordLengths) controls.addEventListener("change", () => {
       clearTimeout(rest);
       rest = setTimeout(() => {
-        transfer.redraw();
+        transfer.lookFrom();
         state.redraws += 1;
       }, CAMERA_REST_MS);
     });
@@ -182,15 +182,13 @@ async function readScalar(text, count) {
   const stream = new Blob([base64Bytes(text)]).stream().pipeThrough(new DecompressionStream("gzip"));
   const raw = new DataView(await new Response(stream).arrayBuffer());
   if (raw.byteLength !== 6 * count) throw new Error(`the scalar values hold ${raw.byteLength} bytes for ${count} Gaussians`);
-  const values = new Float32Array(count), lengths = new Float32Array(count), attenuation = new Float32Array(count);
-  const logLengths = new Float32Array(count);
+  const values = new Float32Array(count), logLengths = new Float32Array(count), attenuation = new Float32Array(count);
   for (let i = 0; i < count; i++) {
     values[i] = raw.getUint16(2 * i, true) / 65535;
     logLengths[i] = raw.getInt16(2 * count + 2 * i, true) / 2048;
-    lengths[i] = Math.exp(logLengths[i]);
     attenuation[i] = raw.getUint16(4 * count + 2 * i, true) / 65535;
   }
-  return { values, lengths, logLengths, attenuation };
+  return { values, logLengths, attenuation };
 }
 
 // σ(v) of cubecloud's TransferFunction: a linear rise from low to high, for a band a fall from
@@ -226,15 +224,23 @@ function setUpTransfer(scalar, drawn, splats, cut, camera) {
   for (const name of Object.keys(scalar.colourMaps)) colours.add(new Option(name, name));
   const chosen = { tf: Object.values(scalar.presets)[0], scale: 1, map: "grey" };
   const rgba = new Uint32Array(splats.count);
+  // ℓ as drawn: times r seen from the camera in a chord-length scene, within ±10 in log (as
+  // LOG_LENGTH_LIMIT); computed when the camera rests, not at each change of a control.
+  const seen = new Float32Array(splats.count);
+  const seeLengths = () => {
+    const eye = camera.position;
+    for (let i = 0; i < splats.count; i++) {
+      const ratio = scalar.chordLengths ? chordLogRatio(splats, i, eye) : 0;
+      seen[i] = Math.exp(Math.min(Math.max(drawn.logLengths[i] + ratio, -10), 10));
+    }
+  };
   const byte = (x) => Math.min(Math.max(Math.round(x * 255), 0), 255);
   const draw = () => {
     const tf = { ...chosen.tf, density: Math.min(chosen.tf.density * chosen.scale, 999999) };
     const anchors = scalar.colourMaps[chosen.map];
-    const eye = camera.position;
     for (let i = 0; i < splats.count; i++) {
       const v = drawn.values[i];
-      const length = scalar.chordLengths ? Math.exp(Math.min(Math.max(drawn.logLengths[i] + chordLogRatio(splats, i, eye), -10), 10)) : drawn.lengths[i];
-      const alpha = Math.min(Math.max(-Math.expm1(-extinction(tf, v) * length) * drawn.attenuation[i], 0), 1);
+      const alpha = Math.min(Math.max(-Math.expm1(-extinction(tf, v) * seen[i]) * drawn.attenuation[i], 0), 1);
       const [r, g, b] = chosen.map === "grey" ? [v, v, v] : mapColour(anchors, v);
       rgba[i] = (byte(r) | (byte(g) << 8) | (byte(b) << 16) | (byte(alpha) << 24)) >>> 0;
       splats.opacity[i] = alpha; // the ruler picks in what is shown
@@ -268,8 +274,13 @@ function setUpTransfer(scalar, drawn, splats, cut, camera) {
   high.addEventListener("input", () => set({ high: Number(high.value) }));
   opacity.addEventListener("input", () => set({ opacity: Number(opacity.value) }));
   colours.addEventListener("change", () => set({ colourMap: colours.value }));
+  seeLengths();
   set({ preset: Object.keys(scalar.presets)[0] });
-  return { set, redraw: draw };
+  const lookFrom = () => {
+    seeLengths();
+    draw();
+  };
+  return { set, lookFrom };
 }
 
 function planeText(info, axis, offset) {
