@@ -184,6 +184,8 @@ def test_a_foreign_colmap_scene_with_png_images(exported, tmp_path):
         (["--scalar", "--channels", "3"], r"--scalar Gaussians carry one scan value"),
         (["--scalar", "--value-anchor", "-1"], r"--value-anchor -1 must be a finite weight"),
         (["--scalar", "--value-anchor", "nan"], r"--value-anchor nan must be a finite weight"),
+        (["--scalar", "--value-spread", "-0.5"], r"--value-spread -0.5 must be a finite weight"),
+        (["--scalar", "--value-spread", "inf"], r"--value-spread inf must be a finite weight"),
     ],
 )
 def test_bad_options(exported, tmp_path, args, pattern):
@@ -234,15 +236,18 @@ def test_a_scalar_run_holds_its_values_to_the_volume_its_scene_was_exported_from
     np.save(volume, values[::-1].copy())  # another volume than the export's
     assert_one_line_error(invoke("splat", work, "--scalar", *QUICK), r"preprocess/volume.npy")
     volume.unlink()
-    assert_one_line_error(invoke("splat", work, "--scalar", *QUICK), r"give --value-anchor 0")
+    assert_one_line_error(invoke("splat", work, "--scalar", *QUICK), r"give --value-anchor 0 --value-spread 0")
+    # Either term alone needs the scan.
+    assert_one_line_error(invoke("splat", work, "--scalar", "--value-anchor", "0", *QUICK), r"--value-spread 0")
     assert not (work / "splat").exists()
-    result = invoke("splat", work, "--scalar", "--value-anchor", "0", *QUICK, "-q")
+    result = invoke("splat", work, "--scalar", "--value-anchor", "0", "--value-spread", "0", *QUICK, "-q")
     assert result.exit_code == 0, result.output
     np.save(volume, values)
     result = invoke("splat", work, "--scalar", *QUICK, "-q", "--force")
     assert result.exit_code == 0, result.output
     manifest = json.loads((work / "splat" / "manifest.json").read_text())
     assert manifest["params"]["value_anchor"] == 1.0 and "preprocess/volume.npy" in manifest["inputs"]
+    assert manifest["params"]["value_spread"] == 1.0
 
 
 def test_missing_export_or_scene(exported, tmp_path):

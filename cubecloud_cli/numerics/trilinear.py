@@ -69,3 +69,33 @@ def sample_cube_into(volume, points, out) -> None:
             out[i] = trilinear(volume, x, y, z)
         else:
             out[i] = 0.0
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def sample_cube_gradient_into(volume, points, out) -> None:
+    """out[i] = the gradient of ``volume`` (values per world unit) at world point ``points[i]`` of
+    the cube [-1, 1]³ read as :func:`sample_cube_into` reads it: along each axis the difference of
+    the two reads one voxel either side, over two voxels' width (inside the grid, the trilinear
+    read of the central differences at the voxel centres). 0 at points that are not finite."""
+    size_x, size_y, size_z = volume.shape
+    for i in prange(points.shape[0]):
+        x = ((points[i, 0] + 1.0) * size_x - 1.0) * 0.5
+        y = ((points[i, 1] + 1.0) * size_y - 1.0) * 0.5
+        z = ((points[i, 2] + 1.0) * size_z - 1.0) * 0.5
+        out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
+        # A read past -2 or size + 1 voxels is 0 on both sides; the bounds also keep NaN out.
+        if not (-2.0 < x < size_x + 1.0 and -2.0 < y < size_y + 1.0 and -2.0 < z < size_z + 1.0):
+            continue
+        # Two voxels are 4 / size world units: a difference over them times size / 4.
+        out[i, 0] = (_read(volume, x + 1.0, y, z) - _read(volume, x - 1.0, y, z)) * (0.25 * size_x)
+        out[i, 1] = (_read(volume, x, y + 1.0, z) - _read(volume, x, y - 1.0, z)) * (0.25 * size_y)
+        out[i, 2] = (_read(volume, x, y, z + 1.0) - _read(volume, x, y, z - 1.0)) * (0.25 * size_z)
+
+
+@njit(inline="always")
+def _read(volume, x, y, z):
+    """``trilinear`` where it has a corner inside the grid, else 0, as ``sample_cube_into`` reads."""
+    size_x, size_y, size_z = volume.shape
+    if -1.0 < x < size_x and -1.0 < y < size_y and -1.0 < z < size_z:
+        return trilinear(volume, x, y, z)
+    return 0.0

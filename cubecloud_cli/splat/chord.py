@@ -28,6 +28,7 @@ import torch
 from numba import njit, prange
 
 from cubecloud_cli.numerics.jit import PRANGE_ONLY
+from cubecloud_cli.numerics.local_axes import local, raw_quaternion_gradient
 
 # r between e^-12 and e^12: scales within LOG_SCALE_LIMIT of each other stay well inside.
 LOG_RATIO_LIMIT = 12.0
@@ -48,15 +49,6 @@ def _unit_direction_and_quaternion(means, quaternions, centre, i):
         dx, dy, dz = dx * inverse_d, dy * inverse_d, dz * inverse_d
         w, x, y, z = w * inverse_q, x * inverse_q, y * inverse_q, z * inverse_q
     return ok, dx, dy, dz, w, x, y, z, length_q
-
-
-@njit(inline="always")
-def _local(dx, dy, dz, w, x, y, z):
-    """Rᵀd: the direction in the Gaussian's own axes."""
-    l0 = (1 - 2 * (y * y + z * z)) * dx + 2 * (x * y + w * z) * dy + 2 * (x * z - w * y) * dz
-    l1 = 2 * (x * y - w * z) * dx + (1 - 2 * (x * x + z * z)) * dy + 2 * (y * z + w * x) * dz
-    l2 = 2 * (x * z + w * y) * dx + 2 * (y * z - w * x) * dy + (1 - 2 * (x * x + y * y)) * dz
-    return l0, l1, l2
 
 
 @njit(inline="always")
@@ -91,7 +83,7 @@ def _chord_forward(means, quaternions, scales, centre, out, jacobian, with_jacob
         ok, dx, dy, dz, w, x, y, z, length_q = _unit_direction_and_quaternion(means, quaternions, centre, i)
         if not ok:
             continue
-        l0, l1, l2 = _local(dx, dy, dz, w, x, y, z)
+        l0, l1, l2 = local(dx, dy, dz, w, x, y, z)
         s0, s1, s2 = float(scales[i, 0]), float(scales[i, 1]), float(scales[i, 2])
         inside, value, inverse, a0, a1, a2 = _log_ratio(l0, l1, l2, s0, s1, s2)
         out[i] = value
@@ -101,21 +93,11 @@ def _chord_forward(means, quaternions, scales, centre, out, jacobian, with_jacob
         jacobian[i, 4] = (a0 * a0 / inverse - 1.0 / 3.0) / s0
         jacobian[i, 5] = (a1 * a1 / inverse - 1.0 / 3.0) / s1
         jacobian[i, 6] = (a2 * a2 / inverse - 1.0 / 3.0) / s2
-        # To l (∂ log r / ∂lⱼ = −aⱼ / (sⱼ dᵀΣ⁻¹d)), to R's entries (l = Rᵀd: ∂/∂R_kj = d_k ∂/∂l_j),
-        # then to the unit quaternion.
+        # To l (∂ log r / ∂lⱼ = −aⱼ / (sⱼ dᵀΣ⁻¹d)), then to the raw quaternion.
         h0, h1, h2 = -a0 / (s0 * inverse), -a1 / (s1 * inverse), -a2 / (s2 * inverse)
-        g00, g01, g02 = dx * h0, dx * h1, dx * h2
-        g10, g11, g12 = dy * h0, dy * h1, dy * h2
-        g20, g21, g22 = dz * h0, dz * h1, dz * h2
-        gw = 2 * (-z * g01 + y * g02 + z * g10 - x * g12 - y * g20 + x * g21)
-        gx = 2 * (y * g01 + z * g02 + y * g10 - 2 * x * g11 - w * g12 + z * g20 + w * g21 - 2 * x * g22)
-        gy = 2 * (-2 * y * g00 + x * g01 + w * g02 + x * g10 + z * g12 - w * g20 + z * g21 - 2 * y * g22)
-        gz = 2 * (-2 * z * g00 - w * g01 + x * g02 + w * g10 - 2 * z * g11 + y * g12 + x * g20 + y * g21)
-        along = w * gw + x * gx + y * gy + z * gz  # through the normalisation q = u / |u|
-        jacobian[i, 0] = (gw - w * along) / length_q
-        jacobian[i, 1] = (gx - x * along) / length_q
-        jacobian[i, 2] = (gy - y * along) / length_q
-        jacobian[i, 3] = (gz - z * along) / length_q
+        jacobian[i, 0], jacobian[i, 1], jacobian[i, 2], jacobian[i, 3] = raw_quaternion_gradient(
+            dx, dy, dz, h0, h1, h2, w, x, y, z, length_q
+        )
 
 
 class _ChordLogRatio(torch.autograd.Function):

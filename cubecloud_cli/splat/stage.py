@@ -222,7 +222,7 @@ def train_splat(
                         "it cannot resume; start afresh with --force"
                     )
                 trainer = _build_trainer(scene, settings, device, state)
-                if settings.scalar and settings.value_anchor > 0:
+                if settings.scalar and (settings.value_anchor > 0 or settings.value_spread > 0):
                     trainer.scan_values = _scan_values(scene_dir, writer, device)
                 trainer.identity = {**trainer.identity, "inputs": digests}
             with writer.phase("train"):
@@ -258,19 +258,20 @@ def _record_inputs(writer: StageWriter, scene_dir: Path) -> dict[str, str]:
 
 
 def _scan_values(scene_dir: Path, writer: StageWriter, device: torch.device) -> torch.Tensor:
-    """The preprocessed volume the scene was exported from, memory-mapped, for --value-anchor."""
+    """The preprocessed volume the scene was exported from, memory-mapped, for --value-anchor and
+    --value-spread."""
     path = scene_dir.parent / "preprocess" / "volume.npy"
-    fix = "train on a work directory's export, or give --value-anchor 0"
+    fix = "train on a work directory's export, or give --value-anchor 0 --value-spread 0"
     recorded = read_manifest(scene_dir, fix).get("inputs", {}).get("preprocess/volume.npy")
     if recorded is None or not path.is_file():
         raise CubecloudError(
-            f"--value-anchor holds a scalar scene's values to the scan's, but {path} is not the volume {scene_dir} "
+            f"--value-anchor and --value-spread hold a scalar scene to the scan, but {path} is not the volume {scene_dir} "
             f"was exported from: {fix}"
         )
     remake = f"cubecloud preprocess SCAN -o {scene_dir.parent} --force"
     if writer.add_input(path, "preprocess/volume.npy", remake=remake) != recorded:
         raise CubecloudError(
-            f"{path} changed since {scene_dir} was exported from it: re-export, or give --value-anchor 0"
+            f"{path} changed since {scene_dir} was exported from it: re-export, or give --value-anchor 0 --value-spread 0"
         )
     with warnings.catch_warnings():  # read-only: the map is never written
         warnings.simplefilter("ignore", UserWarning)

@@ -23,6 +23,7 @@ from cubecloud_cli.splat.scalar_gaussians import GaussianModel
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.smoothing import RECOMPUTE_EVERY, filter_variances
 from cubecloud_cli.splat.training_views import TrainingScene
+from cubecloud_cli.splat.value_spread import scan_gradient_at, value_spread_loss
 from cubecloud_cli.transfer.training_set import member_slot
 
 # A scalar scene reads the scan at its centres this often (and whenever the Gaussians change).
@@ -87,11 +88,13 @@ class SplatTrainer:
     ):
         self.settings = settings
         # A scalar model's values are held to this volume ([x, y, z] over the cube) with weight
-        # settings.value_anchor; the stage sets it for --scalar runs (None: held to nothing).
+        # settings.value_anchor, and its Gaussians thin across the volume's edges with weight
+        # settings.value_spread; the stage sets it for --scalar runs (None: held to nothing).
         self.scan_values: torch.Tensor | None = None
         # Kept between reads (_scan_at_centres) and in checkpoints, so that a resumed run holds its
         # values to what an uninterrupted one would.
         self._scan_at_centres_read: torch.Tensor | None = None
+        self._scan_gradient_read: torch.Tensor | None = None
         self.scene = scene
         self.device = device
         self.rasterizer = rasterizer_for(device)
@@ -165,12 +168,16 @@ class SplatTrainer:
         return math.exp((1 - t) * math.log(start) + t * math.log(end))
 
     def loss(self, image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """A step's loss: the photometric loss, plus the value anchor in a scalar scene."""
+        """A step's loss: the photometric loss, plus in a scalar scene the value anchor and the
+        scan's spread over each Gaussian (``value_spread.py``)."""
         loss = photometric_loss(image, target, self.settings.dssim_weight)
         if self.scan_values is not None:
-            loss = loss + self.settings.value_anchor * value_anchor_loss(
-                self.gaussians.values(), self._scan_at_centres()
-            )
+            scan, gradient = self._scan_at_centres()
+            if self.settings.value_anchor > 0:
+                loss = loss + self.settings.value_anchor * value_anchor_loss(self.gaussians.values(), scan)
+            if gradient is not None:
+                g = self.gaussians
+                loss = loss + self.settings.value_spread * value_spread_loss(g.quaternions, g.log_scales, gradient)
         return loss
 
     def step(self) -> float:
@@ -206,20 +213,24 @@ class SplatTrainer:
             self._check(self._reads.read())
         if self.strategy.step_post_optimizer(self.iteration, Trainable(self.gaussians, self.optimizer, self.generator)):
             self._update_smoothing()  # for the Gaussians added and removed
-            self._scan_at_centres_read = None
+            self._scan_at_centres_read = self._scan_gradient_read = None
         if not refining and self.iteration % RECOMPUTE_EVERY == 0:
             self._update_smoothing()  # the means still move a little once densification stops
         self.elapsed_s += time.perf_counter() - started
         return loss.detach()
 
-    def _scan_at_centres(self) -> torch.Tensor:
-        """The scan's value at each Gaussian's centre, read again once the Gaussians change and
-        every SCAN_REREAD_EVERY steps: in that many steps a centre moves a fraction of a voxel,
-        and reading 50,000 scattered centres took 3 ms of a 25 ms step on a CPU."""
+    def _scan_at_centres(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The scan's value at each Gaussian's centre, and its gradient there with --value-spread,
+        read again once the Gaussians change and every SCAN_REREAD_EVERY steps: in that many steps
+        a centre moves a fraction of a voxel, and reading 50,000 scattered centres took 3 ms of a
+        25 ms step on a CPU."""
         if self._scan_at_centres_read is None or self.iteration % SCAN_REREAD_EVERY == 0:
             with torch.no_grad():
-                self._scan_at_centres_read = volume_at(self.scan_values, self.gaussians.means.detach())
-        return self._scan_at_centres_read
+                means = self.gaussians.means.detach()
+                self._scan_at_centres_read = volume_at(self.scan_values, means)
+                spread = self.settings.value_spread > 0
+                self._scan_gradient_read = scan_gradient_at(self.scan_values, means) if spread else None
+        return self._scan_at_centres_read, self._scan_gradient_read
 
     def _target(self, view: int) -> tuple[int, torch.Tensor]:
         """This step's view and its image: ``view`` under the scene's transfer function, or an image
@@ -288,6 +299,7 @@ class SplatTrainer:
             "gaussians": {name: getattr(self.gaussians, name).detach().cpu() for name in self.gaussians.TRAINED},
             "smoothing": None if self.gaussians.smoothing is None else self.gaussians.smoothing.cpu(),
             "scan_at_centres": None if self._scan_at_centres_read is None else self._scan_at_centres_read.cpu(),
+            "scan_gradient_at_centres": None if self._scan_gradient_read is None else self._scan_gradient_read.cpu(),
             "optimizer": self.optimizer.state_dict(),
             **self.strategy.state_dict(),
             "generator": self.generator.get_state(),
@@ -309,7 +321,11 @@ class SplatTrainer:
         smoothing = state.get("smoothing")
         self.gaussians.smoothing = None if smoothing is None else smoothing.to(self.device)
         scan = state.get("scan_at_centres")  # a checkpoint from before it was kept reads the scan again
+        gradient = state.get("scan_gradient_at_centres")
+        if scan is None or (gradient is None and self.settings.value_spread > 0):
+            scan = gradient = None
         self._scan_at_centres_read = None if scan is None else scan.to(self.device)
+        self._scan_gradient_read = None if gradient is None else gradient.to(self.device)
         self.optimizer.state.clear()
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy.load_state_dict(state, len(self.gaussians), self.device)
