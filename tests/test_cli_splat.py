@@ -18,12 +18,13 @@ from cubecloud_cli.cameras import OrbitSpec, orbit_cameras
 from cubecloud_cli.raster.backends import NUMBA
 from cubecloud_cli.splat import Gaussians, gaussians_from_points, read_gaussians_ply
 from cubecloud_cli.splat.densify import strategy_for
-from cubecloud_cli.splat.gaussian_ply import read_scalar_properties, read_splat_ply
+from cubecloud_cli.splat.gaussian_ply import read_scalar_gaussians, read_scalar_properties, read_splat_ply
 from cubecloud_cli.splat.scalar_gaussians import ScalarGaussians
 from cubecloud_cli.splat.settings import SplatSettings
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
 from cubecloud_cli.splat.trainer import SCAN_REREAD_EVERY, SplatTrainer, render
 from cubecloud_cli.splat.training_views import TrainingScene
+from cubecloud_cli.splat.value_spread import scan_gradient_at, value_spread
 
 # These tests are of the CPU trainer (the numba kernels, bits repeated on resume), also on a
 # machine with a GPU, where --device auto would pick it: tests/test_cuda.py covers the GPU.
@@ -248,6 +249,22 @@ def test_a_scalar_run_holds_its_values_to_the_volume_its_scene_was_exported_from
     manifest = json.loads((work / "splat" / "manifest.json").read_text())
     assert manifest["params"]["value_anchor"] == 1.0 and "preprocess/volume.npy" in manifest["inputs"]
     assert manifest["params"]["value_spread"] == 1.0
+
+
+def test_the_value_spread_thins_a_scalar_scenes_gaussians_across_the_scans_edges(exported, tmp_path):
+    """The same run with the spread term and without it: the scan's mean variance over the
+    Gaussians (gᵀΣg) ends lower with it, so the term reaches the training."""
+    volume = torch.from_numpy(np.load(exported / "preprocess" / "volume.npy"))
+    spreads = {}
+    for weight in ("0", "30"):
+        work = _copy(exported, tmp_path / weight)
+        # No 3D filter: the PLY's scales would hold its variance too.
+        result = invoke("splat", work, "--scalar", "--value-spread", weight, "--filter-scale", "0", *QUICK, "-q")
+        assert result.exit_code == 0, result.output
+        gaussians = read_scalar_gaussians(work / "splat" / "point_cloud.ply")
+        gradient = scan_gradient_at(volume, gaussians.means)
+        spreads[weight] = float(value_spread(gaussians.quaternions, gaussians.log_scales, gradient).mean())
+    assert spreads["30"] < 0.8 * spreads["0"], spreads
 
 
 def test_missing_export_or_scene(exported, tmp_path):

@@ -14,8 +14,9 @@ over its footprint. ``--value-spread`` adds its mean over the Gaussians to a sca
 which makes Gaussians thin across edges and leaves them free along them and where the scan is flat.
 
 The gradient is read by ``numerics/trilinear.sample_cube_gradient_into`` (central differences
-over two voxels of the trilinear scan; over one, edges gave 0.4–1 dB less), with the scan's values at the centres and as often. Rows with a zero
-or non-finite quaternion or scale, or a non-finite gradient or spread, give 0 and no gradient.
+over two voxels of the trilinear scan; over one, held-out scores were 0.4–1 dB lower) with the
+scan's values at the centres, and as often. Rows with a zero or non-finite quaternion or scale,
+or a non-finite gradient or spread, give 0 and no gradient.
 """
 
 from __future__ import annotations
