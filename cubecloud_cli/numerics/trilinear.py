@@ -94,7 +94,24 @@ def sample_cube_gradient_into(volume, points, out) -> None:
 
 @njit(inline="always")
 def _read(volume, x, y, z):
-    """``trilinear`` where it has a corner inside the grid, else 0, as ``sample_cube_into`` reads."""
+    """``trilinear`` where it has a corner inside the grid, else 0, as ``sample_cube_into`` reads.
+    Inside, the eight corners are read inline; near the faces ``_read_at_faces`` is called: six
+    inlined copies of the whole of ``trilinear`` took LLVM 24–28 s to compile, and six calls of
+    it made the read 2.5 times slower."""
+    size_x, size_y, size_z = volume.shape
+    ix, iy, iz = math.floor(x), math.floor(y), math.floor(z)
+    if 0 <= ix < size_x - 1 and 0 <= iy < size_y - 1 and 0 <= iz < size_z - 1:
+        fx, fy, fz = x - ix, y - iy, z - iz
+        c00 = volume[ix, iy, iz] * (1.0 - fx) + volume[ix + 1, iy, iz] * fx
+        c01 = volume[ix, iy + 1, iz] * (1.0 - fx) + volume[ix + 1, iy + 1, iz] * fx
+        c10 = volume[ix, iy, iz + 1] * (1.0 - fx) + volume[ix + 1, iy, iz + 1] * fx
+        c11 = volume[ix, iy + 1, iz + 1] * (1.0 - fx) + volume[ix + 1, iy + 1, iz + 1] * fx
+        return (c00 * (1.0 - fy) + c01 * fy) * (1.0 - fz) + (c10 * (1.0 - fy) + c11 * fy) * fz
+    return _read_at_faces(volume, x, y, z)
+
+
+@njit(cache=True)
+def _read_at_faces(volume, x, y, z):
     size_x, size_y, size_z = volume.shape
     if -1.0 < x < size_x and -1.0 < y < size_y and -1.0 < z < size_z:
         return trilinear(volume, x, y, z)
