@@ -21,6 +21,16 @@ from cubecloud_cli.numerics.jit import PRANGE_ONLY
 
 
 @njit(cache=True, inline="always")
+def _inside(volume, ix, iy, iz, fx, fy, fz):
+    """The trilinear read from low corner (ix, iy, iz) at fractions (fx, fy, fz), every corner in the grid."""
+    c00 = volume[ix, iy, iz] * (1.0 - fx) + volume[ix + 1, iy, iz] * fx
+    c01 = volume[ix, iy + 1, iz] * (1.0 - fx) + volume[ix + 1, iy + 1, iz] * fx
+    c10 = volume[ix, iy, iz + 1] * (1.0 - fx) + volume[ix + 1, iy, iz + 1] * fx
+    c11 = volume[ix, iy + 1, iz + 1] * (1.0 - fx) + volume[ix + 1, iy + 1, iz + 1] * fx
+    return (c00 * (1.0 - fy) + c01 * fy) * (1.0 - fz) + (c10 * (1.0 - fy) + c11 * fy) * fz
+
+
+@njit(cache=True, inline="always")
 def trilinear(volume, x, y, z):
     """The grid's value at continuous voxel coordinates (voxel centres at integers), corners
     outside the grid counting as 0; ``volume`` is indexed [x, y, z], as volume.npy is stored."""
@@ -29,11 +39,7 @@ def trilinear(volume, x, y, z):
     fx, fy, fz = x - ix, y - iy, z - iz
     if 0 <= ix < size_x - 1 and 0 <= iy < size_y - 1 and 0 <= iz < size_z - 1:
         # Every corner inside: most samples, read without a bounds test per corner.
-        c00 = volume[ix, iy, iz] * (1.0 - fx) + volume[ix + 1, iy, iz] * fx
-        c01 = volume[ix, iy + 1, iz] * (1.0 - fx) + volume[ix + 1, iy + 1, iz] * fx
-        c10 = volume[ix, iy, iz + 1] * (1.0 - fx) + volume[ix + 1, iy, iz + 1] * fx
-        c11 = volume[ix, iy + 1, iz + 1] * (1.0 - fx) + volume[ix + 1, iy + 1, iz + 1] * fx
-        return (c00 * (1.0 - fy) + c01 * fy) * (1.0 - fz) + (c10 * (1.0 - fy) + c11 * fy) * fz
+        return _inside(volume, ix, iy, iz, fx, fy, fz)
     total = 0.0
     for c in range(2):
         k = iz + c
@@ -101,12 +107,7 @@ def _read(volume, x, y, z):
     size_x, size_y, size_z = volume.shape
     ix, iy, iz = math.floor(x), math.floor(y), math.floor(z)
     if 0 <= ix < size_x - 1 and 0 <= iy < size_y - 1 and 0 <= iz < size_z - 1:
-        fx, fy, fz = x - ix, y - iy, z - iz
-        c00 = volume[ix, iy, iz] * (1.0 - fx) + volume[ix + 1, iy, iz] * fx
-        c01 = volume[ix, iy + 1, iz] * (1.0 - fx) + volume[ix + 1, iy + 1, iz] * fx
-        c10 = volume[ix, iy, iz + 1] * (1.0 - fx) + volume[ix + 1, iy, iz + 1] * fx
-        c11 = volume[ix, iy + 1, iz + 1] * (1.0 - fx) + volume[ix + 1, iy + 1, iz + 1] * fx
-        return (c00 * (1.0 - fy) + c01 * fy) * (1.0 - fz) + (c10 * (1.0 - fy) + c11 * fy) * fz
+        return _inside(volume, ix, iy, iz, x - ix, y - iy, z - iz)
     return _read_at_faces(volume, x, y, z)
 
 
