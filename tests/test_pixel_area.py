@@ -6,7 +6,7 @@ import torch
 
 from cubecloud_cli.cameras.novel import NovelViewSet
 from cubecloud_cli.render import GridField, ImageModel, pixel_area, render_view
-from cubecloud_cli.render.pixel_area import pixel_area_render, subpixel_points
+from cubecloud_cli.render.pixel_area import pixel_area_render, pixel_area_renders, subpixel_points
 from cubecloud_cli.render.rays import tiled_order
 from cubecloud_cli.transfer.function import TransferFunction
 
@@ -37,6 +37,17 @@ def test_the_fused_pixel_area_render_is_the_k_images_to_the_bit(factor):
     fused = pixel_area_render(field, cameras, 2, model, None, torch.device("cpu"), factor)
     assert float(fused.std()) > 0.01
     np.testing.assert_array_equal(fused, k_images(field, cameras, 2, model, factor))
+
+
+def test_pixel_area_renders_under_several_transfer_functions_are_each_render_alone():
+    rng = np.random.default_rng(4)
+    field = GridField(rng.uniform(size=(20, 20, 20)).astype(np.float32) ** 3)
+    models = [ImageModel("dvr", TransferFunction(low, low + 0.3, 30.0), step=2 / 20) for low in (0.05, 0.2, 0.6)]
+    cameras = NovelViewSet.build(3, 4.0, 13).cameras(0.75)
+    together = pixel_area_renders(field, cameras, 1, models, None, torch.device("cpu"), 2)
+    for image, model in zip(together, models):
+        np.testing.assert_array_equal(image, pixel_area_render(field, cameras, 1, model, None, torch.device("cpu"), 2))
+    assert together.shape == (3, 13, 13) and float(together.std(axis=(1, 2)).min()) > 0.001
 
 
 def test_other_models_take_the_image_by_image_path(monkeypatch):

@@ -129,9 +129,9 @@ def march_with(field, cameras, index, model, clear) -> np.ndarray:
     transfer = model.transfer
     return grid_march.dvr_view(
         field.volume.numpy(), clear, grid_march.CELL_SHIFT, origin.double().numpy(), directions.numpy(),
-        low.numpy().astype(np.float32), high.numpy().astype(np.float32), float(model.step),
-        transfer.march_parameters(), float(model.termination), renderer.STEPS_PER_BLOCK,
-    )  # fmt: skip
+        low.numpy().astype(np.float32)[None], high.numpy().astype(np.float32)[None], float(model.step),
+        np.array([transfer.march_parameters()]), float(model.termination), renderer.STEPS_PER_BLOCK,
+    )[0]  # fmt: skip
 
 
 @settings(max_examples=20, deadline=None)
@@ -182,3 +182,77 @@ def test_a_ray_that_goes_dark_stops_at_its_block_s_end_even_inside_a_clear_cell(
     np.testing.assert_array_equal(march_with(field, cameras, 0, model, clear), every_sample)
     light_left = np.exp(-52.0 * 0.2)  # four voxels of 0.05 at full absorption
     assert light_left < model.termination and every_sample.min() > 0.5
+
+
+def transfer_from(draw) -> TransferFunction:
+    """A ramp or a band anywhere over [0, 1], steps and dense media included."""
+    low, high, fall_low, fall_high = sorted(draw[:4])
+    density = float(draw[4])
+    if draw[5] < 0.5:
+        return TransferFunction(low, high, density)
+    return TransferFunction(low, high, density, fall_low, fall_high)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    functions=st.integers(1, 6),
+    density=st.sampled_from([0.5, 40.0, 9.9e5]),
+    steps=st.sampled_from([0.0, 0.5]),
+)
+@example(seed=1, functions=3, density=9.9e5, steps=0.5)
+def test_a_march_under_several_transfer_functions_is_each_march_alone_to_the_bit(seed, functions, density, steps):
+    """Sparse blobs in air under K transfer functions at once, each with its own support box (so
+    its own first sample and blocks): the colours are those of K marches with each function's
+    own clear cells, bit for bit, rays that go dark at different blocks included."""
+    rng = np.random.default_rng(seed)
+    size = 40  # clear cells of 8 voxels between the blobs
+    volume = np.zeros((size,) * 3, dtype=np.float32)
+    for _ in range(5):
+        corner, sides = rng.integers(0, size - 8, 3), rng.integers(2, 8, 3)
+        volume[tuple(slice(c, c + side) for c, side in zip(corner, sides))] = rng.uniform(0.05, 1.0)
+    field = GridField(volume)
+    cameras = orbit_cameras(OrbitSpec(views=3, resolution=24, elevation=float(rng.uniform(-60, 60))))
+    transfers = [TransferFunction(0.01, 0.3, density)]  # one that shows every blob
+    for _ in range(functions - 1):
+        draw = rng.uniform(size=6)
+        draw[4] = density * rng.uniform(0.5, 1.0)
+        transfers.append(transfer_from(draw) if rng.uniform() > steps else TransferFunction(draw[0], draw[0], draw[4]))
+    models = [ImageModel("dvr", transfer, step=2.0 / (size * 1.3)) for transfer in transfers]
+    supports = [field.support(model.support_threshold) for model in models]
+    with pytest.MonkeyPatch.context() as patched:
+        patched.setattr(renderer, "STEPS_PER_BLOCK", 3)  # many blocks on a ray: rays go dark between blobs
+        together = renderer.march_grid_view(
+            field, models, *renderer.camera_rays(cameras, 1, torch.device("cpu")), supports
+        ).numpy()
+        assert together.shape == (functions, 24 * 24)
+        for j, model in enumerate(models):
+            alone = march_with(field, cameras, 1, model, field.clear_cells(model.transfer.low))
+            np.testing.assert_array_equal(together[j], alone)
+    assert together[0].max() > 0.0
+
+
+def test_a_view_under_several_models_is_each_model_s_image():
+    """Grouped marches for dvr through a grid; mip and slice models one image after another."""
+    field = GridField(padded_phantom(24))
+    cameras = orbit_cameras(OrbitSpec(views=4, resolution=16, elevation=25.0))
+    dvr = [ImageModel("dvr", TransferFunction(low, low + 0.2, 9.0), step=2.0 / 24) for low in (0.05, 0.1, 0.5, 0.7)]
+    for models in (dvr, [ImageModel("mip", step=2.0 / 24), ImageModel("slice"), dvr[2]]):
+        images = renderer.render_view_under(field, cameras, 2, models)
+        for image, model in zip(images, models):
+            assert torch.equal(image, renderer.render_view(field, cameras, 2, model))
+        assert all(float(image.max()) > 0.1 for image in images)
+
+
+def test_march_groups_keep_a_model_that_reads_far_fewer_cells_apart():
+    """A lung window beside a bone window: the bone window alone reads a fraction of the cells
+    the lung window reads, so it marches apart; two close windows march together."""
+    volume = np.zeros((32,) * 3, dtype=np.float32)
+    volume[4:28, 4:28, 4:28] = 0.3  # soft tissue
+    volume[12:16, 12:16, 12:16] = 0.9  # a bone
+    field = GridField(volume)
+    windows = [(0.05, 0.1), (0.5, 0.6), (0.06, 0.12), (0.55, 0.7)]
+    models = [ImageModel("dvr", TransferFunction(low, high, 5.0)) for low, high in windows]
+    groups = renderer.march_groups(field, models)
+    assert sorted(map(sorted, groups)) == [[0, 2], [1, 3]]
+    assert renderer.march_groups(field, models[:1]) == [[0]]

@@ -263,3 +263,40 @@ def test_held_out_references_are_found_at_the_headline_views_in_either_layout():
     headline = HeldOutTransfer("bone", TransferFunction(0.7, 0.9, 12.0), np.zeros((6, 4, 4)), (0.75, 1.0, 1.33))
     assert every.views_at([0.75, 1.0, 1.33], 2) == [2, 3, 4, 5, 6, 7]
     assert headline.views_at([0.75, 1.0, 1.33], 2) == [0, 1, 2, 3, 4, 5]
+
+
+def test_an_export_interrupted_among_the_set_s_views_continues_where_it_stopped(
+    exported_under_three, strided, tmp_path
+):
+    """Ctrl-C while the set's members are drawn view by view: the same command draws only the
+    members' views not yet saved, and the stack is the uninterrupted export's to the bit."""
+    import os
+    import shutil
+    import signal
+
+    import cubecloud_cli.export.renders as renders
+
+    work = tmp_path / "work"
+    for stage in ("preprocess", "cunerf"):
+        shutil.copytree(exported_under_three / stage, work / stage)
+    original, members_drawn, interrupts = renders.render_view_under, [], []
+
+    def interrupted(field, cameras, view, models, *args, **kwargs):
+        members_drawn.append(len(models))
+        if len(members_drawn) == 3 and not interrupts:
+            interrupts.append(view)
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(field, cameras, view, models, *args, **kwargs)
+
+    arguments = ("export", work, "--transfer-set", "3", "--transfer-stride", "2", *tiny_export_options(12, 1500, 2))
+    with pytest.MonkeyPatch.context() as patched:
+        patched.setattr(renders, "render_view_under", interrupted)
+        assert invoke(*arguments).exit_code == 130
+        assert members_drawn == [1, 1, 1]  # stride 2, 3 members: one other member at each view
+        members_drawn.clear()
+        result = invoke(*arguments, "-q")
+    assert result.exit_code == 0, result.output
+    assert sum(members_drawn) == 2 * 6 - 2  # two members after the first at 6 views each; the 3rd was cut short
+    np.testing.assert_array_equal(
+        np.load(work / "export" / "transfer_images.npy"), np.load(strided / "transfer_images.npy")
+    )

@@ -19,7 +19,7 @@ WORK/export/novel/ holds
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -29,7 +29,7 @@ from cubecloud_cli.core.writes import save_array
 from cubecloud_cli.export.finished_views import ExportProgress
 from cubecloud_cli.export.images import write_contact_sheet
 from cubecloud_cli.render import ImageModel
-from cubecloud_cli.render.pixel_area import pixel_area_render
+from cubecloud_cli.render.pixel_area import pixel_area_renders
 from cubecloud_cli.scene import write_json
 from cubecloud_cli.transfer.training_set import NamedTransfer
 
@@ -42,34 +42,43 @@ TRANSFERS_FILE = "transfers.json"
 def render_novel_references(
     field,
     novel: NovelViewSet,
-    model: ImageModel,
+    models: Sequence[ImageModel],
     device: torch.device,
     progress: ExportProgress,
     on_progress: Callable[[int, int], None],
-    prefix: str = "novel",
+    prefixes: Sequence[str] = ("novel",),
 ) -> np.ndarray:
-    """(V, H, W) pixel-area renders of ``field`` at every novel view, saving each as it is done
-    (under ``prefix``) and reusing the ones an interrupted run saved."""
+    """(K, V, H, W) pixel-area renders of ``field`` at every novel view under each of K image
+    models (one march of a view's rays for all K where the march allows it), saving each image as
+    it is done (model j's under ``prefixes[j]``) and reusing the ones an interrupted run saved."""
     count = len(novel.directions)
-    images = np.empty((len(novel), novel.resolution, novel.resolution), dtype=np.float32)
-    support = None
+    images = np.empty((len(models), len(novel), novel.resolution, novel.resolution), dtype=np.float32)
+    supports = None
     done = 0
     with torch.no_grad():
         for group, magnification in enumerate(novel.magnifications):
             cameras = novel.cameras(magnification)
             for direction in range(count):
                 index = group * count + direction
-                name = f"{prefix}_view_{index:05d}"
-                saved = progress.load(name)
-                if saved is not None and saved.shape == images.shape[1:]:
-                    images[index] = saved
-                else:
-                    if support is None and model.kind != "slice":
-                        support = field.support(model.support_threshold)
-                    images[index] = pixel_area_render(field, cameras, direction, model, support, device, SUPERSAMPLING)
-                    progress.save(name, images[index])
-                done += 1
-                on_progress(done, len(novel))
+                names = [f"{prefix}_view_{index:05d}" for prefix in prefixes]
+                missing = []
+                for j, name in enumerate(names):
+                    saved = progress.load(name)
+                    if saved is not None and saved.shape == images.shape[2:]:
+                        images[j, index] = saved
+                    else:
+                        missing.append(j)
+                if missing:
+                    if supports is None:
+                        supports = [None if m.kind == "slice" else field.support(m.support_threshold) for m in models]
+                    images[missing, index] = pixel_area_renders(
+                        field, cameras, direction, [models[j] for j in missing], [supports[j] for j in missing],
+                        device, SUPERSAMPLING,
+                    )  # fmt: skip
+                    for j in missing:
+                        progress.save(names[j], images[j, index])
+                done += len(models)
+                on_progress(done, len(models) * len(novel))
     return images
 
 

@@ -21,7 +21,8 @@ from cubecloud_cli.export.novel_references import render_novel_references
 from cubecloud_cli.export.point_cloud import PointCloud, build_point_cloud
 from cubecloud_cli.export.settings import ExportSettings
 from cubecloud_cli.render import FunctionField, GridField, ImageModel, Support, render_view
-from cubecloud_cli.transfer.training_set import HeldOutSet, NamedTransfer, member_views
+from cubecloud_cli.render.renderer import render_view_under
+from cubecloud_cli.transfer.training_set import HeldOutSet, NamedTransfer, member_slot, member_views
 
 
 @dataclass(frozen=True)
@@ -100,15 +101,10 @@ def render_export(
     if len(job.transfers) > 1:
         with writer.phase("render_transfers"):
             stride = job.settings.transfer_stride
-            stack = [images[member_views(0, stride, len(cameras))]]
-            for index, named in enumerate(job.transfers[1:], start=1):
-                model = replace(job.image_model, transfer=named.function)
-                counter = count_views("transfers", len(cameras) + (index - 1) * len(stack[0]))
-                shown = cameras.subset(member_views(index, stride, len(cameras)))
-                # A strided member's saved views are its own: an export resumed with another stride redraws them.
-                prefix = f"tf{index}" if stride == 1 else f"tf{index}_every{stride}"
-                stack.append(_render_saving_views(cunerf_images_field, shown, model, device, progress, prefix, counter))
-            transfer_images = np.stack(stack)
+            members = _render_members_by_view(
+                cunerf_images_field, job, device, progress, count_views("transfers", len(cameras))
+            )
+            transfer_images = np.stack([images[member_views(0, stride, len(cameras))], *members])
     rendered = job.training_renders
     # One field for both: its support and clear cells are made once.
     volume_field = GridField(volume, device)
@@ -127,23 +123,26 @@ def render_export(
         novel_reference = render_novel_references(
             volume_field,
             job.novel,
-            replace(job.image_model, slice_offsets=()),
+            [replace(job.image_model, slice_offsets=())],
             device,
             progress,
             count_views("novel", rendered + len(cameras)),
-        )
+        )[0]
     held_out = []
     if job.held_out and job.held_out.transfers:
         with writer.phase("render_held_out"):
-            shown = job.held_out_views
-            for index, named in enumerate(job.held_out.transfers):
-                counter = count_views("held-out", rendered + len(cameras) + len(job.novel) + index * len(shown))
-                model = replace(job.image_model, transfer=named.function, slice_offsets=())
+            transfers = job.held_out.transfers
+            references = render_novel_references(
+                volume_field,
+                job.held_out_views,
+                [replace(job.image_model, transfer=named.function, slice_offsets=()) for named in transfers],
+                device,
+                progress,
+                count_views("held-out", rendered + len(cameras) + len(job.novel)),
                 # Saved under another prefix than the all-magnification views of earlier exports.
-                references = render_novel_references(
-                    volume_field, shown, model, device, progress, counter, prefix=f"held_out_{index}_headline"
-                )
-                held_out.append((named, references))
+                prefixes=[f"held_out_{index}_headline" for index in range(len(transfers))],
+            )
+            held_out = list(zip(transfers, references))
     with writer.phase("point_cloud"):
         on_progress("points", views, views, {})
         cloud = build_point_cloud(
@@ -185,6 +184,44 @@ def _render_saving_views(
                 progress.save(f"{prefix}_view_{index:05d}", images[index])
             on_progress(index + 1, len(cameras))
     return images
+
+
+def _render_members_by_view(field, job: ExportJob, device, progress: ExportProgress, on_progress) -> list[np.ndarray]:
+    """The training views under each member of the transfer-function set after the first, at the
+    member's share of the views (:func:`member_views`), as (views // stride, H, W) per member.
+    A view's members are marched together: each voxel on a ray is read once for all of them."""
+    cameras, stride = job.cameras, job.settings.transfer_stride
+    members = range(1, len(job.transfers))
+    models = {m: replace(job.image_model, transfer=job.transfers[m].function) for m in members}
+    shares = {m: set(member_views(m, stride, len(cameras))) for m in members}
+    images = {m: np.empty((len(shares[m]), cameras.height, cameras.width), dtype=np.float32) for m in members}
+    supports, done, total = {}, 0, sum(len(share) for share in shares.values())
+    with torch.no_grad():
+        for view in range(len(cameras)):
+            shown = [m for m in members if view in shares[m]]
+            # A strided member's saved views are its own: an export resumed with another stride redraws them.
+            prefix = "tf{}" if stride == 1 else f"tf{{}}_every{stride}"
+            names = {m: f"{prefix.format(m)}_view_{member_slot(m, view, stride):05d}" for m in shown}
+            missing = []
+            for m in shown:
+                saved = progress.load(names[m])
+                if saved is not None and saved.shape == images[m].shape[1:]:
+                    images[m][member_slot(m, view, stride)] = saved
+                else:
+                    missing.append(m)
+            if missing:
+                for m in missing:
+                    if m not in supports:
+                        supports[m] = field.support(models[m].support_threshold)
+                rendered = render_view_under(
+                    field, cameras, view, [models[m] for m in missing], [supports[m] for m in missing], device
+                )
+                for m, image in zip(missing, rendered.cpu().numpy()):
+                    images[m][member_slot(m, view, stride)] = image
+                    progress.save(names[m], image)
+            done += len(shown)
+            on_progress(done, total)
+    return [images[m] for m in members]
 
 
 def _cunerf_scalar_field(

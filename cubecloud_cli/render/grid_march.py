@@ -59,30 +59,36 @@ def clear_cells(volume, low, shift):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_march(volume, clear, shift, origin, directions, entry, first, last, step, transfer, termination, block):
-    """(R,) dvr colours of rays ``origin + t · directions[r]`` through the (S, S, S) grid laid
-    over [−1, 1]³ (indexed x, y, z), sampled at k in [first[r], last[r]).
+def dvr_march(volume, clear, shift, origin, directions, entry, first, last, step, transfers, termination, block):
+    """(K, R) dvr colours of rays ``origin + t · directions[r]`` through the (S, S, S) grid laid
+    over [−1, 1]³ (indexed x, y, z) under each of K transfer functions, function j's samples at k
+    in [first[j, r], last[j, r]): one walk along each ray reads each voxel once for all K.
 
-    ``transfer`` is ``TransferFunction.march_parameters()``: (low, rise width, fall start, fall
+    ``transfers[j]`` is ``TransferFunction.march_parameters()``: (low, rise width, fall start, fall
     width, density), the widths at least MIN_RAMP_WIDTH (the caller's guard), the fall's start +∞
     for a function without a fall; opacity 1 − exp(−σΔ) is computed as −expm1(−σΔ), exact for
-    small σΔ. A sample in a cell of ``clear`` (:func:`clear_cells`) adds and absorbs nothing, so
-    the march reads no voxel for it and steps over the cell's other samples: the same colours,
-    fewer reads."""
-    count = directions.shape[0]
+    small σΔ. A sample in a cell of ``clear`` (:func:`clear_cells` at the lowest ``low``) adds and
+    absorbs nothing under any of them, so the march reads no voxel for it and steps over the
+    cell's other samples. Each function keeps its own blocks and stops where its own march would:
+    its colours are those of a march under it alone, to the bit."""
+    functions, count = first.shape
     size = volume.shape[0]
     half = 0.5 * size
-    low, ramp_width, fall_low, fall_width, density = transfer
-    inverse_width = 1.0 / ramp_width
-    inverse_fall_width = 1.0 / fall_width
     cell = 1 << shift
-    colours = np.zeros(count, dtype=np.float32)
+    colours = np.zeros((functions, count), dtype=np.float32)
+    # Each ray's state per function, made once: arrays made per ray cost a K = 1 march a fifth of its time.
+    transmittances = np.ones((count, functions))
+    sums = np.zeros((count, functions))
+    blocks_left = np.full((count, functions), block)
+    stops = np.zeros((count, functions), dtype=np.bool_)
+    inverse_widths = 1.0 / transfers[:, 1]
+    inverse_fall_widths = 1.0 / transfers[:, 3]
     for r in prange(count):
-        transmittance = 1.0
-        colour = 0.0
+        transmittance, colour, left_in_block, stopped = transmittances[r], sums[r], blocks_left[r], stops[r]
         dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
-        left_in_block = block
-        k, stop = first[r], last[r]
+        k, stop = first[0, r], last[0, r]
+        for j in range(1, functions):
+            k, stop = min(k, first[j, r]), max(stop, last[j, r])
         while k < stop:
             t = entry[r] + (k + 0.5) * step
             # World [−1, 1] → continuous voxel index: voxel i's centre is at (2i + 1)/S − 1.
@@ -91,34 +97,61 @@ def dvr_march(volume, clear, shift, origin, directions, entry, first, last, step
             z = (origin[2] + t * dz + 1.0) * half - 0.5
             ix, iy, iz = math.floor(x), math.floor(y), math.floor(z)
             skip = 0
+            value = 0.0
             if 0 <= ix < size and 0 <= iy < size and 0 <= iz < size and clear[ix >> shift, iy >> shift, iz >> shift]:
-                # Whole steps to the cell's nearest face, less one for rounding, are in it too.
+                # Whole steps to the cell's nearest face, less one for rounding, are in it too;
+                # a skip ends before any function's samples begin or end.
                 steps = _steps_in_cell(x, ix, dx, half * step, cell, shift)
                 steps = min(steps, _steps_in_cell(y, iy, dy, half * step, cell, shift))
                 steps = min(steps, _steps_in_cell(z, iz, dz, half * step, cell, shift))
                 skip = max(min(steps - 1, stop - k - 1), 0)
+                for j in range(functions):
+                    edge = first[j, r] if k < first[j, r] else last[j, r]
+                    if edge > k:
+                        skip = min(skip, edge - k - 1)
             else:
                 value = trilinear(volume, x, y, z)
+            going = 0
+            for j in range(functions):
+                if stopped[j] or k < first[j, r] or k >= last[j, r]:
+                    continue
+                low = transfers[j, 0]
                 if value > low:  # at or below low the sample is clear: nothing added, nothing absorbed
-                    ramp = min((value - low) * inverse_width, 1.0)
+                    ramp = min((value - low) * inverse_widths[j], 1.0)
+                    fall_low = transfers[j, 2]
                     if value > fall_low:
-                        ramp *= max(1.0 - (value - fall_low) * inverse_fall_width, 0.0)
-                    alpha = -math.expm1(-density * ramp * step)
-                    colour += transmittance * alpha * value
-                    transmittance *= 1.0 - alpha
-            left_in_block -= 1
-            if left_in_block == 0:
-                if transmittance < termination:
-                    break
-                left_in_block = block
-            if skip > 0:
-                # The skipped samples would count down the block and stop where this one would.
-                if skip >= left_in_block and transmittance < termination:
-                    break
-                left_in_block = (left_in_block - skip - 1) % block + 1
+                        ramp *= max(1.0 - (value - fall_low) * inverse_fall_widths[j], 0.0)
+                    alpha = -math.expm1(-transfers[j, 4] * ramp * step)
+                    colour[j] += transmittance[j] * alpha * value
+                    transmittance[j] *= 1.0 - alpha
+                left_in_block[j] -= 1
+                if left_in_block[j] == 0:
+                    if transmittance[j] < termination:
+                        stopped[j] = True
+                        continue
+                    left_in_block[j] = block
+                if skip > 0:
+                    # The skipped samples would count down the block and stop where this one would.
+                    if skip >= left_in_block[j] and transmittance[j] < termination:
+                        stopped[j] = True
+                        continue
+                    left_in_block[j] = (left_in_block[j] - skip - 1) % block + 1
+                going += 1
+            if going == 0 and not _starts_after(first, r, k):
+                break
             k += skip + 1
-        colours[r] = colour
+        for j in range(functions):
+            colours[j, r] = colour[j]
     return colours
+
+
+@njit(cache=True, inline="always")
+def _starts_after(first, r, k):
+    """Whether one of the functions' samples on ray r begin after sample k."""
+    for j in range(first.shape[0]):
+        if first[j, r] > k:
+            return True
+    return False
 
 
 @njit(cache=True, inline="always")
@@ -151,25 +184,29 @@ def _slab_interval(origin32, direction, low, high):
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def dvr_view(volume, clear, shift, origin, directions, support_low, support_high, step, transfer, termination, block):
-    """(R,) dvr colours of one view's rays from ``origin``: each ray's entry into the cube, its
-    span through the support's box and its march, all in one pass (:func:`dvr_march` after the
-    torch ray set-up of ``renderer._ray_chunks``, without the tensors between them)."""
+def dvr_view(volume, clear, shift, origin, directions, support_low, support_high, step, transfers, termination, block):
+    """(K, R) dvr colours of one view's rays from ``origin`` under K transfer functions, function
+    j's samples within the box [support_low[j], support_high[j]] of its support: each ray's entry
+    into the cube, its spans and its march, all in one pass (:func:`dvr_march` after the torch ray
+    set-up of ``renderer._ray_chunks``, without the tensors between them)."""
     count = directions.shape[0]
+    functions = transfers.shape[0]
     origin32 = origin.astype(np.float32)
     cube_low = np.full(3, -1.0, dtype=np.float32)
     cube_high = np.full(3, 1.0, dtype=np.float32)
     step32 = np.float32(step)
     entries = np.empty(count, dtype=np.float32)
-    firsts = np.zeros(count, dtype=np.int64)
-    lasts = np.zeros(count, dtype=np.int64)
+    firsts = np.zeros((functions, count), dtype=np.int64)
+    lasts = np.zeros((functions, count), dtype=np.int64)
     for r in prange(count):
         entry, exit_ = _slab_interval(origin32, directions[r], cube_low, cube_high)
-        start, stop = _slab_interval(origin32, directions[r], support_low, support_high)
-        stop = min(stop, exit_)
-        first = max(math.floor((start - entry) / step32 - np.float32(0.5)), 0)
-        last = math.ceil((stop - entry) / step32 - np.float32(0.5))
-        entries[r], firsts[r], lasts[r] = entry, first, max(first, last)
+        entries[r] = entry
+        for j in range(functions):
+            start, stop = _slab_interval(origin32, directions[r], support_low[j], support_high[j])
+            stop = min(stop, exit_)
+            first = max(math.floor((start - entry) / step32 - np.float32(0.5)), 0)
+            last = math.ceil((stop - entry) / step32 - np.float32(0.5))
+            firsts[j, r], lasts[j, r] = first, max(first, last)
     return dvr_march(
-        volume, clear, shift, origin, directions, entries, firsts, lasts, step, transfer, termination, block
+        volume, clear, shift, origin, directions, entries, firsts, lasts, step, transfers, termination, block
     )

@@ -14,7 +14,7 @@ fields, to within 1e-4.
 
 from __future__ import annotations
 
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -79,10 +79,49 @@ def render_view(
 ) -> torch.Tensor:
     """Image ``index`` of ``cameras`` as an (H, W) float tensor in [0, 1], each pixel sampled at
     its centre, or at another point ``subpixel`` of it (fractions of a pixel from its corner)."""
+    supports = None if support is None else [support]
+    return render_view_under(field, cameras, index, [model], supports, device, subpixel)[0]
+
+
+def render_view_under(
+    field: ScalarField,
+    cameras: PinholeCameras,
+    index: int,
+    models: Sequence[ImageModel],
+    supports: Sequence[Support] | None = None,
+    device: torch.device | str = "cpu",
+    subpixel: tuple[float, float] = (0.5, 0.5),
+) -> torch.Tensor:
+    """(K, H, W): image ``index`` under each of K image models (``supports[j]`` the support of
+    ``models[j]``'s threshold, made here where not given). ``dvr`` through a grid on the CPU
+    marches each ray once for all K, in :func:`march_groups` (each image to the bit as alone);
+    other models render one image after another."""
     device = torch.device(device)
+    if supports is None:
+        supports = [None if model.kind == "slice" else field.support(model.support_threshold) for model in models]
+    if len(models) > 1 and not fused_grid_dvr(field, models, device):
+        return torch.stack(
+            [render_view_under(field, cameras, index, [m], [s], device, subpixel)[0] for m, s in zip(models, supports)]
+        )
     origin, directions = camera_rays(cameras, index, device, subpixel)
+    if fused_grid_dvr(field, models, device):
+        # The kernel walks the air inside the support's box faster than the coarse march that
+        # finds each ray's support interval (support_interval) takes; it takes the rays tile by
+        # tile, which changes no ray (rays.RAY_TILE).
+        order = torch.from_numpy(tiled_order(cameras.height, cameras.width))
+        ordered = directions[order].contiguous()
+        colour = torch.empty(len(models), directions.shape[0])
+        for group in march_groups(field, models):
+            marched = march_grid_view(field, [models[j] for j in group], origin, ordered, [supports[j] for j in group])
+            colour[torch.tensor(group)[:, None], order] = marched
+        return colour.clamp(0.0, 1.0).view(len(models), cameras.height, cameras.width)
+    return _render_one(field, cameras, index, models[0], supports[0], origin, directions)[None]
+
+
+def _render_one(field, cameras, index, model, support, origin, directions) -> torch.Tensor:
+    """One image through the torch march or the slice planes."""
     if model.kind == "slice":
-        normal = torch.as_tensor(cameras.rotations[index][2], dtype=torch.float32, device=device)
+        normal = torch.as_tensor(cameras.rotations[index][2], dtype=torch.float32, device=directions.device)
         values = torch.cat(
             [
                 slice_plane_values(field, origin, directions[s : s + RAYS_PER_CHUNK], normal, model.slice_offset(index))
@@ -90,20 +129,9 @@ def render_view(
             ]
         )
         return values.view(cameras.height, cameras.width)
-
-    if support is None:
-        support = field.support(model.support_threshold)
-    if fused_grid_dvr(field, model, device):
-        # The kernel walks the air inside the support's box faster than the coarse march that
-        # finds each ray's support interval (support_interval) takes; it takes the rays tile by
-        # tile, which changes no ray (rays.RAY_TILE).
-        order = torch.from_numpy(tiled_order(cameras.height, cameras.width))
-        colour = torch.empty(directions.shape[0])
-        colour[order] = march_grid_view(field, model, origin, directions[order].contiguous(), support)
-        return colour.clamp(0.0, 1.0).view(cameras.height, cameras.width)
-    cube_low = torch.full((3,), -1.0, device=device)
+    cube_low = torch.full((3,), -1.0, device=directions.device)
     entry, exit_ = ray_box(origin, directions, cube_low, -cube_low)
-    accumulator = ACCUMULATORS[model.kind](model, directions.shape[0], device)
+    accumulator = ACCUMULATORS[model.kind](model, directions.shape[0], directions.device)
     for rays, first, last in _ray_chunks(support, model, origin, directions, entry, exit_):
         _march(field, model, accumulator, rays, origin, directions, entry, first, last)
     return accumulator.result().clamp(0.0, 1.0).view(cameras.height, cameras.width)
@@ -121,27 +149,57 @@ def _ray_chunks(support, model, origin, directions, entry, exit_) -> Iterator[tu
         yield rays, first, last
 
 
-def fused_grid_dvr(field, model: ImageModel, device: torch.device) -> bool:
-    """Whether the numba march applies: dvr through a voxel grid, on the CPU."""
-    return model.kind == "dvr" and isinstance(field, GridField) and device.type == "cpu"
+def fused_grid_dvr(field, models: Sequence[ImageModel], device: torch.device) -> bool:
+    """Whether the numba march applies: dvr through a voxel grid, on the CPU, every model with
+    the same ray step and termination."""
+    return (
+        isinstance(field, GridField)
+        and device.type == "cpu"
+        and all(model.kind == "dvr" for model in models)
+        and len({(model.step, model.termination) for model in models}) == 1
+    )
 
 
-def march_grid_view(field: GridField, model: ImageModel, origin, directions, support: Support) -> torch.Tensor:
-    """One view's rays set up and marched in one numba pass: at 256² the torch set-up between
-    chunks took as long as the march itself."""
-    transfer = model.transfer
-    low, high = support.bounds()
+# A model joins a march whose lowest ``low`` leaves at most this many times the cells its own
+# leaves to read: a march reads every cell that is not clear for its lowest member.
+SHARED_MARCH_CELLS = 3.0
+
+
+def march_groups(field: GridField, models: Sequence[ImageModel]) -> list[list[int]]:
+    """The models' indices in groups that march together, by ``low``: a model that would read
+    far fewer cells alone (a bone window beside a lung window) marches apart."""
+    by_low = sorted(range(len(models)), key=lambda j: models[j].transfer.low)
+    groups: list[list[int]] = []
+    cells = None
+    for j in by_low:
+        read = int(np.count_nonzero(~field.clear_cells(float(models[j].transfer.low))))
+        if groups and read * SHARED_MARCH_CELLS >= cells:
+            groups[-1].append(j)
+        else:
+            groups.append([j])
+            cells = read
+    return groups
+
+
+def march_grid_view(
+    field: GridField, models: Sequence[ImageModel], origin, directions, supports: Sequence[Support]
+) -> torch.Tensor:
+    """(K, R): one view's rays set up and marched in one numba pass under K dvr models (at 256²
+    the torch set-up between chunks took as long as the march itself), each voxel read once for
+    all K."""
+    bounds = [support.bounds() for support in supports]
+    lowest = min(float(model.transfer.low) for model in models)
     colours = dvr_view(
         field.volume.numpy(),
-        field.clear_cells(float(transfer.low)),
+        field.clear_cells(lowest),
         CELL_SHIFT,
         origin.double().numpy(),
         directions.numpy(),
-        low.numpy().astype(np.float32),
-        high.numpy().astype(np.float32),
-        float(model.step),
-        transfer.march_parameters(),
-        float(model.termination),
+        np.stack([low.numpy() for low, _ in bounds]).astype(np.float32),
+        np.stack([high.numpy() for _, high in bounds]).astype(np.float32),
+        float(models[0].step),
+        np.array([model.transfer.march_parameters() for model in models], dtype=np.float64),
+        float(models[0].termination),
         STEPS_PER_BLOCK,
     )
     return torch.from_numpy(colours)
