@@ -222,7 +222,7 @@ def test_a_march_under_several_transfer_functions_is_each_march_alone_to_the_bit
     supports = [field.support(model.support_threshold) for model in models]
     with pytest.MonkeyPatch.context() as patched:
         patched.setattr(renderer, "STEPS_PER_BLOCK", 3)  # many blocks on a ray: rays go dark between blobs
-        together = renderer.march_grid_view(
+        together = renderer.march_grid_group(
             field, models, *renderer.camera_rays(cameras, 1, torch.device("cpu")), supports
         ).numpy()
         assert together.shape == (functions, 24 * 24)

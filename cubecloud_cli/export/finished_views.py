@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -65,6 +66,18 @@ class ExportProgress:
             return np.load(self._path(name))
         except Exception:  # missing, empty or damaged (np.load raises several types): redo it
             return None
+
+    def load_views(self, names: Sequence[str], shape: tuple[int, ...]) -> tuple[dict[int, np.ndarray], list[int]]:
+        """The views saved under ``names`` with ``shape``, by position in ``names``, and the
+        positions of those still to render."""
+        saved, missing = {}, []
+        for position, name in enumerate(names):
+            view = self.load(name)
+            if view is not None and view.shape == tuple(shape):
+                saved[position] = view
+            else:
+                missing.append(position)
+        return saved, missing
 
     def has(self, name: str) -> bool:
         """Whether ``name`` is saved and readable, from its header alone (a 512³ bake is 512 MB)."""

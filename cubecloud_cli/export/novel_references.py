@@ -61,13 +61,9 @@ def render_novel_references(
             for direction in range(count):
                 index = group * count + direction
                 names = [f"{prefix}_view_{index:05d}" for prefix in prefixes]
-                missing = []
-                for j, name in enumerate(names):
-                    saved = progress.load(name)
-                    if saved is not None and saved.shape == images.shape[2:]:
-                        images[j, index] = saved
-                    else:
-                        missing.append(j)
+                saved, missing = progress.load_views(names, images.shape[2:])
+                for j, view in saved.items():
+                    images[j, index] = view
                 if missing:
                     if supports is None:
                         supports = [None if m.kind == "slice" else field.support(m.support_threshold) for m in models]

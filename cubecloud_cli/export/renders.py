@@ -196,29 +196,27 @@ def _render_members_by_view(field, job: ExportJob, device, progress: ExportProgr
     shares = {m: set(member_views(m, stride, len(cameras))) for m in members}
     images = {m: np.empty((len(shares[m]), cameras.height, cameras.width), dtype=np.float32) for m in members}
     supports, done, total = {}, 0, sum(len(share) for share in shares.values())
+    # A strided member's saved views are its own: an export resumed with another stride redraws them.
+    prefix = "tf{}" if stride == 1 else f"tf{{}}_every{stride}"
     with torch.no_grad():
         for view in range(len(cameras)):
             shown = [m for m in members if view in shares[m]]
-            # A strided member's saved views are its own: an export resumed with another stride redraws them.
-            prefix = "tf{}" if stride == 1 else f"tf{{}}_every{stride}"
-            names = {m: f"{prefix.format(m)}_view_{member_slot(m, view, stride):05d}" for m in shown}
-            missing = []
-            for m in shown:
-                saved = progress.load(names[m])
-                if saved is not None and saved.shape == images[m].shape[1:]:
-                    images[m][member_slot(m, view, stride)] = saved
-                else:
-                    missing.append(m)
+            slots = [member_slot(m, view, stride) for m in shown]
+            names = [f"{prefix.format(m)}_view_{slot:05d}" for m, slot in zip(shown, slots)]
+            saved, missing = progress.load_views(names, (cameras.height, cameras.width))
+            for position, image in saved.items():
+                images[shown[position]][slots[position]] = image
             if missing:
-                for m in missing:
+                drawn = [shown[position] for position in missing]
+                for m in drawn:
                     if m not in supports:
                         supports[m] = field.support(models[m].support_threshold)
                 rendered = render_view_under(
-                    field, cameras, view, [models[m] for m in missing], [supports[m] for m in missing], device
+                    field, cameras, view, [models[m] for m in drawn], [supports[m] for m in drawn], device
                 )
-                for m, image in zip(missing, rendered.cpu().numpy()):
-                    images[m][member_slot(m, view, stride)] = image
-                    progress.save(names[m], image)
+                for position, image in zip(missing, rendered.cpu().numpy()):
+                    images[shown[position]][slots[position]] = image
+                    progress.save(names[position], image)
             done += len(shown)
             on_progress(done, total)
     return [images[m] for m in members]

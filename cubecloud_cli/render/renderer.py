@@ -94,7 +94,7 @@ def render_view_under(
 ) -> torch.Tensor:
     """(K, H, W): image ``index`` under each of K image models (``supports[j]`` the support of
     ``models[j]``'s threshold, made here where not given). ``dvr`` through a grid on the CPU
-    marches each ray once for all K, in :func:`march_groups` (each image to the bit as alone);
+    marches each ray once for each of :func:`march_groups` (each image to the bit as alone);
     other models render one image after another."""
     device = torch.device(device)
     if supports is None:
@@ -109,11 +109,8 @@ def render_view_under(
         # finds each ray's support interval (support_interval) takes; it takes the rays tile by
         # tile, which changes no ray (rays.RAY_TILE).
         order = torch.from_numpy(tiled_order(cameras.height, cameras.width))
-        ordered = directions[order].contiguous()
         colour = torch.empty(len(models), directions.shape[0])
-        for group in march_groups(field, models):
-            marched = march_grid_view(field, [models[j] for j in group], origin, ordered, [supports[j] for j in group])
-            colour[torch.tensor(group)[:, None], order] = marched
+        colour[:, order] = march_grid_view(field, models, origin, directions[order].contiguous(), supports)
         return colour.clamp(0.0, 1.0).view(len(models), cameras.height, cameras.width)
     return _render_one(field, cameras, index, models[0], supports[0], origin, directions)[None]
 
@@ -182,6 +179,18 @@ def march_groups(field: GridField, models: Sequence[ImageModel]) -> list[list[in
 
 
 def march_grid_view(
+    field: GridField, models: Sequence[ImageModel], origin, directions, supports: Sequence[Support]
+) -> torch.Tensor:
+    """(K, R): one view's rays under K dvr models, one numba march for each of
+    :func:`march_groups`."""
+    colours = torch.empty(len(models), directions.shape[0])
+    for group in march_groups(field, models):
+        marched = march_grid_group(field, [models[j] for j in group], origin, directions, [supports[j] for j in group])
+        colours[torch.tensor(group)] = marched
+    return colours
+
+
+def march_grid_group(
     field: GridField, models: Sequence[ImageModel], origin, directions, supports: Sequence[Support]
 ) -> torch.Tensor:
     """(K, R): one view's rays set up and marched in one numba pass under K dvr models (at 256²
