@@ -70,34 +70,43 @@ def _log_ratio(l0, l1, l2, s0, s1, s2):
     return True, value, inverse, a0, a1, a2
 
 
+@njit(inline="always")
+def chord_terms(means, quaternions, centre, i, s0, s1, s2, with_jacobian):
+    """log r of Gaussian i for the scales s0..s2 (float64), whether it is defined and unclamped,
+    and with ``with_jacobian`` its derivatives by the four raw quaternion components and the three
+    scales (0 where r is undefined or clamped). Inlined into ``_chord_forward`` and the scalar
+    appearance kernel (``splat/scalar_appearance.py``)."""
+    ok, dx, dy, dz, w, x, y, z, length_q = _unit_direction_and_quaternion(means, quaternions, centre, i)
+    if not ok:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    l0, l1, l2 = local(dx, dy, dz, w, x, y, z)
+    inside, value, inverse, a0, a1, a2 = _log_ratio(l0, l1, l2, s0, s1, s2)
+    if not (with_jacobian and inside):
+        return inside, value, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0  # undefined or clamped: no gradient
+    # ∂ log r / ∂sⱼ = (aⱼ² / dᵀΣ⁻¹d − ⅓) / sⱼ
+    by_s0 = (a0 * a0 / inverse - 1.0 / 3.0) / s0
+    by_s1 = (a1 * a1 / inverse - 1.0 / 3.0) / s1
+    by_s2 = (a2 * a2 / inverse - 1.0 / 3.0) / s2
+    # To l (∂ log r / ∂lⱼ = −aⱼ / (sⱼ dᵀΣ⁻¹d)), then to the raw quaternion.
+    h0, h1, h2 = -a0 / (s0 * inverse), -a1 / (s1 * inverse), -a2 / (s2 * inverse)
+    by_w, by_x, by_y, by_z = raw_quaternion_gradient(dx, dy, dz, h0, h1, h2, w, x, y, z, length_q)
+    return True, value, by_w, by_x, by_y, by_z, by_s0, by_s1, by_s2
+
+
 @njit(parallel=PRANGE_ONLY, cache=True)
 def _chord_forward(means, quaternions, scales, centre, out, jacobian, with_jacobian) -> None:
     """out[i] = log r; with ``with_jacobian``, jacobian[i] = its derivatives by the four raw
     quaternion components and the three scales (0 where r is undefined or clamped), so that the
     backward pass is one product and nothing is computed twice."""
     for i in prange(means.shape[0]):
-        out[i] = 0.0
-        if with_jacobian:
-            for k in range(7):
-                jacobian[i, k] = 0.0
-        ok, dx, dy, dz, w, x, y, z, length_q = _unit_direction_and_quaternion(means, quaternions, centre, i)
-        if not ok:
-            continue
-        l0, l1, l2 = local(dx, dy, dz, w, x, y, z)
         s0, s1, s2 = float(scales[i, 0]), float(scales[i, 1]), float(scales[i, 2])
-        inside, value, inverse, a0, a1, a2 = _log_ratio(l0, l1, l2, s0, s1, s2)
-        out[i] = value
-        if not (with_jacobian and inside):
-            continue  # undefined or clamped: no gradient
-        # ∂ log r / ∂sⱼ = (aⱼ² / dᵀΣ⁻¹d − ⅓) / sⱼ
-        jacobian[i, 4] = (a0 * a0 / inverse - 1.0 / 3.0) / s0
-        jacobian[i, 5] = (a1 * a1 / inverse - 1.0 / 3.0) / s1
-        jacobian[i, 6] = (a2 * a2 / inverse - 1.0 / 3.0) / s2
-        # To l (∂ log r / ∂lⱼ = −aⱼ / (sⱼ dᵀΣ⁻¹d)), then to the raw quaternion.
-        h0, h1, h2 = -a0 / (s0 * inverse), -a1 / (s1 * inverse), -a2 / (s2 * inverse)
-        jacobian[i, 0], jacobian[i, 1], jacobian[i, 2], jacobian[i, 3] = raw_quaternion_gradient(
-            dx, dy, dz, h0, h1, h2, w, x, y, z, length_q
+        _, value, by_w, by_x, by_y, by_z, by_s0, by_s1, by_s2 = chord_terms(
+            means, quaternions, centre, i, s0, s1, s2, with_jacobian
         )
+        out[i] = value
+        if with_jacobian:
+            jacobian[i, 0], jacobian[i, 1], jacobian[i, 2], jacobian[i, 3] = by_w, by_x, by_y, by_z
+            jacobian[i, 4], jacobian[i, 5], jacobian[i, 6] = by_s0, by_s1, by_s2
 
 
 class _ChordLogRatio(torch.autograd.Function):

@@ -90,6 +90,12 @@ class Gaussians:
         same from every camera."""
         return rendered_opacities(torch.sigmoid(self.opacity_logits), self.log_scales, self.smoothing)
 
+    def drawn(
+        self, camera_centre: torch.Tensor | None, sh_degree: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(scales, opacities, colours) as a rasterizer draws them from ``camera_centre``."""
+        return self.scales(), self.opacities(), self.colours(camera_centre, sh_degree)
+
     def pruning_opacities(self) -> torch.Tensor:
         """The opacities that densification prunes by (the reference's: without the 3D filter)."""
         return torch.sigmoid(self.opacity_logits)

@@ -81,13 +81,16 @@ def compile_splat_kernels(settings: SplatSettings) -> None:
 
 def compile_scalar_kernels() -> None:
     """What a scalar run adds: the read of the scan and its gradient at the centres, and the chord
-    ratio and the scan's spread both ways, with training's dtypes and layouts."""
+    ratio, the scan's spread and the Gaussians' appearance both ways, with training's dtypes and
+    layouts."""
     import numpy as np
     import torch
 
     from cubecloud_cli.numerics.trilinear import sample_cube_gradient_into, sample_cube_into
     from cubecloud_cli.splat.chord import chord_log_ratio
+    from cubecloud_cli.splat.scalar_appearance import scalar_appearance
     from cubecloud_cli.splat.value_spread import value_spread_loss
+    from cubecloud_cli.transfer.function import TransferFunction
 
     sample_cube_into(np.zeros((4, 4, 4), np.float32), np.zeros((2, 3), np.float32), np.empty(2, np.float32))
     sample_cube_gradient_into(
@@ -97,3 +100,9 @@ def compile_scalar_kernels() -> None:
     scales = torch.full((2, 3), 0.1, requires_grad=True)
     chord_log_ratio(torch.zeros(2, 3), quaternions, scales, torch.tensor([0.0, 0.0, 3.0])).sum().backward()
     value_spread_loss(quaternions, torch.log(scales), torch.ones(2, 3)).backward()
+    values, lengths = torch.zeros(2, requires_grad=True), torch.zeros(2, requires_grad=True)
+    drawn = scalar_appearance(
+        torch.zeros(2, 3), quaternions, torch.log(scales), values, lengths, torch.zeros(2),
+        TransferFunction(), torch.tensor([0.0, 0.0, 3.0]), True,
+    )  # fmt: skip
+    sum(part.sum() for part in drawn).backward()

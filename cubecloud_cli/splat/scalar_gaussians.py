@@ -36,15 +36,13 @@ from cubecloud_cli.splat.gaussians import (
     rendered_opacities,
     rendered_scales,
 )
+from cubecloud_cli.splat.scalar_appearance import LOG_LENGTH_LIMIT, scalar_appearance
 from cubecloud_cli.splat.spherical_harmonics import rgb_to_sh
 from cubecloud_cli.transfer.function import TransferFunction
 
 SCALAR_PARAMETERS = ("means", "log_scales", "quaternions", "value_logits", "log_lengths")
 # Values stay this far inside (0, 1), so that their logits are finite in float32.
 VALUE_MARGIN = 1e-4
-# exp(±LOG_LENGTH_LIMIT) world units: with densities below 1e6 the optical depth σ·ℓ stays
-# below 2.3e10, finite in float32, and so does its gradient.
-LOG_LENGTH_LIMIT = 10.0
 INITIAL_OPACITY = 0.1  # under the most opaque transfer function trained on, as the reference starts
 
 
@@ -125,6 +123,27 @@ class ScalarGaussians:
         if self.opacity_scale is not None:
             opacity = opacity * self.opacity_scale
         return rendered_opacities(opacity, self.log_scales, self.smoothing)
+
+    def drawn(
+        self, camera_centre: torch.Tensor | None, sh_degree: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(scales, opacities, colours) as a rasterizer draws them from ``camera_centre``: on a CPU
+        by one numba pass each way (``scalar_appearance.py``), elsewhere, or for a scene read from
+        its PLY, by the torch map the methods above give."""
+        if self.means.device.type != "cpu" or self.opacity_scale is not None:
+            scales = self.scales()
+            return scales, self.opacities(camera_centre, scales), self.colours(camera_centre, sh_degree)
+        return scalar_appearance(
+            self.means,
+            self.quaternions,
+            self.log_scales,
+            self.value_logits,
+            self.log_lengths,
+            self.smoothing,
+            self.transfer,
+            camera_centre,
+            self.chord_lengths,
+        )
 
     def filter_attenuation(self) -> torch.Tensor:
         """(N,) the factor in (0, 1] the 3D filter scales every opacity by (1 without a filter)."""

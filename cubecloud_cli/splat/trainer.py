@@ -45,13 +45,13 @@ def render_camera(
     rotation = torch.as_tensor(cameras.rotations[view], dtype=torch.float32, device=device)
     translation = torch.as_tensor(cameras.translations[view], dtype=torch.float32, device=device)
     centre = torch.as_tensor(cameras.centres()[view], dtype=torch.float32, device=device)
-    scales = gaussians.scales()
+    scales, opacities, colours = gaussians.drawn(centre, sh_degree)
     return rasterizer.render(
         gaussians.means,
         scales,
         gaussians.quaternions,
-        gaussians.opacities(centre, scales),
-        gaussians.colours(centre, sh_degree),
+        opacities,
+        colours,
         rotation,
         translation,
         float(cameras.focal),
