@@ -11,7 +11,7 @@ preprocess, such as a window wide enough for every held-out tissue):
 1. a tiny run of both ways, untimed, which compiles numba's kernels; then preprocess and cunerf
    once (no transfer function enters them, so both ways share them);
 2. the scalar way: `export --transfer-set K --transfer-stride S`, `splat --scalar --iterations N
-   --max-gaussians B` (what docs/results.md chose: 41, 6, 3700 and 50000, and `--filter-scale 0.01`), `eval`; eval scores the scalar run under each held-out
+   --max-gaussians B` (what docs/results.md chose: 41, 6, 4300 and 50000, and `--filter-scale 0.01`), `eval`; eval scores the scalar run under each held-out
    transfer function;
 3. today's way, once per held-out transfer function and once for the export's own: a work
    directory with the same preprocess/ and cunerf/, `export --transfer NAME` (a random ramp by its
@@ -87,7 +87,7 @@ def main() -> None:
     parser.add_argument(
         "--iterations",
         type=int,
-        help="the scalar run's (default 3700, 4500 with --no-chord-lengths; fast's baked runs: 1500)",
+        help="the scalar run's (default 4300, 4500 with --no-chord-lengths; fast's baked runs: 1500)",
     )
     parser.add_argument(
         "--filter-scale",
@@ -133,7 +133,7 @@ def warm_up(scan: str, base: Path) -> None:
 
 
 def scalar_iterations(options) -> int:
-    return options.iterations or (4500 if options.no_chord_lengths else 3700)
+    return options.iterations or (4500 if options.no_chord_lengths else 4300)
 
 
 def scalar_filter_scale(options) -> float:

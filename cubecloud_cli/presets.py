@@ -190,12 +190,13 @@ def resolve_cunerf(preset: str, model: str | None, overrides: Mapping[str, Any])
 # Gaussians generalised better than 75,000; 4500 iterations gained 0.3-1.3 dB over 3000 in the
 # time 3000 took before the scan was read by a kernel. Chord lengths (the default) cost about 4 ms
 # a step; a 3D filter of 0.01 px² (the values are held to the scan, which knows detail finer than a
-# training pixel) another 12-16 %: 3700 iterations keep the pipeline within 2x one baked one
-# (3500 until the export marched a view's transfer functions together, 7 s sooner).
+# training pixel) another 12-16 %: 4300 iterations keep the pipeline within 2x one baked one
+# (3500 until the export marched a view's transfer functions together, 7 s sooner; 3700 until the
+# scalar appearance became one numba pass, 15 % off each step).
 SCALAR_RUN: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         "export": {"transfer_set": 41, "transfer_stride": 6},
-        "splat": {"scalar": True, "iterations": 3700, "max_gaussians": 50_000, "filter_scale": 0.01},
+        "splat": {"scalar": True, "iterations": 4300, "max_gaussians": 50_000, "filter_scale": 0.01},
     },
 }
 
