@@ -42,8 +42,9 @@ def float32_stages() -> None:
 
 
 def float64_and_large() -> None:
-    """The float64 rasterizer with its gradients, the SSIM kernel in both dtypes and the training
-    SSIM's window in float64 (the two jobs take about as long: 2 minutes each on the 2-core VM)."""
+    """The float64 rasterizer with its gradients, the SSIM kernel in both dtypes, the training
+    SSIM's window and the scalar appearance (its oracle and finite-difference tests) in float64 (the
+    two jobs take about as long: 2 minutes each on the 2-core VM)."""
     import numpy as np
     import torch
     from test_raster import H, W, render_and_differentiate, scene
@@ -60,6 +61,16 @@ def float64_and_large() -> None:
         stack = np.random.default_rng(0).random((2, 16, 16)).astype(dtype)
         stack_ssim_sums(stack, stack, stack > 0.5, window, K1**2, K2**2)
     blur_same(np.zeros((1, 4, 4)), window)
+    from cubecloud_cli.splat.scalar_appearance import scalar_appearance
+    from cubecloud_cli.transfer.function import TransferFunction
+
+    wide = {"dtype": torch.float64, "requires_grad": True}
+    drawn = scalar_appearance(
+        torch.zeros(2, 3, dtype=torch.float64), torch.ones(2, 4, **wide), torch.full((2, 3), -2.0, **wide),
+        torch.zeros(2, **wide), torch.zeros(2, **wide), torch.zeros(2, dtype=torch.float64), TransferFunction(),
+        torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), True,
+    )  # fmt: skip
+    sum(part.sum() for part in drawn).backward()
 
 
 JOBS = {"float32": float32_stages, "float64": float64_and_large}

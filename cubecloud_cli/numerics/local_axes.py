@@ -1,14 +1,16 @@
 """A direction in a Gaussian's own axes, and the gradient through that rotation to its raw
 quaternion, inlined into the per-Gaussian numba kernels of a scalar scene (the chord ratio,
-``splat/chord.py``; the scan's spread over a Gaussian, ``splat/value_spread.py``).
+``splat/chord.py``, also inside ``splat/scalar_appearance.py``; the scan's spread over a
+Gaussian, ``splat/value_spread.py``).
 
 The quaternion q = (w, x, y, z) is unit (the kernels divide the raw one by its length first) and
 R its rotation, whose columns are the Gaussian's axes. ``local`` is l = Rᵀd. Given the gradient
 h = ∂f/∂l of some f(l), ``raw_quaternion_gradient`` gives ∂f/∂u for the raw quaternion u = |u| q:
 through R's entries (∂l_j/∂R_kj = d_k), to q, then through the normalisation.
 
-After editing this file, touch both kernels' files: numba's cache checks only the file of the
-kernel it caches (``numerics/jit.py``).
+After editing this file, touch the kernels' files (``splat/chord.py``, ``splat/value_spread.py``,
+``splat/scalar_appearance.py``): numba's cache checks only the file of the kernel it caches
+(``numerics/jit.py``).
 """
 
 from __future__ import annotations

@@ -75,7 +75,8 @@ def chord_terms(means, quaternions, centre, i, s0, s1, s2, with_jacobian):
     """log r of Gaussian i for the scales s0..s2 (float64), whether it is defined and unclamped,
     and with ``with_jacobian`` its derivatives by the four raw quaternion components and the three
     scales (0 where r is undefined or clamped). Inlined into ``_chord_forward`` and the scalar
-    appearance kernel (``splat/scalar_appearance.py``)."""
+    appearance kernel: after editing it, touch ``splat/scalar_appearance.py`` too (numba's cache
+    checks only the file of the kernel it caches)."""
     ok, dx, dy, dz, w, x, y, z, length_q = _unit_direction_and_quaternion(means, quaternions, centre, i)
     if not ok:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
