@@ -77,8 +77,8 @@ def _appearance_forward(
     alphas, partials,
 ) -> None:  # fmt: skip
     """scales and alphas of every Gaussian, and ``partials`` (N, PARTIALS), from the clamped exp of
-    the log scales and the values (torch's vectorised exp is cheaper than a call per element, which
-    bounds this kernel). ``transfer``:
+    the log scales and the values, both float64 (torch's vectorised exp is cheaper than a call per
+    element, which bounds this kernel). ``transfer``:
     (low, rise width, fall start, fall width, density) as ``march_parameters`` gives them;
     ``flags``: (with the 3D filter, with chord lengths)."""
     low, rise_width, fall_low, fall_width, density = transfer[0], transfer[1], transfer[2], transfer[3], transfer[4]
@@ -155,13 +155,16 @@ def _appearance_backward(partials, by_scales, by_alphas, by_colours, logits, len
 class _ScalarAppearance(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quaternions, log_scales, value_logits, log_lengths, variances, centre, transfer, flags):
-        own_scales = torch.exp(log_scales.detach().clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT))
-        colours = torch.sigmoid(value_logits.detach())
+        # In float64, as the kernel computes: a window's edge then falls where float64 arithmetic
+        # puts it, whatever the parameters' dtype.
+        own_scales = torch.exp(log_scales.detach().double().clamp(-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT))
+        values = torch.sigmoid(value_logits.detach().double())
         arrays = [
             np.ascontiguousarray(t.detach().numpy())
-            for t in (means, quaternions, log_scales, own_scales, colours, log_lengths, variances, centre)
+            for t in (means, quaternions, log_scales, own_scales, values, log_lengths, variances, centre)
         ]
         count, dtype = means.shape[0], log_scales.dtype
+        colours = values.to(dtype)
         scales, alphas = torch.empty((count, 3), dtype=dtype), torch.empty(count, dtype=dtype)
         partials = torch.empty((count, PARTIALS), dtype=dtype)
         _appearance_forward(*arrays, transfer, flags, scales.numpy(), alphas.numpy(), partials.numpy())
