@@ -53,6 +53,7 @@ def float64_and_large() -> None:
     from cubecloud_cli.numerics.metrics import K1, K2, gaussian_window
     from cubecloud_cli.numerics.ssim_kernel import stack_ssim_sums
     from cubecloud_cli.raster.backends import NUMBA
+    from cubecloud_cli.splat.on_cpu import compile_scalar_appearance
 
     weights = torch.rand(H, W, 2, dtype=torch.float64)
     render_and_differentiate(NUMBA, scene(count=20), weights, torch.zeros(2, dtype=torch.float64), False)
@@ -61,16 +62,7 @@ def float64_and_large() -> None:
         stack = np.random.default_rng(0).random((2, 16, 16)).astype(dtype)
         stack_ssim_sums(stack, stack, stack > 0.5, window, K1**2, K2**2)
     blur_same(np.zeros((1, 4, 4)), window)
-    from cubecloud_cli.splat.scalar_appearance import scalar_appearance
-    from cubecloud_cli.transfer.function import TransferFunction
-
-    wide = {"dtype": torch.float64, "requires_grad": True}
-    drawn = scalar_appearance(
-        torch.zeros(2, 3, dtype=torch.float64), torch.ones(2, 4, **wide), torch.full((2, 3), -2.0, **wide),
-        torch.zeros(2, **wide), torch.zeros(2, **wide), torch.zeros(2, dtype=torch.float64), TransferFunction(),
-        torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), True,
-    )  # fmt: skip
-    sum(part.sum() for part in drawn).backward()
+    compile_scalar_appearance(torch.float64)
 
 
 JOBS = {"float32": float32_stages, "float64": float64_and_large}

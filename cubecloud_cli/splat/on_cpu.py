@@ -88,9 +88,7 @@ def compile_scalar_kernels() -> None:
 
     from cubecloud_cli.numerics.trilinear import sample_cube_gradient_into, sample_cube_into
     from cubecloud_cli.splat.chord import chord_log_ratio
-    from cubecloud_cli.splat.scalar_appearance import scalar_appearance
     from cubecloud_cli.splat.value_spread import value_spread_loss
-    from cubecloud_cli.transfer.function import TransferFunction
 
     sample_cube_into(np.zeros((4, 4, 4), np.float32), np.zeros((2, 3), np.float32), np.empty(2, np.float32))
     sample_cube_gradient_into(
@@ -100,9 +98,24 @@ def compile_scalar_kernels() -> None:
     scales = torch.full((2, 3), 0.1, requires_grad=True)
     chord_log_ratio(torch.zeros(2, 3), quaternions, scales, torch.tensor([0.0, 0.0, 3.0])).sum().backward()
     value_spread_loss(quaternions, torch.log(scales), torch.ones(2, 3)).backward()
-    values, lengths = torch.zeros(2, requires_grad=True), torch.zeros(2, requires_grad=True)
+    compile_scalar_appearance(torch.float32)
+
+
+def compile_scalar_appearance(dtype) -> None:
+    """The scalar appearance kernels both ways for parameters of ``dtype`` (training's float32;
+    the suite's oracle tests also take float64)."""
+    import torch
+
+    from cubecloud_cli.splat.scalar_appearance import scalar_appearance
+    from cubecloud_cli.transfer.function import TransferFunction
+
+    def trained(tensor):
+        return tensor.to(dtype).requires_grad_(True)
+
+    quaternions, log_scales = trained(torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2)), trained(torch.full((2, 3), -2.0))
+    values, lengths = trained(torch.zeros(2)), trained(torch.zeros(2))
     drawn = scalar_appearance(
-        torch.zeros(2, 3), quaternions, torch.log(scales), values, lengths, torch.zeros(2),
-        TransferFunction(), torch.tensor([0.0, 0.0, 3.0]), True,
+        torch.zeros(2, 3, dtype=dtype), quaternions, log_scales, values, lengths, torch.zeros(2, dtype=dtype),
+        TransferFunction(), torch.tensor([0.0, 0.0, 3.0], dtype=dtype), True,
     )  # fmt: skip
     sum(part.sum() for part in drawn).backward()
