@@ -11,8 +11,9 @@ preprocess, such as a window wide enough for every held-out tissue):
 1. a tiny run of both ways, untimed, which compiles numba's kernels; then preprocess and cunerf
    once (no transfer function enters them, so both ways share them);
 2. the scalar way: `export --transfer-set K --transfer-stride S`, `splat --scalar --iterations N
-   --max-gaussians B` (what docs/results.md chose: 41, 6, 4300 and 50000, and `--filter-scale 0.01`), `eval`; eval scores the scalar run under each held-out
-   transfer function;
+   --max-gaussians B --filter-scale F --rmse-share R` (by default `run --scalar`'s, from
+   presets.SCALAR_RUN: 41, 6, 4300, 50000, 0.01 and 0.5), `eval`; eval scores the scalar run under
+   each held-out transfer function;
 3. today's way, once per held-out transfer function and once for the export's own: a work
    directory with the same preprocess/ and cunerf/, `export --transfer NAME` (a random ramp by its
    window, `--tf-low/--tf-high/--tf-density`), `splat`, `eval`.
@@ -35,11 +36,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from cubecloud_cli.presets import SCALAR_RUN
 from cubecloud_cli.sample_data import sample_ct_path
 from cubecloud_cli.transfer.tissue_presets import TRANSFER_PRESETS
 from cubecloud_cli.transfer.training_set import HELD_OUT_WINDOW
 
 SHARED = ("preprocess", "cunerf")
+SCALAR_EXPORT, SCALAR_SPLAT = SCALAR_RUN["fast"]["export"], SCALAR_RUN["fast"]["splat"]
 
 
 def cubecloud(*arguments: str) -> float:
@@ -78,25 +81,46 @@ def baked_run(work: Path, base: Path, name: str, export_arguments: list[str]) ->
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scan", nargs="?", help="a scan (default: the bundled abdomen CT)")
-    parser.add_argument("--set", type=int, default=41, help="transfer functions the scalar scene trains under")
+    parser.add_argument(
+        "--set",
+        type=int,
+        default=SCALAR_EXPORT["transfer_set"],
+        help="transfer functions the scalar scene trains under",
+    )
     parser.add_argument(
         "--no-chord-lengths",
         action="store_true",
-        help="one optical length for every direction (4500 iterations, the 3D filter at 0.2)",
+        help="one optical length for every direction (4500 iterations, the 3D filter at 0.2, L1 alone)",
     )
     parser.add_argument(
         "--iterations",
         type=int,
-        help="the scalar run's (default 4300, 4500 with --no-chord-lengths; fast's baked runs: 1500)",
+        help=f"the scalar run's (default {SCALAR_SPLAT['iterations']}, 4500 with --no-chord-lengths; fast's baked runs: "
+        "1500)",
     )
     parser.add_argument(
         "--filter-scale",
         type=float,
-        help="the scalar run's 3D filter, squared training pixels (default 0.01, 0.2 with --no-chord-lengths)",
+        help=f"the scalar run's 3D filter, squared training pixels (default {SCALAR_SPLAT['filter_scale']:g}, 0.2 with "
+        "--no-chord-lengths)",
     )
-    parser.add_argument("--stride", type=int, default=6, help="export's --transfer-stride for the scalar set")
     parser.add_argument(
-        "--budget", type=int, default=50000, help="the scalar run's --max-gaussians (fast's baked runs: 75000)"
+        "--rmse-share",
+        type=float,
+        help=f"the scalar run's RMSE share of the pixel loss (default {SCALAR_SPLAT['rmse_share']:g}, 0 with "
+        "--no-chord-lengths)",
+    )
+    parser.add_argument(
+        "--stride",
+        type=int,
+        default=SCALAR_EXPORT["transfer_stride"],
+        help="export's --transfer-stride for the scalar set",
+    )
+    parser.add_argument(
+        "--budget",
+        type=int,
+        default=SCALAR_SPLAT["max_gaussians"],
+        help="the scalar run's --max-gaussians (fast's baked runs: 75000)",
     )
     parser.add_argument(
         "--held-out-windows",
@@ -133,13 +157,19 @@ def warm_up(scan: str, base: Path) -> None:
 
 
 def scalar_iterations(options) -> int:
-    return options.iterations or (4500 if options.no_chord_lengths else 4300)
+    return options.iterations or (4500 if options.no_chord_lengths else SCALAR_SPLAT["iterations"])
 
 
 def scalar_filter_scale(options) -> float:
     if options.filter_scale is not None:
         return options.filter_scale
-    return 0.2 if options.no_chord_lengths else 0.01
+    return 0.2 if options.no_chord_lengths else SCALAR_SPLAT["filter_scale"]
+
+
+def scalar_rmse_share(options) -> float:
+    if options.rmse_share is not None:
+        return options.rmse_share
+    return 0.0 if options.no_chord_lengths else SCALAR_SPLAT["rmse_share"]
 
 
 def run_both_ways(options, base: Path) -> None:
@@ -154,7 +184,7 @@ def run_both_ways(options, base: Path) -> None:
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
     seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
     scalar = ["--scalar", "--iterations", str(scalar_iterations(options)), "--max-gaussians", str(options.budget)]
-    scalar += ["--filter-scale", str(scalar_filter_scale(options))]
+    scalar += ["--filter-scale", str(scalar_filter_scale(options)), "--rmse-share", str(scalar_rmse_share(options))]
     scalar += ["--no-chord-lengths"] if options.no_chord_lengths else []
     seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
     cubecloud("eval", str(work), "--turntable-frames", "0")
@@ -179,7 +209,7 @@ def report(options, base: Path) -> None:
     print(
         f"scan: {options.scan or 'bundled abdomen CT'}; scalar set {options.set} (stride {options.stride}), "
         f"{scalar_iterations(options)} iterations{', one length' if options.no_chord_lengths else ''}, "
-        f"3D filter {scalar_filter_scale(options):g} px², "
+        f"3D filter {scalar_filter_scale(options):g} px², RMSE share {scalar_rmse_share(options):g}, "
         f"{options.budget} Gaussians at most; fast"
     )
     print(f"shared: preprocess {seconds['preprocess']:.1f} s, cunerf {seconds['cunerf']:.1f} s")

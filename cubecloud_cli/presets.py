@@ -196,7 +196,7 @@ def resolve_cunerf(preset: str, model: str | None, overrides: Mapping[str, Any])
 SCALAR_RUN: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         "export": {"transfer_set": 41, "transfer_stride": 6},
-        "splat": {"scalar": True, "iterations": 4300, "max_gaussians": 50_000, "filter_scale": 0.01},
+        "splat": {"scalar": True, "iterations": 4300, "max_gaussians": 50_000, "filter_scale": 0.01, "rmse_share": 0.5},
     },
 }
 
@@ -206,7 +206,8 @@ def scalar_run_note() -> str:
     return (
         " ".join(
             f"{preset}: --transfer-set {run['export']['transfer_set']} --transfer-stride {run['export']['transfer_stride']}, "
-            f"{run['splat']['iterations']} splat iterations, at most {run['splat']['max_gaussians']:,} Gaussians."
+            f"{run['splat']['iterations']} splat iterations, at most {run['splat']['max_gaussians']:,} Gaussians, "
+            f"--filter-scale {run['splat']['filter_scale']:g}, --rmse-share {run['splat']['rmse_share']:g}."
             for preset, run in SCALAR_RUN.items()
         )
         + f" ({', '.join(SCALAR_RUN)} only: the settings were measured there.)"

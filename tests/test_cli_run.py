@@ -196,6 +196,7 @@ def test_run_scalar_trains_one_scalar_scene_under_the_measured_set_and_scores_it
     splat = json.loads((work / "splat" / "manifest.json").read_text())["params"]
     assert (export["transfer_set"], export["transfer_stride"]) == (41, 6)
     assert splat["scalar"] is True and splat["max_gaussians"] == 50_000 and splat["iterations"] == 3
+    assert (splat["filter_scale"], splat["rmse_share"]) == (0.01, 0.5)
     scored = json.loads((work / "eval" / "metrics.json").read_text())["results"]["splat"]["held_out_transfers"]
     assert {"bone", "vessels", "held-out-ramp-0"} <= set(scored)
     assert "never trained under" in result.stderr and "| splat | vessels |" in result.stderr

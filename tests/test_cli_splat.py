@@ -187,6 +187,8 @@ def test_a_foreign_colmap_scene_with_png_images(exported, tmp_path):
         (["--scalar", "--value-anchor", "nan"], r"--value-anchor nan must be a finite weight"),
         (["--scalar", "--value-spread", "-0.5"], r"--value-spread -0.5 must be a finite weight"),
         (["--scalar", "--value-spread", "inf"], r"--value-spread inf must be a finite weight"),
+        (["--rmse-share", "1.5"], r"--rmse-share 1.5 must be within \[0, 1\]"),
+        (["--rmse-share", "nan"], r"--rmse-share nan must be within \[0, 1\]"),
     ],
 )
 def test_bad_options(exported, tmp_path, args, pattern):

@@ -10,9 +10,11 @@ from hypothesis import strategies as st
 from cubecloud_cli.numerics.blur_kernel import blur_same
 from cubecloud_cli.numerics.metrics import gaussian_window
 from cubecloud_cli.splat.losses import (
+    RMSE_FLOOR_SQUARED,
     blur_matrix,
     blur_same_size,
     photometric_loss,
+    pixel_loss,
     training_ssim,
     value_anchor_loss,
     volume_at,
@@ -101,15 +103,54 @@ def test_the_blur_backward_is_the_banded_products_backward():
     image_level=st.sampled_from([0.0, 1e-30, 0.5, 1.0, 1e6]),
     target_level=st.sampled_from([0.0, 1e-30, 0.5, 1.0, 1e6]),
     noise=st.sampled_from([0.0, 1e-7, 0.3]),
+    rmse_share=st.sampled_from([0.0, 0.5, 1.0]),
 )
-def test_the_loss_and_its_gradient_stay_finite_at_flat_and_extreme_images(image_level, target_level, noise):
-    # Flat images zero every variance: c1 and c2 keep SSIM's denominator above zero.
+def test_the_loss_and_its_gradient_stay_finite_at_flat_and_extreme_images(image_level, target_level, noise, rmse_share):
+    # Flat images zero every variance: c1 and c2 keep SSIM's denominator above zero; a perfect
+    # fit zeroes the RMSE, whose square root the floor keeps differentiable.
     generator = torch.Generator().manual_seed(3)
     image = (image_level + noise * torch.rand(24, 24, 1, generator=generator)).requires_grad_(True)
     target = target_level + noise * torch.rand(24, 24, 1, generator=generator)
-    loss = photometric_loss(image, target)
+    loss = photometric_loss(image, target, rmse_share=rmse_share)
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(image.grad).all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    share=st.floats(0.0, 1.0),
+    scale=st.sampled_from([1e-5, 1e-2, 1.0]),
+    seed=st.integers(0, 2**16),
+)
+def test_the_pixel_loss_is_l1_and_rmse_in_their_shares(share, scale, seed):
+    generator = torch.Generator().manual_seed(seed)
+    image = torch.rand(9, 11, 1, generator=generator, dtype=torch.float64)
+    # every error at least scale / 2 from 0, so that finite differences of eps ≪ scale stay off L1's kink
+    signs = torch.randint(0, 2, (9, 11, 1), generator=generator, dtype=torch.float64) * 2 - 1
+    magnitudes = 0.5 + torch.rand(9, 11, 1, generator=generator, dtype=torch.float64)
+    target = image + scale * signs * magnitudes
+    difference = (image - target).numpy()
+    rmse = np.sqrt((difference**2).mean() + RMSE_FLOOR_SQUARED)
+    expected = (1 - share) * np.abs(difference).mean() + share * rmse
+    assert float(pixel_loss(image, target, share)) == pytest.approx(expected, rel=1e-12)
+    assert torch.autograd.gradcheck(
+        lambda x: pixel_loss(x, target, share), image.clone().requires_grad_(True), eps=1e-3 * scale
+    )
+
+
+def test_the_rmse_pulls_large_errors_harder_than_l1_and_nothing_at_a_perfect_fit():
+    target = torch.zeros(4, 4, 1, dtype=torch.float64)
+    image = torch.full((4, 4, 1), 0.01, dtype=torch.float64)
+    image[0, 0, 0] = 0.5
+    image.requires_grad_(True)
+    (l1_gradient,) = torch.autograd.grad(pixel_loss(image, target, 0.0), image)
+    (rmse_gradient,) = torch.autograd.grad(pixel_loss(image, target, 1.0), image)
+    assert float(l1_gradient[0, 0, 0]) == pytest.approx(float(l1_gradient[1, 1, 0]))
+    assert float(rmse_gradient[0, 0, 0]) == pytest.approx(50 * float(rmse_gradient[1, 1, 0]))
+    perfect = target.clone().requires_grad_(True)
+    (at_rest,) = torch.autograd.grad(pixel_loss(perfect, target, 1.0), perfect)
+    assert float(pixel_loss(perfect, target, 1.0)) == pytest.approx(1e-6)
+    assert torch.equal(at_rest, torch.zeros_like(at_rest))
 
 
 def voxel_centres(shape):

@@ -49,6 +49,10 @@ class SplatSettings:
     """Gaussian budget; densification stops growing at it."""
     dssim_weight: float = 0.2
     """λ of (1-λ)·L1 + λ·D-SSIM (the paper: 0.2)."""
+    rmse_share: float = 0.0
+    """ρ of the pixel term (1-ρ)·L1 + ρ·RMSE. PSNR scores squared error, which L1 pulls down at one rate for small and
+    large errors alike; the RMSE weighs the few large ones on the edges of small bright structures more. 0 is the
+    paper's L1; `run --scalar` takes 0.5."""
     lr_means: float = 1.6e-4  # × scene extent, decaying log-linearly to lr_means_final
     lr_means_final: float = 1.6e-6
     lr_sh: float = 0.0025  # the rest of the SH bands train at a twentieth of it
@@ -103,6 +107,8 @@ class SplatSettings:
             raise CubecloudError(f"--random-points {self.random_points} must be at least 1")
         if not 0.0 <= self.dssim_weight <= 1.0:
             raise CubecloudError(f"--dssim-weight {self.dssim_weight:g} must be within [0, 1] (the paper: 0.2)")
+        if not 0.0 <= self.rmse_share <= 1.0:
+            raise CubecloudError(f"--rmse-share {self.rmse_share:g} must be within [0, 1] (0: the paper's L1)")
         if not (math.isfinite(self.filter_scale) and 0.0 <= self.filter_scale <= 10.0):
             raise CubecloudError(
                 f"--filter-scale {self.filter_scale:g} must be within [0, 10] squared pixels (Mip-Splatting: 0.2)"

@@ -170,7 +170,7 @@ class SplatTrainer:
     def loss(self, image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """A step's loss: the photometric loss, plus in a scalar scene the value anchor and the
         scan's spread over each Gaussian (``value_spread.py``)."""
-        loss = photometric_loss(image, target, self.settings.dssim_weight)
+        loss = photometric_loss(image, target, self.settings.dssim_weight, self.settings.rmse_share)
         if self.scan_values is not None:
             scan, gradient = self._scan_at_centres()
             if self.settings.value_anchor > 0:
