@@ -43,6 +43,8 @@ from cubecloud_cli.transfer.training_set import HELD_OUT_WINDOW
 
 SHARED = ("preprocess", "cunerf")
 SCALAR_EXPORT, SCALAR_SPLAT = SCALAR_RUN["fast"]["export"], SCALAR_RUN["fast"]["splat"]
+# The one-length scene's own settings (measured at 2f5acc0), where run --scalar's do not apply.
+ONE_LENGTH_SPLAT = {"iterations": 4500, "filter_scale": 0.2, "rmse_share": 0.0}
 
 
 def cubecloud(*arguments: str) -> float:
@@ -90,25 +92,26 @@ def main() -> None:
     parser.add_argument(
         "--no-chord-lengths",
         action="store_true",
-        help="one optical length for every direction (4500 iterations, the 3D filter at 0.2, L1 alone)",
+        help=f"one optical length for every direction ({ONE_LENGTH_SPLAT['iterations']} iterations, the 3D filter at "
+        f"{ONE_LENGTH_SPLAT['filter_scale']:g}, L1 alone)",
     )
     parser.add_argument(
         "--iterations",
         type=int,
-        help=f"the scalar run's (default {SCALAR_SPLAT['iterations']}, 4500 with --no-chord-lengths; fast's baked runs: "
-        "1500)",
+        help=f"the scalar run's (default {SCALAR_SPLAT['iterations']}, {ONE_LENGTH_SPLAT['iterations']} with "
+        "--no-chord-lengths; fast's baked runs: 1500)",
     )
     parser.add_argument(
         "--filter-scale",
         type=float,
-        help=f"the scalar run's 3D filter, squared training pixels (default {SCALAR_SPLAT['filter_scale']:g}, 0.2 with "
-        "--no-chord-lengths)",
+        help=f"the scalar run's 3D filter, squared training pixels (default {SCALAR_SPLAT['filter_scale']:g}, "
+        f"{ONE_LENGTH_SPLAT['filter_scale']:g} with --no-chord-lengths)",
     )
     parser.add_argument(
         "--rmse-share",
         type=float,
-        help=f"the scalar run's RMSE share of the pixel loss (default {SCALAR_SPLAT['rmse_share']:g}, 0 with "
-        "--no-chord-lengths)",
+        help=f"the scalar run's RMSE share of the pixel loss (default {SCALAR_SPLAT['rmse_share']:g}, "
+        f"{ONE_LENGTH_SPLAT['rmse_share']:g} with --no-chord-lengths)",
     )
     parser.add_argument(
         "--stride",
@@ -156,20 +159,13 @@ def warm_up(scan: str, base: Path) -> None:
     shutil.rmtree(work)
 
 
-def scalar_iterations(options) -> int:
-    return options.iterations or (4500 if options.no_chord_lengths else SCALAR_SPLAT["iterations"])
-
-
-def scalar_filter_scale(options) -> float:
-    if options.filter_scale is not None:
-        return options.filter_scale
-    return 0.2 if options.no_chord_lengths else SCALAR_SPLAT["filter_scale"]
-
-
-def scalar_rmse_share(options) -> float:
-    if options.rmse_share is not None:
-        return options.rmse_share
-    return 0.0 if options.no_chord_lengths else SCALAR_SPLAT["rmse_share"]
+def scalar_setting(options, name: str):
+    """The scalar run's splat setting ``name`` (iterations, filter_scale, rmse_share): the one
+    given, else the one-length scene's or run --scalar's."""
+    given = getattr(options, name)
+    if given is not None:
+        return given
+    return (ONE_LENGTH_SPLAT if options.no_chord_lengths else SCALAR_SPLAT)[name]
 
 
 def run_both_ways(options, base: Path) -> None:
@@ -183,8 +179,9 @@ def run_both_ways(options, base: Path) -> None:
     windows = ["--held-out-windows", str(options.held_out_windows)] if options.held_out_windows else []
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
     seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
-    scalar = ["--scalar", "--iterations", str(scalar_iterations(options)), "--max-gaussians", str(options.budget)]
-    scalar += ["--filter-scale", str(scalar_filter_scale(options)), "--rmse-share", str(scalar_rmse_share(options))]
+    scalar = ["--scalar", "--max-gaussians", str(options.budget)]
+    for name in ONE_LENGTH_SPLAT:
+        scalar += ["--" + name.replace("_", "-"), str(scalar_setting(options, name))]
     scalar += ["--no-chord-lengths"] if options.no_chord_lengths else []
     seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
     cubecloud("eval", str(work), "--turntable-frames", "0")
@@ -208,8 +205,8 @@ def report(options, base: Path) -> None:
     shared = seconds["preprocess"] + seconds["cunerf"]
     print(
         f"scan: {options.scan or 'bundled abdomen CT'}; scalar set {options.set} (stride {options.stride}), "
-        f"{scalar_iterations(options)} iterations{', one length' if options.no_chord_lengths else ''}, "
-        f"3D filter {scalar_filter_scale(options):g} px², RMSE share {scalar_rmse_share(options):g}, "
+        f"{scalar_setting(options, 'iterations')} iterations{', one length' if options.no_chord_lengths else ''}, "
+        f"3D filter {scalar_setting(options, 'filter_scale'):g} px², RMSE share {scalar_setting(options, 'rmse_share'):g}, "
         f"{options.budget} Gaussians at most; fast"
     )
     print(f"shared: preprocess {seconds['preprocess']:.1f} s, cunerf {seconds['cunerf']:.1f} s")
