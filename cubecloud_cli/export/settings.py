@@ -93,7 +93,8 @@ class ExportSettings:
     bake_size: int | None = None  # None: the preprocessed volume's size
     """Grid side for --render-from grid (default: the volume's size)."""
     seed: int = 0
-    """Seed of the point sampling."""
+    """Seed of the point sampling, of the random members of --transfer-set and of the random ramps and windows eval
+    holds out (bone, lung and vessels do not change with it)."""
     # The novel-view test (docs/design.md §2): directions, each at every magnification; 0 for none.
     novel_directions: int = DEFAULT_DIRECTIONS
     """Directions of the novel-view test (from the head, from the feet, then fixed random ones), each rendered from
