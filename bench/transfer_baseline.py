@@ -18,6 +18,10 @@ preprocess, such as a window wide enough for every held-out tissue):
    directory with the same preprocess/ and cunerf/, `export --transfer NAME` (a random ramp by its
    window, `--tf-low/--tf-high/--tf-density`), `splat`, `eval`.
 
+4. with `--seeds N`, the scalar way again at export seeds 1..N-1 (untimed: scores only), on the
+   same preprocess/ and cunerf/; the seed draws the set's random members (and the points and the
+   held-out ramp), which moves a held-out band by 1-4 dB, so one seed is one draw.
+
 Prints one row per transfer function (the scalar run's novel-view PSNR, whole and foreground, at
 0.75–1.33×, beside the baked run trained on that transfer function alone) and the seconds each
 way spends in export and splat, with its ratio to one baked run (`fast`'s own time for one
@@ -132,6 +136,13 @@ def main() -> None:
         help="also score the scalar run under this many random bands and ramps (no baked run for them; their "
         "references add to the scalar export's seconds, so time the two ways without them)",
     )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="also train and score the scalar scene at export seeds 1..N-1 (scores only; about 4 minutes each at "
+        "128³) and print each held-out transfer function's mean and lowest over the N seeds",
+    )
     parser.add_argument("--keep", type=Path, help="keep the work directories here (default: a temporary one)")
     parser.add_argument("--report-only", action="store_true", help="print the report of a --keep directory again")
     arguments = sys.argv[1:]
@@ -169,7 +180,8 @@ def scalar_setting(options, name: str):
 
 
 def run_both_ways(options, base: Path) -> None:
-    """Every run, its seconds written to ``base``/seconds.json for the report."""
+    """Every run, the timed ones' seconds written to ``base``/seconds.json for the report (the
+    scalar scene's runs at the other export seeds are scored, not timed)."""
     work = base / "scalar"
     scan = options.scan or str(sample_ct_path())
     extra = options.preprocess
@@ -179,10 +191,7 @@ def run_both_ways(options, base: Path) -> None:
     windows = ["--held-out-windows", str(options.held_out_windows)] if options.held_out_windows else []
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
     seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
-    scalar = ["--scalar", "--max-gaussians", str(options.budget)]
-    for name in ONE_LENGTH_SPLAT:
-        scalar += ["--" + name.replace("_", "-"), str(scalar_setting(options, name))]
-    scalar += ["--no-chord-lengths"] if options.no_chord_lengths else []
+    scalar = scalar_splat_arguments(options)
     seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
     cubecloud("eval", str(work), "--turntable-frames", "0")
     listed = json.loads((work / "export" / "novel" / "transfers.json").read_text())
@@ -193,6 +202,45 @@ def run_both_ways(options, base: Path) -> None:
             continue  # scored on the scalar run only: see report's summary line
         seconds["baked"][entry["name"]] = baked_run(work, base, f"baked-{entry['name']}", baked_arguments(entry))
     (base / "seconds.json").write_text(json.dumps(seconds, indent=1))
+    for seed in range(1, options.seeds):
+        again = base / f"scalar-seed-{seed}"
+        shutil.rmtree(again, ignore_errors=True)
+        for stage in SHARED:
+            shutil.copytree(work / stage, again / stage)
+        cubecloud("export", str(again), *spread, *windows, "--seed", str(seed))
+        cubecloud("splat", str(again), *scalar)
+        cubecloud("eval", str(again), "--turntable-frames", "0")
+
+
+def scalar_splat_arguments(options) -> list[str]:
+    arguments = ["--scalar", "--max-gaussians", str(options.budget)]
+    for name in ONE_LENGTH_SPLAT:
+        arguments += ["--" + name.replace("_", "-"), str(scalar_setting(options, name))]
+    return arguments + (["--no-chord-lengths"] if options.no_chord_lengths else [])
+
+
+def over_seeds(held_out_by_seed: list[dict]) -> dict[str, list[float]]:
+    """Each held-out transfer function's whole-image PSNR at every seed, from eval's
+    ``held_out_transfers`` of each; the random ramp and windows, another transfer function at each
+    seed, under their names as they are."""
+    scores: dict[str, list[float]] = {}
+    for held_out in held_out_by_seed:
+        for name, row in held_out.items():
+            scores.setdefault(name, []).append(row["psnr"])
+    return scores
+
+
+def report_over_seeds(options, base: Path) -> None:
+    runs = [base / "scalar"] + [base / f"scalar-seed-{seed}" for seed in range(1, options.seeds)]
+    held_out = [json.loads((run / "eval" / "metrics.json").read_text())["results"]["splat"] for run in runs]
+    scores = over_seeds([run.get("held_out_transfers", {}) for run in held_out])
+    print()
+    print(f"over export seeds 0-{options.seeds - 1} (the ramp: another transfer function at each seed)")
+    print("| held out | each seed | mean | lowest |")
+    print("|---|---|---|---|")
+    for name, values in scores.items():
+        each = " / ".join(f"{v:.2f}" for v in values)
+        print(f"| {name} | {each} | {statistics.mean(values):.2f} | {min(values):.2f} |")
 
 
 def report(options, base: Path) -> None:
@@ -245,6 +293,8 @@ def report(options, base: Path) -> None:
         f"(export {seconds['scalar export']:.0f} s, splat {seconds['scalar splat']:.0f} s)"
     )
     print(f"baked, one per transfer function ({len(baked)}): {baked_total:.0f} s = {baked_total / one_total:.2f}x")
+    if options.seeds > 1:
+        report_over_seeds(options, base)
 
 
 if __name__ == "__main__":

@@ -31,3 +31,16 @@ def test_each_held_out_transfer_function_is_exported_as_itself(seed):
         # export's command line takes them as they are
         result = CliRunner().invoke(app, ["export", "/nonexistent-work", *arguments])
         assert "No such option" not in result.output and "Invalid value" not in result.output
+
+
+def test_held_out_scores_are_gathered_by_name_over_the_seeds():
+    seeds = [
+        {"bone": {"psnr": 41.0}, "vessels": {"psnr": 40.5}, "held-out-ramp-0": {"psnr": 44.0}},
+        {"bone": {"psnr": 42.0}, "vessels": {"psnr": 38.5}, "held-out-ramp-0": {"psnr": 42.0}},
+    ]
+    assert baseline.over_seeds(seeds) == {
+        "bone": [41.0, 42.0],
+        "vessels": [40.5, 38.5],
+        "held-out-ramp-0": [44.0, 42.0],
+    }
+    assert baseline.over_seeds([]) == {}
