@@ -61,8 +61,24 @@ def cubecloud(*arguments: str) -> float:
     return time.perf_counter() - start
 
 
-def headline(work: Path, run: str = "splat") -> dict:
-    return json.loads((work / "eval" / "metrics.json").read_text())["results"][run]["novel"]["headline"]
+def splat_scores(work: Path) -> dict:
+    """eval's results for the splat run of ``work``."""
+    return json.loads((work / "eval" / "metrics.json").read_text())["results"]["splat"]
+
+
+def headline(work: Path) -> dict:
+    return splat_scores(work)["novel"]["headline"]
+
+
+def copy_shared_stages(work: Path, own: Path) -> None:
+    """``work``'s preprocess/ and cunerf/ into ``own``: no transfer function or seed enters them."""
+    for stage in SHARED:
+        shutil.copytree(work / stage, own / stage)
+
+
+def seed_work(base: Path, seed: int) -> Path:
+    """The scalar scene's work directory at export seed ``seed`` (0: the timed one)."""
+    return base / "scalar" if seed == 0 else base / f"scalar-seed-{seed}"
 
 
 def baked_arguments(entry: dict) -> list[str]:
@@ -76,8 +92,7 @@ def baked_arguments(entry: dict) -> list[str]:
 def baked_run(work: Path, base: Path, name: str, export_arguments: list[str]) -> dict:
     """Today's pipeline after cunerf under one transfer function, in ``base``/``name``; its seconds."""
     own = base / name
-    for stage in SHARED:
-        shutil.copytree(work / stage, own / stage)
+    copy_shared_stages(work, own)
     seconds = {"export": cubecloud("export", str(own), *export_arguments)}
     seconds["splat"] = cubecloud("splat", str(own))
     cubecloud("eval", str(own), "--turntable-frames", "0")
@@ -182,7 +197,7 @@ def scalar_setting(options, name: str):
 def run_both_ways(options, base: Path) -> None:
     """Every run, the timed ones' seconds written to ``base``/seconds.json for the report (the
     scalar scene's runs at the other export seeds are scored, not timed)."""
-    work = base / "scalar"
+    work = seed_work(base, 0)
     scan = options.scan or str(sample_ct_path())
     extra = options.preprocess
     warm_up(scan, base)
@@ -203,10 +218,9 @@ def run_both_ways(options, base: Path) -> None:
         seconds["baked"][entry["name"]] = baked_run(work, base, f"baked-{entry['name']}", baked_arguments(entry))
     (base / "seconds.json").write_text(json.dumps(seconds, indent=1))
     for seed in range(1, options.seeds):
-        again = base / f"scalar-seed-{seed}"
+        again = seed_work(base, seed)
         shutil.rmtree(again, ignore_errors=True)
-        for stage in SHARED:
-            shutil.copytree(work / stage, again / stage)
+        copy_shared_stages(work, again)
         cubecloud("export", str(again), *spread, *windows, "--seed", str(seed))
         cubecloud("splat", str(again), *scalar)
         cubecloud("eval", str(again), "--turntable-frames", "0")
@@ -231,9 +245,8 @@ def over_seeds(held_out_by_seed: list[dict]) -> dict[str, list[float]]:
 
 
 def report_over_seeds(options, base: Path) -> None:
-    runs = [base / "scalar"] + [base / f"scalar-seed-{seed}" for seed in range(1, options.seeds)]
-    held_out = [json.loads((run / "eval" / "metrics.json").read_text())["results"]["splat"] for run in runs]
-    scores = over_seeds([run.get("held_out_transfers", {}) for run in held_out])
+    results = [splat_scores(seed_work(base, seed)) for seed in range(options.seeds)]
+    scores = over_seeds([result.get("held_out_transfers", {}) for result in results])
     print()
     print(f"over export seeds 0-{options.seeds - 1} (the ramp: another transfer function at each seed)")
     print("| held out | each seed | mean | lowest |")
@@ -245,8 +258,8 @@ def report_over_seeds(options, base: Path) -> None:
 
 def report(options, base: Path) -> None:
     seconds = json.loads((base / "seconds.json").read_text())
-    work = base / "scalar"
-    scores = json.loads((work / "eval" / "metrics.json").read_text())["results"]["splat"]
+    work = seed_work(base, 0)
+    scores = splat_scores(work)
     listed = json.loads((work / "export" / "novel" / "transfers.json").read_text())
     baked = seconds["baked"]
     primary = next(iter(baked))
