@@ -17,12 +17,16 @@ from cubecloud_cli.transfer.tissue_presets import resolve_transfer
 from cubecloud_cli.transfer.training_set import (
     HELD_OUT_PRESETS,
     RAMP_DENSITY,
+    RAMP_START,
+    TILE_DENSITIES,
+    TILE_SIDES,
     NamedTransfer,
     held_out_transfers,
     member_slot,
     member_views,
     random_ramps,
     random_windows,
+    tiled_bands,
     training_transfers,
 )
 
@@ -36,8 +40,8 @@ def test_the_set_starts_with_the_exports_own_and_never_holds_out_what_eval_tests
     assert len(chosen) == 8 and chosen[0] == primary
     names = [t.name for t in chosen]
     assert len(set(names)) == 8 and not set(names) & set(HELD_OUT_PRESETS)
-    assert names[1:3] == ["soft", "glow"] and names[3:5] == ["band-0", "ramp-1"]
-    assert all(n.startswith(("band-", "ramp-")) for n in names[3:])
+    assert names[1:3] == ["soft", "glow"] and names[3:5] == ["tiled-band-0", "tiled-band-1"]
+    assert names[5:] == ["band-0", "ramp-1", "band-2"]  # half the rest tiled (rounded down), then drawn
     held = held_out_transfers(CT_WINDOW, seed=0, trained=chosen)
     assert {t.function for t in held.transfers}.isdisjoint({t.function for t in chosen})
     assert training_transfers(primary, 1, CT_WINDOW, seed=0) == [primary]
@@ -57,6 +61,27 @@ def test_held_out_windows_come_after_the_four_from_a_stream_no_training_set_draw
         assert [w.name for w in windows][:2] == WINDOWS and len({w.name for w in windows}) == 12
         assert {w.function for w in windows}.isdisjoint({t.function for t in trained})
         assert {w.function for w in windows}.isdisjoint({t.function for t in four.transfers})
+
+
+def test_the_tiled_bands_are_the_same_at_every_seed_and_the_drawn_ones_are_not():
+    primary = NamedTransfer("tissue", resolve_transfer("tissue", CT_WINDOW))
+    sets = [training_transfers(primary, 41, CT_WINDOW, seed=seed) for seed in (0, 1)]
+    tiled = [[t for t in chosen if t.name.startswith("tiled-band-")] for chosen in sets]
+    assert len(tiled[0]) == 19 and tiled[0] == tiled[1]
+    assert sets[0][22:] != sets[1][22:]
+
+
+def test_tiled_bands_start_evenly_over_the_value_range_and_cycle_their_shapes():
+    bands = tiled_bands(19)
+    for band in bands:
+        band.function.validate()
+        assert band.function.is_band
+    lows = np.array([b.function.low for b in bands])
+    assert lows[0] == RAMP_START[0] and lows[-1] == pytest.approx(RAMP_START[1])
+    np.testing.assert_allclose(np.diff(lows), (RAMP_START[1] - RAMP_START[0]) / 18)
+    assert {b.function.density for b in bands[:3]} == set(TILE_DENSITIES)
+    assert {round(b.function.high - b.function.low, 9) for b in bands[:2]} == set(TILE_SIDES)
+    assert [b.function.low for b in tiled_bands(1)] == [RAMP_START[0]] and tiled_bands(0) == []
 
 
 def test_random_windows_are_valid_bands_and_ramps_by_turns():

@@ -73,10 +73,11 @@ class ExportSettings:
     """dvr: extinction per world unit at full absorption; higher is more opaque."""
     transfer_set: int = 1
     """dvr: render the training views under this many transfer functions: --transfer first, then the presets eval
-    does not hold out, then seeded random bands and ramps by turns. A `splat --scalar` run trains under all of them,
-    so that it shows other tissue without retraining; each one more costs a render of every training view, or of one
-    in --transfer-stride. 41 at a stride of 6 scored best on transfer functions held out of training: 7.7 renders of
-    every view, against 5 for 5 at every view (docs/results.md, "Scalar scenes")."""
+    does not hold out, then half the rest as bands tiling the value range evenly, then seeded random bands and ramps
+    by turns. A `splat --scalar` run trains under all of them, so that it shows other tissue without retraining; each
+    one more costs a render of every training view, or of one in --transfer-stride. 41 at a stride of 6 scored best
+    on transfer functions held out of training: 7.7 renders of every view, against 5 for 5 at every view
+    (docs/results.md, "Scalar scenes")."""
     transfer_stride: int = 1
     """dvr with --transfer-set: render each transfer function after the export's own at every N-th view only, each
     from an offset of its own, so that a set N times as large costs the same renders (the export's own is rendered

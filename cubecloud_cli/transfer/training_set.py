@@ -30,6 +30,14 @@ RAMP_DENSITY = (1.0, 30.0)
 BAND_TOP = (0.02, 0.3)
 BAND_SIDE = (0.005, 0.1)
 RANDOM_BAND = "band"
+TILED_BAND = "tiled-band"
+# Half the members past the presets tile the value range; the sides, tops and densities of
+# consecutive tiles cycle through these, so that each stretch of the range sees a narrow and a
+# wide rise, a narrow and a wide top, and a faint, a middling and an opaque density.
+TILED_SHARE = 0.5
+TILE_SIDES = (0.01, 0.04)
+TILE_TOPS = (0.05, 0.15)
+TILE_DENSITIES = (2.0, 6.0, 18.0)
 HELD_OUT_SEED_OFFSET = 1_000_003  # eval's ramps come from a stream no training seed reaches
 HELD_OUT_WINDOW_SEED_OFFSET = HELD_OUT_SEED_OFFSET + 7  # and its extra bands and ramps from a third
 HELD_OUT_WINDOW = "held-out-window"
@@ -75,11 +83,26 @@ def random_windows(count: int, seed: int) -> list[NamedTransfer]:
     return windows
 
 
+def tiled_bands(count: int) -> list[NamedTransfer]:
+    """``count`` bands whose rises start evenly over RAMP_START, both ends included; tile k takes
+    the k-th side (mod 2), top (the k // 2-th, mod 2) and density (mod 3) of the cycles above."""
+    bands = []
+    for index in range(count):
+        low = RAMP_START[0] + (RAMP_START[1] - RAMP_START[0]) * index / max(count - 1, 1)
+        side, top = TILE_SIDES[index % 2], TILE_TOPS[(index // 2) % 2]
+        high = min(1.0, low + side)
+        fall_low = min(1.0, high + top)
+        function = TransferFunction(low, high, TILE_DENSITIES[index % 3], fall_low, min(1.0, fall_low + side))
+        bands.append(NamedTransfer(f"{TILED_BAND}-{index}", function))
+    return bands
+
+
 def training_transfers(
     primary: NamedTransfer, count: int, intensity_map: dict | None, seed: int
 ) -> list[NamedTransfer]:
     """``count`` transfer functions: ``primary``, then the presets not held out (in their order),
-    then seeded random bands and ramps. Presets the volume's window clips away are left out."""
+    then tiled bands (TILED_SHARE of the rest, rounded down), then seeded random bands and ramps.
+    Presets the volume's window clips away are left out."""
     if count < 1:
         raise ValueError(f"a training set needs at least one transfer function, got {count}")
     chosen = [primary]
@@ -88,6 +111,7 @@ def training_transfers(
             break
         if name != primary.name and name not in HELD_OUT_PRESETS and clipped_away(name, intensity_map) is None:
             chosen.append(NamedTransfer(name, resolve_transfer(name, intensity_map)))
+    chosen += tiled_bands(int((count - len(chosen)) * TILED_SHARE))
     chosen += random_windows(count - len(chosen), seed)
     return chosen
 
