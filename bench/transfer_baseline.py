@@ -20,7 +20,8 @@ preprocess, such as a window wide enough for every held-out tissue):
 
 4. with `--seeds N`, the scalar way again at export seeds 1..N-1 (untimed: scores only), on the
    same preprocess/ and cunerf/; the seed draws the set's random members (and the points and the
-   held-out ramp), which moves a held-out band by 1-4 dB, so one seed is one draw.
+   held-out ramp), which moves a held-out preset by up to 1.4 dB (1-4 dB before half the set was
+   tiled), so one seed is one draw.
 
 Prints one row per transfer function (the scalar run's novel-view PSNR, whole and foreground, at
 0.75–1.33×, beside the baked run trained on that transfer function alone) and the seconds each
