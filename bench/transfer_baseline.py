@@ -206,10 +206,8 @@ def run_both_ways(options, base: Path) -> None:
     seconds["cunerf"] = cubecloud("cunerf", str(work))
     windows = ["--held-out-windows", str(options.held_out_windows)] if options.held_out_windows else []
     spread = ["--transfer-set", str(options.set), "--transfer-stride", str(options.stride)]
-    seconds["scalar export"] = cubecloud("export", str(work), *spread, *windows)
     scalar = scalar_splat_arguments(options)
-    seconds["scalar splat"] = cubecloud("splat", str(work), *scalar)
-    cubecloud("eval", str(work), "--turntable-frames", "0")
+    seconds["scalar export"], seconds["scalar splat"] = scalar_way(work, [*spread, *windows], scalar)
     listed = json.loads((work / "export" / "novel" / "transfers.json").read_text())
     primary = json.loads((work / "export" / "manifest.json").read_text())["transfers"][0]["name"]
     seconds["baked"] = {primary: baked_run(work, base, f"baked-{primary}", ["--transfer", primary])}
@@ -222,9 +220,15 @@ def run_both_ways(options, base: Path) -> None:
         again = seed_work(base, seed)
         shutil.rmtree(again, ignore_errors=True)
         copy_shared_stages(work, again)
-        cubecloud("export", str(again), *spread, *windows, "--seed", str(seed))
-        cubecloud("splat", str(again), *scalar)
-        cubecloud("eval", str(again), "--turntable-frames", "0")
+        scalar_way(again, [*spread, *windows, "--seed", str(seed)], scalar)
+
+
+def scalar_way(work: Path, export_arguments: list[str], splat_arguments: list[str]) -> tuple[float, float]:
+    """The scalar scene's export, splat and eval in ``work``; the export's and the splat's seconds."""
+    export_seconds = cubecloud("export", str(work), *export_arguments)
+    splat_seconds = cubecloud("splat", str(work), *splat_arguments)
+    cubecloud("eval", str(work), "--turntable-frames", "0")
+    return export_seconds, splat_seconds
 
 
 def scalar_splat_arguments(options) -> list[str]:
