@@ -10,7 +10,9 @@ import pytest
 from cli_helpers import assert_one_line_error, invoke, tiny_export_options, tiny_work
 from hypothesis import given
 from hypothesis import strategies as st
+from PIL import Image
 
+from cubecloud_cli.eval.figures import LABEL_HEIGHT, PANEL_MIN_PIXELS, grey_to_rgb
 from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
 from cubecloud_cli.transfer.function import TransferFunction
 from cubecloud_cli.transfer.tissue_presets import resolve_transfer
@@ -159,6 +161,13 @@ def test_export_renders_the_novel_views_under_the_held_out_transfer_functions(ex
         assert not np.allclose(reference, main[headline])
 
 
+def _panel_of(picture: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """An error grid's first reference panel (row one, column one), back at its own size."""
+    factor = max(1, -(-PANEL_MIN_PIXELS // max(shape)))
+    top = 2 * LABEL_HEIGHT  # the title, then the row's label
+    return picture[top : top + shape[0] * factor : factor, : shape[1] * factor : factor]
+
+
 def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_baked_one_not(
     exported_under_three, tmp_path
 ):
@@ -188,6 +197,20 @@ def test_eval_scores_a_scalar_run_under_the_held_out_transfer_functions_and_a_ba
     assert "Not scored: lung shows -950..-300 HU, which the window -160..240 HU clips away" in report
     rows = (work / "eval" / "per_view.csv").read_text()
     assert "held-out transfer function bone" in rows
+    # Each held out is pictured at the first novel view at 1x: its reference panel is the volume
+    # rendered under that transfer function there, so the pictures differ.
+    pictures = {}
+    for name in held:
+        assert f"](views/held_out_{name}.png)" in report
+        pictures[name] = np.asarray(Image.open(work / "eval" / "views" / f"held_out_{name}.png").convert("L"))
+    novel = work / "export" / "novel"
+    listed = {e["name"]: e for e in json.loads((novel / "transfers.json").read_text())["held_out"]}
+    for name in ("bone", "vessels"):
+        entry = listed[name]
+        reference = np.load(novel / entry["file"])[entry["magnifications"].index(1.0) * 2]
+        panel = grey_to_rgb(reference)[..., 0]
+        assert _panel_of(pictures[name], panel.shape) == pytest.approx(panel, abs=1)
+    assert not np.array_equal(pictures["bone"], pictures["vessels"])
 
 
 @pytest.mark.parametrize(

@@ -176,6 +176,9 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
     transferred, not_scored = held_out_transfer_results(results)
     if transferred:
         lines += held_out_transfer_table(transferred, not_scored)
+    if pictures.get("held_out_transfers"):
+        lines += ["", "Each held-out transfer function at one novel view, beside the volume rendered under it:", ""]
+        lines += [f"![{Path(p).stem}]({p})" for p in pictures["held_out_transfers"]]
     if pictures.get("novel"):
         lines += ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["novel"]]

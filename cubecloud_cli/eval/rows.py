@@ -7,6 +7,7 @@ import csv
 import json
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -217,23 +218,36 @@ def score_fixed_opacity(run: SplatRun, baked, scored: ScoredScene, rasterizer, t
     result["novel_fixed_opacity"] = summarize(score_views(test.reference[storage], renders))
 
 
+@dataclass(frozen=True)
+class HeldOutPicture:
+    """One novel view under a held-out transfer function: the volume's reference and the render."""
+
+    view: str  # the novel view's name
+    reference: np.ndarray  # (H, W)
+    render: np.ndarray  # (H, W)
+
+
 def score_held_out_transfers(
     run: SplatRun, scalar, scored: ScoredScene, rasterizer, tick, per_view: list[dict], result: dict
-) -> None:
+) -> dict[str, HeldOutPicture]:
     """Draw a scalar scene under each transfer function it never trained under and score it at
     the headline novel views (0.75–1.33×) against the volume's references under that transfer
-    function; the summaries go into ``result["held_out_transfers"]`` by name."""
+    function; the summaries go into ``result["held_out_transfers"]`` by name. Returns, by name,
+    the first view at 1× (the report's "from above") for the report to picture."""
     test = scored.novel
     headline, storage = _headline(test)
     count = len(test.views.directions)
     angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
-    summaries = {}
+    pictured = headline.index(1.0) * count if 1.0 in headline else 0
+    view_name = test.views.entries()[storage[pictured]][0]
+    summaries, pictures = {}, {}
     for held in test.held_out:
         drawn = scalar.drawn_as(held.function)
         renders = _headline_renders(run, drawn, test, headline, rasterizer, tick, f"under {held.name}")
         all_rows = annotate([{}] * len(test.views.entries()), test, angles)
         references = held.reference[held.views_at(headline, count)]
         rows = [{**all_rows[index], **scores} for index, scores in zip(storage, score_views(references, renders))]
+        pictures[held.name] = HeldOutPicture(view_name, references[pictured], renders[pictured])
         per_view += [
             {
                 "row": run.name,
@@ -252,3 +266,4 @@ def score_held_out_transfers(
     result["held_out_transfers"] = summaries
     if test.not_scored:
         result["held_out_not_scored"] = dict(test.not_scored)
+    return pictures

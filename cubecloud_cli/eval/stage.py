@@ -30,6 +30,7 @@ from cubecloud_cli.eval.novel_scores import pictured_views
 from cubecloud_cli.eval.outputs import PAPER_TABLE_I, report_markdown, write_per_view_csv
 from cubecloud_cli.eval.rows import (
     CUNERF_ROW,
+    HeldOutPicture,
     cunerf_rows,
     picture_name,
     protocol_description,
@@ -138,8 +139,10 @@ class Scores:
     novel_renders: dict[int, dict[str, np.ndarray]] = field(
         default_factory=dict
     )  # pictured novel view -> run -> render
+    # held-out transfer function -> run -> its picture (one novel view)
+    held_out_pictures: dict[str, dict[str, HeldOutPicture]] = field(default_factory=dict)
     pictures: dict[str, list[str]] = field(
-        default_factory=lambda: {"views": [], "novel": [], "turntables": [], "curves": []}
+        default_factory=lambda: {"views": [], "novel": [], "held_out_transfers": [], "turntables": [], "curves": []}
     )
 
 
@@ -273,7 +276,10 @@ def _score_run(
         pictured = score_novel(run, gaussians, scored, rasterizer, tick, scores.per_view, result)
         scalar = run.scalar_gaussians() if scored.novel.held_out else None
         if scalar is not None:
-            score_held_out_transfers(run, scalar.to(device), scored, rasterizer, tick, scores.per_view, result)
+            held = score_held_out_transfers(run, scalar.to(device), scored, rasterizer, tick, scores.per_view, result)
+            if scored is loaded.main_scene:
+                for name, picture in held.items():
+                    scores.held_out_pictures.setdefault(name, {})[run.name] = picture
         if run.chord_lengths:
             score_fixed_opacity(run, run.fixed_opacity_gaussians().to(device), scored, rasterizer, tick, result)
         if scored is loaded.main_scene:
@@ -325,6 +331,14 @@ def _draw_pictures(loaded: LoadedRuns, scores: Scores, directory: Path) -> None:
                 )
                 save_picture(grid, directory / relative)
                 pictures["novel"].append(relative)
+    for name, by_run in scores.held_out_pictures.items():
+        first = next(iter(by_run.values()))
+        relative = f"views/held_out_{picture_name(name)}.png"
+        renders = {run: picture.render for run, picture in by_run.items()}
+        save_picture(
+            error_grid(first.reference, renders, f"held out: {name}, novel view {first.view}"), directory / relative
+        )
+        pictures["held_out_transfers"].append(relative)
     curves = [(run.name, *training_curve(run)) for run in loaded.runs]
     if any(xs for _, xs, _ in curves):
         (directory / "psnr_vs_iteration.svg").write_text(
