@@ -12,7 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from PIL import Image
 
-from cubecloud_cli.eval.figures import LABEL_HEIGHT, PANEL_MIN_PIXELS, grey_to_rgb
+from cubecloud_cli.eval.figures import LABEL_HEIGHT, enlargement, grey_to_rgb
 from cubecloud_cli.splat.gaussian_ply import read_scalar_properties
 from cubecloud_cli.transfer.function import TransferFunction
 from cubecloud_cli.transfer.tissue_presets import resolve_transfer
@@ -163,7 +163,7 @@ def test_export_renders_the_novel_views_under_the_held_out_transfer_functions(ex
 
 def _panel_of(picture: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """An error grid's first reference panel (row one, column one), back at its own size."""
-    factor = max(1, -(-PANEL_MIN_PIXELS // max(shape)))
+    factor = enlargement(shape)
     top = 2 * LABEL_HEIGHT  # the title, then the row's label
     return picture[top : top + shape[0] * factor : factor, : shape[1] * factor : factor]
 

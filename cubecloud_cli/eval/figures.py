@@ -46,9 +46,14 @@ def grey_to_rgb(image: np.ndarray) -> np.ndarray:
     return np.repeat(grey[..., None], 3, axis=-1)
 
 
+def enlargement(shape: tuple[int, ...]) -> int:
+    """The whole factor a panel of ``shape`` (H, W, …) is enlarged by, so a reader can see pixels."""
+    return max(1, math.ceil(PANEL_MIN_PIXELS / max(shape[:2])))
+
+
 def _enlarge(image: np.ndarray) -> Image.Image:
     picture = Image.fromarray(image)
-    factor = max(1, math.ceil(PANEL_MIN_PIXELS / max(image.shape[:2])))
+    factor = enlargement(image.shape)
     return picture.resize((picture.width * factor, picture.height * factor), Image.NEAREST) if factor > 1 else picture
 
 

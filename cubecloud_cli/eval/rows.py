@@ -233,12 +233,13 @@ def score_held_out_transfers(
     """Draw a scalar scene under each transfer function it never trained under and score it at
     the headline novel views (0.75–1.33×) against the volume's references under that transfer
     function; the summaries go into ``result["held_out_transfers"]`` by name. Returns, by name,
-    the first view at 1× (the report's "from above") for the report to picture."""
+    the first of the report's pictured views among them (from above, 1×) for the report to picture."""
     test = scored.novel
     headline, storage = _headline(test)
     count = len(test.views.directions)
     angles = view_angles(test, scored.scene.cameras.centres()[scored.scene.train])
-    pictured = headline.index(1.0) * count if 1.0 in headline else 0
+    shown = [storage.index(index) for _, index in pictured_views(test) if index in storage]
+    pictured = shown[0] if shown else 0
     view_name = test.views.entries()[storage[pictured]][0]
     summaries, pictures = {}, {}
     for held in test.held_out:
