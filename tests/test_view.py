@@ -88,7 +88,7 @@ def test_the_byte_count_reads_what_devtools_says_reached_the_page(payload, text,
 def test_a_port_whose_last_connection_is_closing_counts_as_free():
     """A viewer stopped and started again at once finds its port's old connections in TIME_WAIT
     for a minute; the port is free to listen on (as viser's own server sees it)."""
-    from cubecloud_cli.view.server import check_port_free
+    from cubecloud_cli.view.listening import check_port_free
 
     with socket.socket() as listener:
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's server (asyncio) listens

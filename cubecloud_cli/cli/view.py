@@ -61,7 +61,8 @@ def view_command(
 
       cubecloud view work --detail 10      # a browser without a GPU stays responsive
     """
-    from cubecloud_cli.view.server import SceneViewer, check_address
+    from cubecloud_cli.view.listening import check_address
+    from cubecloud_cli.view.server import SceneViewer
 
     configure_logging(quiet)
     check_address(host, port)

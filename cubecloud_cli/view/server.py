@@ -14,10 +14,7 @@ import itertools
 import json
 import logging
 import math
-import socket
-import sys
 import threading
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,16 +27,18 @@ from cubecloud_cli.view.camera_rest import CameraRest
 from cubecloud_cli.view.context import load_context
 from cubecloud_cli.view.delivery import SplatDelivery
 from cubecloud_cli.view.layers import ANTERIOR_VIEW, SLICE_AXES, SliceLayer, ViewPose, camera_poses, camera_view
+from cubecloud_cli.view.listening import check_port_free, start_server
 from cubecloud_cli.view.splats import (
-    CLIP_AXES,
+    CLIP_CHOICES,
+    Clip,
     ViewSplats,
-    axis_normal,
     by_importance,
     clip_mask,
     detail_count,
     detail_percent,
     view_scale,
     view_splats,
+    visible_splats,
 )
 from cubecloud_cli.view.transfer_view import (
     CONTROLS,
@@ -51,37 +50,11 @@ from cubecloud_cli.view.transfer_view import (
 
 log = logging.getLogger("cubecloud")
 
-CLIP_CHOICES = ("off", *CLIP_AXES, "view direction")
 # Where the patient's axes point in the RAS world (docs/design.md §2), for the labels.
 PATIENT_LABELS = {"L": (-1, 0, 0), "R": (1, 0, 0), "P": (0, -1, 0), "A": (0, 1, 0), "I": (0, 0, -1), "S": (0, 0, 1)}
 FRUSTUM_SIZE = 0.08  # of the cameras' distance from the centre: small enough not to hide the body
 FRUSTUM_COLOUR = (70, 150, 255)
 FALLBACK_VOXELS = 128  # the point size, as a voxel of this cube, when there is no volume to measure
-
-
-@dataclass
-class Clip:
-    """The clipping plane in world units: ``axis`` one of CLIP_CHOICES, ``position`` along it."""
-
-    axis: str = "off"
-    position: float = 0.0
-    keep: str = "below"
-    view_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
-
-    def normal(self) -> np.ndarray | None:
-        if self.axis == "off":
-            return None
-        if self.axis == "view direction":
-            return -np.asarray(self.view_direction, dtype=np.float64)  # hide what faces the viewer
-        return axis_normal(self.axis)
-
-
-def visible_splats(splats: ViewSplats, clip: Clip) -> ViewSplats:
-    """The Gaussians the clipping plane leaves in view."""
-    normal = clip.normal()
-    if normal is None:
-        return splats
-    return splats.subset(clip_mask(splats.centers, normal, clip.position, clip.keep))  # type: ignore[arg-type]
 
 
 def _is_scalar_run(ply: Path) -> bool:
@@ -100,43 +73,6 @@ def load_runs(work: Path) -> dict[str, Path]:
     if not runs:
         raise CubecloudError(f"{work} has no finished splat run: run `cubecloud splat {work}` first")
     return runs
-
-
-def check_address(host: str, port: int) -> None:
-    """A one-line error for a port outside 1–65535 or a host name that resolves to no address."""
-    if not 1 <= port <= 65535:
-        raise CubecloudError(f"--port {port} is not a port: choose one from 1 to 65535, e.g. 8080")
-    try:
-        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as exc:
-        raise CubecloudError(f"--host {host} does not resolve to an address ({exc}): use 127.0.0.1") from None
-
-
-def check_port_free(host: str, port: int) -> None:
-    """A one-line error now, rather than a server that quietly takes another port. A port whose
-    last connections are closing (TIME_WAIT, a minute after a viewer stopped) is free: viser's
-    server reuses it, and so does this probe (on Windows the option would let two listen at once)."""
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
-        if sys.platform != "win32":
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((host, port))
-        except OSError as exc:
-            raise CubecloudError(f"cannot listen on {host}:{port} ({exc.strerror}): choose another --port") from None
-
-
-def start_server(host: str, port: int):
-    """A viser server that serves the scene and nothing else. Its share button would relay the
-    scene (the patient's scan) through a public tunnel, so it is hidden and its request refused.
-    viser's own banner is dropped: the command prints the address in its own words."""
-    import viser  # imported here: every other command starts without it
-    from viser import _messages
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host=host, port=port, verbose=False)
-    server.gui.configure_theme(dark_mode=True, show_share_button=False)
-    server._websock_server.unregister_handler(_messages.ShareUrlRequest)
-    return server
 
 
 class SceneViewer:

@@ -1,6 +1,6 @@
 """Trained Gaussians as a browser viewer draws them: centres, 3×3 covariances, RGB and opacity
 computed exactly as the rasterizer computes them, a scene scale that survives the viewer's
-float16 covariances, and the clipping plane's selection.
+float16 covariances, and the clipping plane with what it leaves in view.
 
 The viewer (viser) sends centres as float32 but the six covariance terms as float16, whose
 smallest normal number is 6.1e-5: variances below it (σ under 0.008 world units, two voxels of a
@@ -12,7 +12,7 @@ power of two (exact in binary) that brings the typical σ near 1.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -25,6 +25,7 @@ FLOAT16_MAX = 65504.0
 MAX_VIEW_SCALE = 1024.0
 # RAS world axes (docs/design.md §2): the plane normal of each anatomical cut.
 CLIP_AXES: dict[str, int] = {"sagittal": 0, "coronal": 1, "axial": 2}
+CLIP_CHOICES = ("off", *CLIP_AXES, "view direction")
 ClipSide = Literal["below", "above"]
 
 
@@ -140,3 +141,28 @@ def detail_count(total: int, percent: float) -> int:
         return 0
     share = 1.0 if math.isnan(percent) else min(max(float(percent), 0.0), 100.0) / 100.0
     return min(total, max(1, math.ceil(total * share)))
+
+
+@dataclass
+class Clip:
+    """The clipping plane in world units: ``axis`` one of CLIP_CHOICES, ``position`` along it."""
+
+    axis: str = "off"
+    position: float = 0.0
+    keep: str = "below"
+    view_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+
+    def normal(self) -> np.ndarray | None:
+        if self.axis == "off":
+            return None
+        if self.axis == "view direction":
+            return -np.asarray(self.view_direction, dtype=np.float64)  # hide what faces the viewer
+        return axis_normal(self.axis)
+
+
+def visible_splats(splats: ViewSplats, clip: Clip) -> ViewSplats:
+    """The Gaussians the clipping plane leaves in view."""
+    normal = clip.normal()
+    if normal is None:
+        return splats
+    return splats.subset(clip_mask(splats.centers, normal, clip.position, clip.keep))  # type: ignore[arg-type]
