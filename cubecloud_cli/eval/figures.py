@@ -5,6 +5,7 @@ report needs no plotting library."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
 
@@ -206,6 +207,28 @@ def _padded_range(values: list[float]) -> tuple[float, float]:
     return low - pad, high + pad
 
 
+@dataclass(frozen=True)
+class _PlotArea:
+    """Where a plot's data range lands on its canvas: margins in pixels, the axes' data range."""
+
+    width: int
+    height: int
+    left: int
+    right: int
+    top: int
+    bottom: int
+    x_range: tuple[float, float]
+    y_range: tuple[float, float]
+
+    def sx(self, x: float) -> float:
+        (x0, x1) = self.x_range
+        return self.left + (x - x0) / (x1 - x0) * (self.width - self.left - self.right)
+
+    def sy(self, y: float) -> float:
+        (y0, y1) = self.y_range
+        return self.height - self.bottom - (y - y0) / (y1 - y0) * (self.height - self.top - self.bottom)
+
+
 def line_plot_svg(
     series: list[tuple[str, list[float], list[float]]],
     title: str,
@@ -227,7 +250,6 @@ def line_plot_svg(
     log_x, log_y = log_axes
     series = [(label, _to_axis(xs, log_x), _to_axis(ys, log_y)) for label, xs, ys in series]
     y_include = tuple(_to_axis(list(y_include), log_y))
-    (width, height), left, right, top, bottom = size, 70, 170, 40, 50
     points = [(x, y) for _, xs, ys in series for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
     xs_all, ys_all = [p[0] for p in points] or [0.0, 1.0], ([p[1] for p in points] or [0.0, 1.0]) + list(y_include)
     (x_low, x_high), (y_low, y_high) = _padded_range(xs_all), _padded_range(ys_all)
@@ -237,13 +259,22 @@ def line_plot_svg(
     x0, x1 = min(x_positions[0], x_low), max(x_positions[-1], x_high)
     y0, y1 = min(y_positions[0], y_low), max(y_positions[-1], y_high)
     x1, y1 = (x1 if x1 > x0 else x0 + 1.0), (y1 if y1 > y0 else y0 + 1.0)
+    area = _PlotArea(*size, left=70, right=170, top=40, bottom=50, x_range=(x0, x1), y_range=(y0, y1))
+    parts = _frame_svg(area, title, (x_label, y_label), (x_positions, y_positions), log_axes)
+    series_parts, anchors, texts = _series_svg(area, series, markers_only, point_labels or {})
+    bounds = (area.left + 1, area.top - 10, area.width - area.right + 4, area.height - area.bottom - 1)
+    return "\n".join([*parts, *series_parts, *_point_labels_svg(anchors, texts, bounds), "</svg>"])
 
-    def sx(x: float) -> float:
-        return left + (x - x0) / (x1 - x0) * (width - left - right)
 
-    def sy(y: float) -> float:
-        return height - bottom - (y - y0) / (y1 - y0) * (height - top - bottom)
-
+def _frame_svg(
+    area: _PlotArea,
+    title: str,
+    labels: tuple[str, str],
+    ticks: tuple[list[float], list[float]],
+    log_axes: tuple[bool, bool],
+) -> list[str]:
+    """The canvas, title, axes, ticks (x below, y with a grid line) and the axis labels."""
+    width, height, left, right, top, bottom = area.width, area.height, area.left, area.right, area.top, area.bottom
     parts = [
         f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="12">',
         f'<rect width="{width}" height="{height}" fill="white"/>',
@@ -251,44 +282,65 @@ def line_plot_svg(
         f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
         f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>',
     ]
-    for x in x_positions:
+    for x in ticks[0]:
+        sx = area.sx(x)
         parts.append(
-            f'<line x1="{sx(x):.1f}" y1="{height - bottom}" x2="{sx(x):.1f}" y2="{height - bottom + 5}" stroke="black"/>'
-            f'<text x="{sx(x):.1f}" y="{height - bottom + 18}" text-anchor="middle">{_tick_label(x, log_x)}</text>'
+            f'<line x1="{sx:.1f}" y1="{height - bottom}" x2="{sx:.1f}" y2="{height - bottom + 5}" stroke="black"/>'
+            f'<text x="{sx:.1f}" y="{height - bottom + 18}" text-anchor="middle">{_tick_label(x, log_axes[0])}</text>'
         )
-    for y in y_positions:
+    for y in ticks[1]:
+        sy = area.sy(y)
         parts.append(
-            f'<line x1="{left - 5}" y1="{sy(y):.1f}" x2="{width - right}" y2="{sy(y):.1f}" stroke="#e5e5e5"/>'
-            f'<text x="{left - 8}" y="{sy(y) + 4:.1f}" text-anchor="end">{_tick_label(y, log_y)}</text>'
+            f'<line x1="{left - 5}" y1="{sy:.1f}" x2="{width - right}" y2="{sy:.1f}" stroke="#e5e5e5"/>'
+            f'<text x="{left - 8}" y="{sy + 4:.1f}" text-anchor="end">{_tick_label(y, log_axes[1])}</text>'
         )
     parts.append(
-        f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(x_label)}</text>'
-        f'<text transform="translate(18 {(top + height - bottom) / 2:.0f}) rotate(-90)" text-anchor="middle">{escape(y_label)}</text>'
+        f'<text x="{(left + width - right) / 2:.0f}" y="{height - 12}" text-anchor="middle">{escape(labels[0])}</text>'
+        f'<text transform="translate(18 {(top + height - bottom) / 2:.0f}) rotate(-90)" text-anchor="middle">{escape(labels[1])}</text>'
     )
-    anchors, texts = [], []
+    return parts
+
+
+def _series_svg(
+    area: _PlotArea,
+    series: list[tuple[str, list[float], list[float]]],
+    markers_only: bool,
+    point_labels: dict[str, list[str]],
+) -> tuple[list[str], list[tuple[float, float, str]], list[str]]:
+    """Each series' line, points and legend entry; and every drawn point's pixel position and
+    colour with the name ``point_labels`` gives it ("" for none), for the labels to place."""
+    parts, anchors, texts = [], [], []
     for index, (label, xs, ys) in enumerate(series):
         colour = SERIES_COLOURS[index % len(SERIES_COLOURS)]
-        kept = [(x, y) for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
+        kept = [(area.sx(x), area.sy(y)) for x, y in zip(xs, ys) if math.isfinite(x) and math.isfinite(y)]
         if len(kept) > 1 and not markers_only:
-            path = " ".join(f"{sx(x):.1f},{sy(y):.1f}" for x, y in kept)
+            path = " ".join(f"{x:.1f},{y:.1f}" for x, y in kept)
             parts.append(f'<polyline points="{path}" fill="none" stroke="{colour}" stroke-width="2"/>')
-        names = (point_labels or {}).get(label, [])
+        names = point_labels.get(label, [])
         for i, (x, y) in enumerate(kept):
-            parts.append(f'<circle cx="{sx(x):.1f}" cy="{sy(y):.1f}" r="3.5" fill="{colour}"/>')
-            anchors.append((sx(x), sy(y), colour))
+            parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3.5" fill="{colour}"/>')
+            anchors.append((x, y, colour))
             texts.append(names[i] if i < len(names) else "")
-        legend_y = top + 10 + 18 * index
+        legend_x, legend_y = area.width - area.right, area.top + 10 + 18 * index
         parts.append(
-            f'<rect x="{width - right + 12}" y="{legend_y - 9}" width="12" height="12" fill="{colour}"/>'
-            f'<text x="{width - right + 30}" y="{legend_y + 1}">{escape(label)}</text>'
+            f'<rect x="{legend_x + 12}" y="{legend_y - 9}" width="12" height="12" fill="{colour}"/>'
+            f'<text x="{legend_x + 30}" y="{legend_y + 1}">{escape(label)}</text>'
         )
-    bounds = (left + 1, top - 10, width - right + 4, height - bottom - 1)
+    return parts, anchors, texts
+
+
+def _point_labels_svg(
+    anchors: list[tuple[float, float, str]], texts: list[str], bounds: tuple[float, float, float, float]
+) -> list[str]:
+    """The points' names where ``place_labels`` finds room, with a leader line to a name moved
+    out of its point's reach."""
+    parts = []
     for (x, y, colour), text, spot in zip(anchors, texts, place_labels([(x, y) for x, y, _ in anchors], texts, bounds)):
         if spot is None:
             continue
         tx, ty, anchor, box = spot
         near_x, near_y = min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3])
-        if math.hypot(near_x - x, near_y - y) > 8:  # moved out of its point's reach: a leader line says whose it is
+        if math.hypot(near_x - x, near_y - y) > 8:
             parts.append(
                 f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{near_x:.1f}" y2="{near_y:.1f}" stroke="{colour}" '
                 'stroke-width="0.7" opacity="0.6"/>'
@@ -297,5 +349,4 @@ def line_plot_svg(
             f'<text x="{tx:.1f}" y="{ty:.1f}" font-size="{LABEL_FONT_PX}" text-anchor="{anchor}" '
             f'fill="{colour}">{escape(text)}</text>'
         )
-    parts.append("</svg>")
-    return "\n".join(parts)
+    return parts
