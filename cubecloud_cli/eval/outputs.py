@@ -151,6 +151,22 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
         "and a baseline trained from one camera pose. `against`: what a row is scored against (the volume's "
         "reference renders, or a foreign scene's own images).",
     ]
+    lines += _novel_section(results)
+    transferred, not_scored = held_out_transfer_results(results)
+    if transferred:
+        lines += held_out_transfer_table(transferred, not_scored)
+    if pictures.get("held_out_transfers"):
+        lines += ["", "Each held-out transfer function at one novel view, beside the volume rendered under it:", ""]
+        lines += [f"![{Path(p).stem}]({p})" for p in pictures["held_out_transfers"]]
+    lines += _pictures_section(pictures)
+    lines += ["", "Per-view scores: [per_view.csv](per_view.csv). Machine-readable: [metrics.json](metrics.json).", ""]
+    return "\n".join(lines)
+
+
+def _novel_section(results: dict[str, dict]) -> list[str]:
+    """Each run's novel-view cells, and for a chord-length scene its score drawn with one opacity
+    per Gaussian, as other splat viewers draw it."""
+    lines: list[str] = []
     novel_runs = {row: result["novel"] for row, result in results.items() if result.get("novel")}
     if novel_runs:
         lines += [
@@ -173,12 +189,13 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
                     f"{_number(fixed.get('psnr'))} dB ({_number(fixed.get('psnr_foreground'))} dB in the body) at the "
                     f"novel views 0.75–1.33×, against {_number(novel['headline'].get('psnr'))} dB at the same views drawn as trained.",
                 ]
-    transferred, not_scored = held_out_transfer_results(results)
-    if transferred:
-        lines += held_out_transfer_table(transferred, not_scored)
-    if pictures.get("held_out_transfers"):
-        lines += ["", "Each held-out transfer function at one novel view, beside the volume rendered under it:", ""]
-        lines += [f"![{Path(p).stem}]({p})" for p in pictures["held_out_transfers"]]
+    return lines
+
+
+def _pictures_section(pictures: dict[str, list[str]]) -> list[str]:
+    """The novel views, held-out views, turntables and training curves eval drew, each under its
+    heading."""
+    lines: list[str] = []
     if pictures.get("novel"):
         lines += ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["novel"]]
@@ -205,8 +222,7 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
             "",
         ]
         lines += [f"![{Path(p).stem}]({p})" for p in pictures["curves"]]
-    lines += ["", "Per-view scores: [per_view.csv](per_view.csv). Machine-readable: [metrics.json](metrics.json).", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def held_out_transfer_results(results: dict[str, dict]) -> tuple[dict[str, dict[str, dict]], dict[str, str]]:
