@@ -4,6 +4,7 @@ timed, each view saved as it is done so that an interrupted export continues."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -85,7 +86,7 @@ def render_export(
     on_progress: ProgressCallback,
 ) -> ExportRenders:
     """CuNeRF's views, the volume's views and novel references, and the point cloud, each phase timed."""
-    settings, cameras, device, views = job.settings, job.cameras, job.device, job.total_views
+    cameras, device, views = job.cameras, job.device, job.total_views
 
     def count_views(phase: str, before: int):
         return lambda done, total: on_progress(phase, before + done, views, {})
@@ -131,33 +132,49 @@ def render_export(
     held_out = []
     if job.held_out and job.held_out.transfers:
         with writer.phase("render_held_out"):
-            transfers = job.held_out.transfers
-            references = render_novel_references(
-                volume_field,
-                job.held_out_views,
-                [replace(job.image_model, transfer=named.function, slice_offsets=()) for named in transfers],
-                device,
-                progress,
-                count_views("held-out", rendered + len(cameras) + len(job.novel)),
-                # Saved under another prefix than the all-magnification views of earlier exports.
-                prefixes=[f"held_out_{index}_headline" for index in range(len(transfers))],
+            held_out = _held_out_references(
+                volume_field, job, progress, count_views("held-out", rendered + len(cameras) + len(job.novel))
             )
-            held_out = list(zip(transfers, references))
     with writer.phase("point_cloud"):
         on_progress("points", views, views, {})
-        cloud = build_point_cloud(
-            field.cube_values,
-            field.point_density,
-            cunerf_images_field,
-            job.size,
-            settings.cube,
-            settings.points_per_cube,
-            settings.max_points or None,
-            settings.air_threshold,
-            settings.seed,
-            device,
-        )
+        cloud = _cube_cloud(field, cunerf_images_field, job)
     return ExportRenders(images, transfer_images, reference, novel_reference, held_out, cloud)
+
+
+def _held_out_references(
+    volume_field: GridField, job: ExportJob, progress: ExportProgress, on_views: Callable[[int, int], None]
+) -> list[tuple[NamedTransfer, np.ndarray]]:
+    """The volume under each held-out transfer function at the headline novel views, for eval."""
+    transfers = job.held_out.transfers
+    references = render_novel_references(
+        volume_field,
+        job.held_out_views,
+        [replace(job.image_model, transfer=named.function, slice_offsets=()) for named in transfers],
+        job.device,
+        progress,
+        on_views,
+        # Saved under another prefix than the all-magnification views of earlier exports.
+        prefixes=[f"held_out_{index}_headline" for index in range(len(transfers))],
+    )
+    return list(zip(transfers, references))
+
+
+def _cube_cloud(field: CunerfField, images_field, job: ExportJob) -> PointCloud:
+    """The Cube-Cloud points, sampled cube by cube from CuNeRF's intensity and density, the budget
+    steered by the gradient of the field the training views were rendered from."""
+    settings = job.settings
+    return build_point_cloud(
+        field.cube_values,
+        field.point_density,
+        images_field,
+        job.size,
+        settings.cube,
+        settings.points_per_cube,
+        settings.max_points or None,
+        settings.air_threshold,
+        settings.seed,
+        job.device,
+    )
 
 
 def _render_saving_views(
