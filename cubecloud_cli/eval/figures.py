@@ -221,11 +221,11 @@ class _PlotArea:
     y_range: tuple[float, float]
 
     def sx(self, x: float) -> float:
-        (x0, x1) = self.x_range
+        x0, x1 = self.x_range
         return self.left + (x - x0) / (x1 - x0) * (self.width - self.left - self.right)
 
     def sy(self, y: float) -> float:
-        (y0, y1) = self.y_range
+        y0, y1 = self.y_range
         return self.height - self.bottom - (y - y0) / (y1 - y0) * (self.height - self.top - self.bottom)
 
 

@@ -155,9 +155,6 @@ def report_markdown(title: str, protocol: dict, results: dict[str, dict], pictur
     transferred, not_scored = held_out_transfer_results(results)
     if transferred:
         lines += held_out_transfer_table(transferred, not_scored)
-    if pictures.get("held_out_transfers"):
-        lines += ["", "Each held-out transfer function at one novel view, beside the volume rendered under it:", ""]
-        lines += [f"![{Path(p).stem}]({p})" for p in pictures["held_out_transfers"]]
     lines += _pictures_section(pictures)
     lines += ["", "Per-view scores: [per_view.csv](per_view.csv). Machine-readable: [metrics.json](metrics.json).", ""]
     return "\n".join(lines)
@@ -192,36 +189,45 @@ def _novel_section(results: dict[str, dict]) -> list[str]:
     return lines
 
 
-def _pictures_section(pictures: dict[str, list[str]]) -> list[str]:
-    """The novel views, held-out views, turntables and training curves eval drew, each under its
-    heading."""
-    lines: list[str] = []
-    if pictures.get("novel"):
-        lines += ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]
-        lines += [f"![{Path(p).stem}]({p})" for p in pictures["novel"]]
-    if pictures.get("views"):
-        lines += [
+# Each kind of picture eval draws, in the report's order, with the lines that introduce it.
+PICTURE_SECTIONS: tuple[tuple[str, list[str]], ...] = (
+    (
+        "held_out_transfers",
+        ["", "Each held-out transfer function at one novel view, beside the volume rendered under it:", ""],
+    ),
+    ("novel", ["", "Novel views beside their references (from above, from below, zoomed in, zoomed out):", ""]),
+    (
+        "views",
+        [
             "",
             "## Held-out views",
             "",
             "Each row: the reference, a method's render, and its absolute error "
             "(one colour scale per view, shown by the bar).",
             "",
-        ]
-        lines += [f"![{Path(p).stem}]({p})" for p in pictures["views"]]
-    if pictures.get("turntables"):
-        lines += ["", "## Turntables", ""]
-        lines += [f"![{Path(p).stem}]({p})" for p in pictures["turntables"]]
-    if pictures.get("curves"):
-        lines += [
+        ],
+    ),
+    ("turntables", ["", "## Turntables", ""]),
+    (
+        "curves",
+        [
             "",
             "## Training curves",
             "",
             "Test PSNR during training, from each run's `log.csv`: against the images it "
             "trained on (CuNeRF renders), not the volume's reference renders.",
             "",
-        ]
-        lines += [f"![{Path(p).stem}]({p})" for p in pictures["curves"]]
+        ],
+    ),
+)
+
+
+def _pictures_section(pictures: dict[str, list[str]]) -> list[str]:
+    """Every picture eval drew, each kind under its introduction (PICTURE_SECTIONS)."""
+    lines: list[str] = []
+    for kind, introduction in PICTURE_SECTIONS:
+        if pictures.get(kind):
+            lines += introduction + [f"![{Path(p).stem}]({p})" for p in pictures[kind]]
     return lines
 
 
